@@ -1,0 +1,282 @@
+//! Capture folders: assembling a capture (images + lights + mask) from files — an image list
+//! with a lights file, or a folder in the DiLiGenT layout — and writing synthetic data sets.
+//!
+//! DiLiGenT layout (Shi et al., CVPR 2016): `filenames.txt` (image names in order),
+//! `light_directions.txt` (`x y z` per line), `light_intensities.txt` (`r g b` per line, optional)
+//! and `mask.png` (optional; object pixels > 0).
+
+use crate::error::{Error, Result};
+use crate::grid::{Grid, Mask};
+use crate::input::{ImageStack, LoadOptions, load_stack, read_mask};
+use crate::lights::Lights;
+use crate::progress::Progress;
+use std::path::{Path, PathBuf};
+
+/// Images, the lights that lit them, and the object mask: the input of a reconstruction.
+#[derive(Debug, Clone)]
+pub struct Capture {
+    /// The images, divided by light intensity.
+    pub stack: ImageStack,
+    /// One light per image, in stack order.
+    pub lights: Lights,
+    /// Object pixels (all pixels when no mask was given).
+    pub mask: Mask,
+    /// Where the images came from (empty for in-memory captures).
+    pub images: Vec<PathBuf>,
+    /// The lights file, if any.
+    pub lights_source: Option<PathBuf>,
+    /// The mask file, if any.
+    pub mask_source: Option<PathBuf>,
+}
+
+/// True when `dir` is a folder with DiLiGenT's `filenames.txt` and `light_directions.txt`.
+pub fn is_diligent_dir(dir: &Path) -> bool {
+    dir.is_dir()
+        && dir.join("filenames.txt").is_file()
+        && dir.join("light_directions.txt").is_file()
+}
+
+impl Capture {
+    /// A capture from an in-memory stack.
+    ///
+    /// # Errors
+    /// [`Error::LightsMismatch`] when counts differ; [`Error::DimensionMismatch`] when the mask's
+    /// size differs; [`Error::Mask`] when the mask is empty.
+    pub fn from_stack(stack: ImageStack, lights: Lights, mask: Option<Mask>) -> Result<Self> {
+        if lights.len() != stack.count() {
+            return Err(Error::LightsMismatch {
+                reason: format!("{} lights for {} images", lights.len(), stack.count()),
+            });
+        }
+        let mask = match mask {
+            Some(m) => {
+                Grid::new(stack.width(), stack.height(), ())
+                    .check_same_size(&m, "mask vs images")?;
+                if m.count() == 0 {
+                    return Err(Error::Mask {
+                        path: "<memory>".into(),
+                        reason: "no pixel is set".into(),
+                    });
+                }
+                m
+            }
+            None => Grid::new(stack.width(), stack.height(), true),
+        };
+        Ok(Capture {
+            stack,
+            lights,
+            mask,
+            images: Vec::new(),
+            lights_source: None,
+            mask_source: None,
+        })
+    }
+
+    /// Loads `images` lit by the lights of `lights_file` (JSON or text; matched to the images by
+    /// file name when the file names them, else by order), with an optional mask file.
+    ///
+    /// # Errors
+    /// The errors of [`Lights::from_file`], [`Lights::matched_to`], [`load_stack`] and
+    /// [`read_mask`]; [`Error::Mask`] when the mask's size differs from the images'.
+    pub fn from_files(
+        images: &[PathBuf],
+        lights_file: &Path,
+        mask_file: Option<&Path>,
+        options: &LoadOptions,
+        progress: &dyn Progress,
+    ) -> Result<Self> {
+        let lights = Lights::from_file(lights_file)?.matched_to(images)?;
+        Capture::load(
+            images.to_vec(),
+            lights,
+            Some(lights_file),
+            mask_file,
+            options,
+            progress,
+        )
+    }
+
+    /// Loads a DiLiGenT-layout folder.
+    ///
+    /// # Errors
+    /// [`Error::Dataset`] when `filenames.txt` or `light_directions.txt` is missing or they
+    /// disagree in length; otherwise as [`Capture::from_files`].
+    pub fn from_diligent(
+        dir: &Path,
+        options: &LoadOptions,
+        progress: &dyn Progress,
+    ) -> Result<Self> {
+        let list = dir.join("filenames.txt");
+        let dirs_file = dir.join("light_directions.txt");
+        for f in [&list, &dirs_file] {
+            if !f.is_file() {
+                return Err(Error::Dataset {
+                    path: dir.to_path_buf(),
+                    reason: format!(
+                        "missing {}; a DiLiGenT folder has filenames.txt, light_directions.txt, optionally light_intensities.txt and mask.png",
+                        f.file_name()
+                            .map(|n| n.to_string_lossy())
+                            .unwrap_or_default()
+                    ),
+                });
+            }
+        }
+        let text = std::fs::read_to_string(&list).map_err(|e| Error::io(&list, e))?;
+        let images: Vec<PathBuf> = text
+            .lines()
+            .map(str::trim)
+            .filter(|l| !l.is_empty())
+            .map(|l| dir.join(l))
+            .collect();
+        let mut lights = Lights::from_file(&dirs_file)?;
+        let intens = dir.join("light_intensities.txt");
+        if intens.is_file() {
+            lights = lights.with_intensities_file(&intens)?;
+        }
+        if lights.len() != images.len() {
+            return Err(Error::Dataset {
+                path: dir.to_path_buf(),
+                reason: format!(
+                    "filenames.txt lists {} images but light_directions.txt has {} lights",
+                    images.len(),
+                    lights.len()
+                ),
+            });
+        }
+        let mask = dir.join("mask.png");
+        let mask = mask.is_file().then_some(mask);
+        Capture::load(
+            images,
+            lights,
+            Some(&dirs_file),
+            mask.as_deref(),
+            options,
+            progress,
+        )
+    }
+
+    /// Replaces the mask by the one in `path`.
+    ///
+    /// # Errors
+    /// The errors of [`read_mask`]; [`Error::Mask`] when its size differs from the images'.
+    pub fn with_mask_file(mut self, path: &Path) -> Result<Self> {
+        self.mask = load_mask_for(path, &self.stack)?;
+        self.mask_source = Some(path.to_path_buf());
+        Ok(self)
+    }
+
+    fn load(
+        images: Vec<PathBuf>,
+        lights: Lights,
+        lights_source: Option<&Path>,
+        mask_file: Option<&Path>,
+        options: &LoadOptions,
+        progress: &dyn Progress,
+    ) -> Result<Self> {
+        let stack = load_stack(&images, &lights, options, progress)?;
+        let mask = match mask_file {
+            Some(path) => load_mask_for(path, &stack)?,
+            None => Grid::new(stack.width(), stack.height(), true),
+        };
+        Ok(Capture {
+            stack,
+            lights,
+            mask,
+            images,
+            lights_source: lights_source.map(Path::to_path_buf),
+            mask_source: mask_file.map(Path::to_path_buf),
+        })
+    }
+}
+
+/// Reads a mask and checks it against the stack's size.
+fn load_mask_for(path: &Path, stack: &ImageStack) -> Result<Mask> {
+    let m = read_mask(path)?;
+    if m.width() != stack.width() || m.height() != stack.height() {
+        return Err(Error::Mask {
+            path: path.to_path_buf(),
+            reason: format!(
+                "size {}x{} differs from the images' {}x{}",
+                m.width(),
+                m.height(),
+                stack.width(),
+                stack.height()
+            ),
+        });
+    }
+    Ok(m)
+}
+
+/// File format of written images.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ImageFormat {
+    /// Float32 EXR, channel `Y`, linear.
+    #[default]
+    Exr,
+    /// 16-bit grey PNG, linear, values clipped to [0, 1] (clipped samples are saturated).
+    Png16,
+}
+
+impl ImageFormat {
+    /// File extension.
+    pub fn extension(self) -> &'static str {
+        match self {
+            ImageFormat::Exr => "exr",
+            ImageFormat::Png16 => "png",
+        }
+    }
+}
+
+/// Writes a synthetic capture as a data set that the command line reads directly
+/// (`photostereo DIR/*.exr --lights DIR/lights.json --mask DIR/mask.png`): images `img_NNN`,
+/// `lights.json` naming them, `mask.png`, and the ground truth `normal_gt.exr` (R, G, B),
+/// `depth_gt.exr` (Z, pixel units), `albedo_gt.exr` (Y) and per-light shadow masks
+/// `shadow_NNN.png` (255 where attached or cast shadow). Returns the files written.
+///
+/// # Errors
+/// [`Error::Io`] or [`Error::Encode`] when writing fails (nothing is left half-written).
+pub fn write_synthetic(
+    rendering: &crate::render::Rendering,
+    lights: &Lights,
+    dir: &Path,
+    format: ImageFormat,
+) -> Result<Vec<PathBuf>> {
+    use crate::output::{OutputDir, mask_bytes, normal_planes};
+    let t = &rendering.truth;
+    let (w, h) = (t.mask.width(), t.mask.height());
+    let mut out = OutputDir::create(dir)?;
+    let names: Vec<String> = (0..rendering.images.len())
+        .map(|k| format!("img_{k:03}.{}", format.extension()))
+        .collect();
+    for (name, img) in names.iter().zip(&rendering.images) {
+        match format {
+            ImageFormat::Exr => out.stage_exr(name, w, h, &[("Y", img.data())], &[])?,
+            ImageFormat::Png16 => {
+                let codes: Vec<u16> = img
+                    .data()
+                    .iter()
+                    .map(|v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16)
+                    .collect();
+                out.stage_png16(name, w, h, &codes)?;
+            }
+        }
+    }
+    for (k, (a, c)) in rendering.attached.iter().zip(&rendering.cast).enumerate() {
+        let both = Grid::from_fn(w, h, |x, y| *a.at(x, y) || *c.at(x, y));
+        out.stage_png8(&format!("shadow_{k:03}.png"), w, h, 1, &mask_bytes(&both))?;
+    }
+    let lights = lights.clone().with_files(&names)?;
+    out.stage_bytes("lights.json", lights.to_json().as_bytes())?;
+    out.stage_png8("mask.png", w, h, 1, &mask_bytes(&t.mask))?;
+    let [nx, ny, nz] = normal_planes(&t.normals);
+    out.stage_exr(
+        "normal_gt.exr",
+        w,
+        h,
+        &[("R", &nx), ("G", &ny), ("B", &nz)],
+        &[],
+    )?;
+    out.stage_exr("depth_gt.exr", w, h, &[("Z", t.depth.data())], &[])?;
+    out.stage_exr("albedo_gt.exr", w, h, &[("Y", t.albedo.data())], &[])?;
+    out.commit()
+}

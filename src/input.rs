@@ -1,0 +1,834 @@
+//! Reading images into linear-radiance stacks: EXR (half/float), PNG and TIFF (8/16 bit).
+//!
+//! Integer images are scaled to [0, 1] by their maximum code (16-bit data keeps all 16 bits).
+//! 8-bit images are normally gamma-encoded, so by default they are linearised with the sRGB
+//! transfer function (IEC 61966-2-1); [`Transfer::Linear`] keeps them as they are. Each image is
+//! divided by its light's intensity per channel, then either mixed to grey with the BT.601
+//! weights [`GREY_WEIGHTS`] or kept as three channels for a per-channel solve.
+
+use crate::error::{Error, Result};
+use crate::grid::{Grid, Mask};
+use crate::lights::Lights;
+use crate::progress::Progress;
+use rayon::prelude::*;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+/// BT.601 luma weights (R, G, B) used to mix colour images to grey.
+pub const GREY_WEIGHTS: [f32; 3] = [0.299, 0.587, 0.114];
+
+/// How samples are stored in a file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SampleFormat {
+    /// 8-bit unsigned integer.
+    U8,
+    /// 16-bit unsigned integer.
+    U16,
+    /// 16-bit float (EXR half).
+    F16,
+    /// 32-bit float.
+    F32,
+}
+
+impl SampleFormat {
+    /// True for integer formats (which have a maximum code that means "saturated").
+    pub fn is_integer(self) -> bool {
+        matches!(self, SampleFormat::U8 | SampleFormat::U16)
+    }
+}
+
+/// The transfer function that maps stored values to linear radiance.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Transfer {
+    /// sRGB for 8-bit files, linear for everything else.
+    #[default]
+    Auto,
+    /// Values are linear radiance already.
+    Linear,
+    /// Values are sRGB-encoded (decoded with the sRGB EOTF).
+    Srgb,
+}
+
+/// Whether colour stacks are mixed to grey or solved per channel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ColorMode {
+    /// Divide each channel by its light intensity, then mix with [`GREY_WEIGHTS`].
+    #[default]
+    Grey,
+    /// Keep R, G and B (each divided by its intensity) for three separate solves.
+    PerChannel,
+}
+
+/// Options for [`load_stack`].
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct LoadOptions {
+    /// Grey mix or per-channel planes.
+    pub color: ColorMode,
+    /// Transfer function of the stored values.
+    pub transfer: Transfer,
+    /// Stored value (after scaling integers to [0, 1], before linearisation) at or above which a
+    /// sample counts as saturated. `None`: the maximum code for integer files, no limit for floats.
+    pub saturation: Option<f32>,
+}
+
+/// Samples of one decoded file, interleaved, as stored.
+#[derive(Debug, Clone)]
+enum Samples {
+    U8(Vec<u8>),
+    U16(Vec<u16>),
+    /// 16-bit samples as big-endian byte pairs (PNG's layout), converted without a copy.
+    U16Be(Vec<u8>),
+    F32(Vec<f32>),
+}
+
+/// An image as decoded from a file: interleaved samples scaled to [0, 1] for integer formats,
+/// with no transfer function applied.
+#[derive(Debug, Clone)]
+pub struct DecodedImage {
+    /// Columns.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// 1 (grey) or 3 (RGB); alpha is dropped.
+    pub channels: usize,
+    /// Storage format in the file.
+    pub format: SampleFormat,
+    /// `width * height * channels` values, row-major, channels interleaved.
+    pub data: Vec<f32>,
+}
+
+/// What a loaded image was and what loading found in it.
+#[derive(Debug, Clone, Serialize)]
+pub struct ImageInfo {
+    /// The file.
+    pub path: PathBuf,
+    /// Its storage format.
+    pub format: SampleFormat,
+    /// Channels in the file (alpha excluded).
+    pub channels: usize,
+    /// Whether the sRGB transfer function was undone.
+    pub linearised: bool,
+    /// Pixels with at least one saturated channel.
+    pub saturated: usize,
+    /// Pixels with a NaN or infinite value (excluded from solves).
+    pub non_finite: usize,
+}
+
+/// A stack of equally sized single- or three-channel images in linear radiance, each divided by
+/// its light's intensity. Layout: image-major, then channel, then row-major pixels.
+#[derive(Debug, Clone)]
+pub struct ImageStack {
+    width: usize,
+    height: usize,
+    count: usize,
+    channels: usize,
+    data: Vec<f32>,
+    saturated: Vec<Option<Vec<u64>>>,
+    info: Vec<ImageInfo>,
+}
+
+/// sRGB EOTF (IEC 61966-2-1): encoded value in [0, 1] to linear.
+pub fn srgb_to_linear(v: f32) -> f32 {
+    if v <= 0.04045 {
+        v / 12.92
+    } else {
+        ((v + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// Inverse sRGB EOTF: linear value in [0, 1] to encoded.
+pub fn linear_to_srgb(v: f32) -> f32 {
+    if v <= 0.003_130_8 {
+        v * 12.92
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+struct RawDecoded {
+    width: usize,
+    height: usize,
+    /// Channels kept (1 or 3).
+    channels: usize,
+    /// Interleaved stride in `samples` (may include alpha).
+    stride: usize,
+    format: SampleFormat,
+    samples: Samples,
+}
+
+fn decode_raw(path: &Path) -> Result<RawDecoded> {
+    let is_exr = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("exr"));
+    if is_exr {
+        return decode_exr(path);
+    }
+    let is_png = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("png"));
+    if is_png {
+        return decode_png(path);
+    }
+    let reader = image::ImageReader::open(path)
+        .map_err(|e| Error::io(path, e))?
+        .with_guessed_format()
+        .map_err(|e| Error::io(path, e))?;
+    let img = reader.decode().map_err(|e| match e {
+        image::ImageError::IoError(io) => Error::io(path, io),
+        image::ImageError::Unsupported(u) => Error::UnsupportedImage {
+            path: path.to_path_buf(),
+            reason: format!("{u}; PNG and TIFF (8/16-bit, grey or RGB) and EXR are read"),
+        },
+        other => Error::Decode {
+            path: path.to_path_buf(),
+            reason: other.to_string(),
+        },
+    })?;
+    let (width, height) = (img.width() as usize, img.height() as usize);
+    use image::DynamicImage as D;
+    let (channels, stride, format, samples) = match img {
+        D::ImageLuma8(b) => (1, 1, SampleFormat::U8, Samples::U8(b.into_raw())),
+        D::ImageLumaA8(b) => (1, 2, SampleFormat::U8, Samples::U8(b.into_raw())),
+        D::ImageRgb8(b) => (3, 3, SampleFormat::U8, Samples::U8(b.into_raw())),
+        D::ImageRgba8(b) => (3, 4, SampleFormat::U8, Samples::U8(b.into_raw())),
+        D::ImageLuma16(b) => (1, 1, SampleFormat::U16, Samples::U16(b.into_raw())),
+        D::ImageLumaA16(b) => (1, 2, SampleFormat::U16, Samples::U16(b.into_raw())),
+        D::ImageRgb16(b) => (3, 3, SampleFormat::U16, Samples::U16(b.into_raw())),
+        D::ImageRgba16(b) => (3, 4, SampleFormat::U16, Samples::U16(b.into_raw())),
+        D::ImageRgb32F(b) => (3, 3, SampleFormat::F32, Samples::F32(b.into_raw())),
+        D::ImageRgba32F(b) => (3, 4, SampleFormat::F32, Samples::F32(b.into_raw())),
+        other => (
+            3,
+            3,
+            SampleFormat::F32,
+            Samples::F32(other.to_rgb32f().into_raw()),
+        ),
+    };
+    Ok(RawDecoded {
+        width,
+        height,
+        channels,
+        stride,
+        format,
+        samples,
+    })
+}
+
+/// PNG through the `png` crate directly: 16-bit samples stay in the decoder's big-endian buffer.
+fn decode_png(path: &Path) -> Result<RawDecoded> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let bad = |e: png::DecodingError| match e {
+        png::DecodingError::IoError(io) => Error::io(path, io),
+        other => Error::Decode {
+            path: path.to_path_buf(),
+            reason: other.to_string(),
+        },
+    };
+    let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
+    // Palette → RGB, grey below 8 bits → 8 bits, transparency chunk → alpha.
+    decoder.set_transformations(png::Transformations::EXPAND);
+    let mut reader = decoder.read_info().map_err(bad)?;
+    let size = reader
+        .output_buffer_size()
+        .ok_or_else(|| Error::UnsupportedImage {
+            path: path.to_path_buf(),
+            reason: "image too large".into(),
+        })?;
+    let mut buf = vec![0u8; size];
+    let info = reader.next_frame(&mut buf).map_err(bad)?;
+    buf.truncate(info.buffer_size());
+    let (channels, stride) = match info.color_type {
+        png::ColorType::Grayscale => (1, 1),
+        png::ColorType::GrayscaleAlpha => (1, 2),
+        png::ColorType::Rgb | png::ColorType::Indexed => (3, 3),
+        png::ColorType::Rgba => (3, 4),
+    };
+    let (format, samples) = match info.bit_depth {
+        png::BitDepth::Sixteen => (SampleFormat::U16, Samples::U16Be(buf)),
+        _ => (SampleFormat::U8, Samples::U8(buf)),
+    };
+    Ok(RawDecoded {
+        width: info.width as usize,
+        height: info.height as usize,
+        channels,
+        stride,
+        format,
+        samples,
+    })
+}
+
+fn decode_exr(path: &Path) -> Result<RawDecoded> {
+    use exr::prelude::*;
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_file(path)
+        .map_err(|e| match e {
+            exr::error::Error::Io(io) => crate::Error::io(path, io),
+            other => crate::Error::Decode {
+                path: path.to_path_buf(),
+                reason: other.to_string(),
+            },
+        })?;
+    let layer = &image.layer_data;
+    let (width, height) = (layer.size.width(), layer.size.height());
+    let list = &layer.channel_data.list;
+    let find = |name: &str| list.iter().find(|c| c.name.to_string() == name);
+    let chosen: Vec<_> = match (find("R"), find("G"), find("B")) {
+        (Some(r), Some(g), Some(b)) => vec![r, g, b],
+        _ => {
+            if let Some(y) = find("Y").or_else(|| find("Z")) {
+                vec![y]
+            } else if list.len() == 1 {
+                vec![&list[0]]
+            } else {
+                let names: Vec<String> = list.iter().map(|c| c.name.to_string()).collect();
+                return Err(crate::Error::UnsupportedImage {
+                    path: path.to_path_buf(),
+                    reason: format!(
+                        "channels {names:?}: expected R, G, B, or a single channel (Y, Z or any one)"
+                    ),
+                });
+            }
+        }
+    };
+    let mut format = SampleFormat::F32;
+    for c in &chosen {
+        if c.sampling != Vec2(1, 1) {
+            return Err(crate::Error::UnsupportedImage {
+                path: path.to_path_buf(),
+                reason: format!("channel {} is subsampled", c.name),
+            });
+        }
+        if matches!(c.sample_data, FlatSamples::F16(_)) {
+            format = SampleFormat::F16;
+        }
+    }
+    let n = width * height;
+    let channels = chosen.len();
+    let mut data = vec![0f32; n * channels];
+    for (ci, c) in chosen.iter().enumerate() {
+        for (i, v) in c.sample_data.values_as_f32().enumerate().take(n) {
+            data[i * channels + ci] = v;
+        }
+    }
+    Ok(RawDecoded {
+        width,
+        height,
+        channels,
+        stride: channels,
+        format,
+        samples: Samples::F32(data),
+    })
+}
+
+/// Decodes an image file (EXR, PNG or TIFF) to interleaved floats: integers scaled to [0, 1],
+/// no transfer function applied, alpha dropped.
+///
+/// # Errors
+/// [`Error::Io`], [`Error::Decode`] or [`Error::UnsupportedImage`] naming the file.
+pub fn read_image(path: &Path) -> Result<DecodedImage> {
+    let raw = decode_raw(path)?;
+    let n = raw.width * raw.height;
+    let mut data = Vec::with_capacity(n * raw.channels);
+    for i in 0..n {
+        for c in 0..raw.channels {
+            let j = i * raw.stride + c;
+            data.push(match &raw.samples {
+                Samples::U8(s) => f32::from(s[j]) / 255.0,
+                Samples::U16(s) => f32::from(s[j]) / 65535.0,
+                Samples::U16Be(s) => {
+                    f32::from(u16::from_be_bytes([s[2 * j], s[2 * j + 1]])) / 65535.0
+                }
+                Samples::F32(s) => s[j],
+            });
+        }
+    }
+    Ok(DecodedImage {
+        width: raw.width,
+        height: raw.height,
+        channels: raw.channels,
+        format: raw.format,
+        data,
+    })
+}
+
+/// Reads a mask image: a pixel belongs to the object when any channel is > 0.
+///
+/// # Errors
+/// As [`read_image`]; [`Error::Mask`] when the mask is empty.
+pub fn read_mask(path: &Path) -> Result<Mask> {
+    let img = read_image(path)?;
+    let data: Vec<bool> = img
+        .data
+        .chunks_exact(img.channels)
+        .map(|px| px.iter().any(|v| *v > 0.0))
+        .collect();
+    let mask = Grid::from_vec(img.width, img.height, data)?;
+    if mask.count() == 0 {
+        return Err(Error::Mask {
+            path: path.to_path_buf(),
+            reason: "no pixel is set (object pixels must be > 0)".into(),
+        });
+    }
+    Ok(mask)
+}
+
+/// Per-image conversion parameters.
+struct Convert<'a> {
+    transfer: Transfer,
+    saturation: Option<f32>,
+    intensity: [f32; 3],
+    srgb_lut: &'a [f32; 256],
+}
+
+/// Tallies of one conversion.
+struct Converted {
+    bits: Vec<u64>,
+    saturated: usize,
+    non_finite: usize,
+}
+
+/// Combines one row: `stored` and `linear` hold `STRIDE` values per pixel of which the first
+/// `CIN` are colour; writes `COUT` planes at `out[k * n + offset + x]`. Saturated when a stored
+/// colour value ≥ `level`; pixels with a non-finite value become NaN. The arithmetic runs as a
+/// straight loop; saturation and finiteness are checked per pixel only in rows that need it.
+#[allow(clippy::too_many_arguments)]
+fn combine_row<const STRIDE: usize, const CIN: usize, const COUT: usize>(
+    stored: &[f32],
+    linear: &[f32],
+    coef: [f32; 3],
+    level: f32,
+    out: &mut [f32],
+    n: usize,
+    offset: usize,
+    row_max: f32,
+    check_finite: bool,
+    c: &mut Converted,
+) {
+    let w = linear.len() / STRIDE;
+    if COUT == 1 {
+        let dst = &mut out[offset..offset + w];
+        for (d, l) in dst.iter_mut().zip(linear.chunks_exact(STRIDE)) {
+            *d = if CIN == 1 {
+                l[0] * coef[0]
+            } else {
+                l[0] * coef[0] + l[1] * coef[1] + l[2] * coef[2]
+            };
+        }
+    } else {
+        for (k, ck) in coef.iter().enumerate() {
+            let dst = &mut out[k * n + offset..k * n + offset + w];
+            for (d, l) in dst.iter_mut().zip(linear.chunks_exact(STRIDE)) {
+                *d = l[k] * ck;
+            }
+        }
+    }
+    if row_max >= level {
+        for (x, s) in stored.chunks_exact(STRIDE).enumerate() {
+            if s[..CIN].iter().any(|v| *v >= level) {
+                let i = offset + x;
+                c.bits[i >> 6] |= 1 << (i & 63);
+                c.saturated += 1;
+            }
+        }
+    }
+    // Non-short-circuiting so that it vectorises.
+    if check_finite && !linear.iter().fold(true, |a, v| a & v.is_finite()) {
+        for (x, l) in linear.chunks_exact(STRIDE).enumerate() {
+            if !l[..CIN].iter().all(|v| v.is_finite()) {
+                c.non_finite += 1;
+                for k in 0..COUT {
+                    out[k * n + offset + x] = f32::NAN;
+                }
+            }
+        }
+    }
+}
+
+fn convert_into(
+    raw: &RawDecoded,
+    cv: &Convert,
+    out: &mut [f32],
+    path: &Path,
+) -> (Option<Vec<u64>>, ImageInfo) {
+    let (w, h) = (raw.width, raw.height);
+    let n = w * h;
+    let linearise = match cv.transfer {
+        Transfer::Auto => raw.format == SampleFormat::U8,
+        Transfer::Linear => false,
+        Transfer::Srgb => true,
+    };
+    let level = cv
+        .saturation
+        .or(raw.format.is_integer().then_some(1.0))
+        .unwrap_or(f32::INFINITY);
+    let out_channels = out.len() / n.max(1);
+    // Coefficients: 1/intensity per channel, times the grey weight for a grey output; a grey
+    // file is divided by the grey-mixed intensity.
+    let coef: [f32; 3] = if raw.channels == 1 {
+        let grey: f32 = GREY_WEIGHTS
+            .iter()
+            .zip(&cv.intensity)
+            .map(|(w, i)| w * i)
+            .sum();
+        [1.0 / grey; 3]
+    } else if out_channels == 1 {
+        [0, 1, 2].map(|c| GREY_WEIGHTS[c] / cv.intensity[c])
+    } else {
+        cv.intensity.map(|i| 1.0 / i)
+    };
+    let row_len = w * raw.stride;
+    let mut stored = vec![0f32; row_len];
+    let mut linear = vec![0f32; if linearise { row_len } else { 0 }];
+    let mut c = Converted {
+        bits: vec![0u64; n.div_ceil(64)],
+        saturated: 0,
+        non_finite: 0,
+    };
+    for y in 0..h {
+        let r = y * row_len..(y + 1) * row_len;
+        // Stored values scaled to [0, 1], and the row's largest (in integer codes where possible,
+        // which vectorises; NaN for float rows, whose finiteness is then checked).
+        let row_max = match &raw.samples {
+            Samples::U8(s) => {
+                for (d, v) in stored.iter_mut().zip(&s[r.clone()]) {
+                    *d = f32::from(*v) * (1.0 / 255.0);
+                }
+                if linearise {
+                    for (d, v) in linear.iter_mut().zip(&s[r.clone()]) {
+                        *d = cv.srgb_lut[*v as usize];
+                    }
+                }
+                f32::from(s[r].iter().fold(0u8, |m, v| m.max(*v))) / 255.0
+            }
+            Samples::U16(s) => {
+                for (d, v) in stored.iter_mut().zip(&s[r.clone()]) {
+                    *d = f32::from(*v) * (1.0 / 65535.0);
+                }
+                f32::from(s[r].iter().fold(0u16, |m, v| m.max(*v))) / 65535.0
+            }
+            Samples::U16Be(s) => {
+                let bytes = &s[2 * r.start..2 * r.end];
+                let mut mx = 0u16;
+                for (d, b) in stored.iter_mut().zip(bytes.chunks_exact(2)) {
+                    let code = u16::from_be_bytes([b[0], b[1]]);
+                    mx = mx.max(code);
+                    *d = f32::from(code) * (1.0 / 65535.0);
+                }
+                f32::from(mx) / 65535.0
+            }
+            Samples::F32(s) => {
+                stored.copy_from_slice(&s[r]);
+                f32::NAN
+            }
+        };
+        if linearise && !matches!(raw.samples, Samples::U8(_)) {
+            for (d, v) in linear.iter_mut().zip(&stored) {
+                *d = srgb_to_linear(v.clamp(0.0, 1.0));
+            }
+        }
+        let lin: &[f32] = if linearise { &linear } else { &stored };
+        // Float rows (NaN row_max): saturation is decided per pixel against `level`, and
+        // finiteness checked; integers are always finite.
+        let check_finite = row_max.is_nan();
+        let row_max = if check_finite { level } else { row_max };
+        let args = (coef, level, y * w);
+        macro_rules! go {
+            ($s:literal, $ci:literal, $co:literal) => {
+                combine_row::<$s, $ci, $co>(
+                    &stored,
+                    lin,
+                    args.0,
+                    args.1,
+                    out,
+                    n,
+                    args.2,
+                    row_max,
+                    check_finite,
+                    &mut c,
+                )
+            };
+        }
+        match (raw.stride, raw.channels, out_channels) {
+            (1, _, _) => go!(1, 1, 1),
+            (2, _, _) => go!(2, 1, 1),
+            (3, _, 1) => go!(3, 3, 1),
+            (3, _, _) => go!(3, 3, 3),
+            (_, _, 1) => go!(4, 3, 1),
+            _ => go!(4, 3, 3),
+        }
+    }
+    let info = ImageInfo {
+        path: path.to_path_buf(),
+        format: raw.format,
+        channels: raw.channels,
+        linearised: linearise,
+        saturated: c.saturated,
+        non_finite: c.non_finite,
+    };
+    ((c.saturated > 0).then_some(c.bits), info)
+}
+
+/// Width and height of an image file, from its header.
+///
+/// # Errors
+/// [`Error::Io`] or [`Error::Decode`] naming the file.
+pub fn image_size(path: &Path) -> Result<(usize, usize)> {
+    let is_exr = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("exr"));
+    if is_exr {
+        let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| match e {
+            exr::error::Error::Io(io) => Error::io(path, io),
+            other => Error::Decode {
+                path: path.to_path_buf(),
+                reason: other.to_string(),
+            },
+        })?;
+        let header = meta.headers.first().ok_or_else(|| Error::Decode {
+            path: path.to_path_buf(),
+            reason: "no layer in file".into(),
+        })?;
+        return Ok((header.layer_size.width(), header.layer_size.height()));
+    }
+    let (w, h) = image::ImageReader::open(path)
+        .map_err(|e| Error::io(path, e))?
+        .with_guessed_format()
+        .map_err(|e| Error::io(path, e))?
+        .into_dimensions()
+        .map_err(|e| Error::Decode {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+    Ok((w as usize, h as usize))
+}
+
+/// Loads `paths` (one per light, in the order of `lights`) into a stack, dividing each image by
+/// its light's intensity. Images are decoded in parallel.
+///
+/// # Errors
+/// The errors of [`read_image`]; [`Error::SizeMismatch`] when an image's size differs from the
+/// first; [`Error::LightsMismatch`] when counts differ; [`Error::UnsupportedImage`] when a
+/// per-channel load meets a grey image.
+pub fn load_stack(
+    paths: &[PathBuf],
+    lights: &Lights,
+    options: &LoadOptions,
+    progress: &dyn Progress,
+) -> Result<ImageStack> {
+    if paths.len() != lights.len() {
+        return Err(Error::LightsMismatch {
+            reason: format!("{} images for {} lights", paths.len(), lights.len()),
+        });
+    }
+    let Some(first_path) = paths.first() else {
+        return Err(Error::TooFewImages { count: 0 });
+    };
+    let (width, height) = image_size(first_path)?;
+    let n = width * height;
+    let channels = match options.color {
+        ColorMode::Grey => 1,
+        ColorMode::PerChannel => 3,
+    };
+    let mut lut = [0f32; 256];
+    for (code, v) in lut.iter_mut().enumerate() {
+        *v = srgb_to_linear(code as f32 / 255.0);
+    }
+    progress.begin("load", paths.len() as u64);
+    let mut data = vec![0f32; paths.len() * channels * n];
+    let results: Vec<Result<(Option<Vec<u64>>, ImageInfo)>> = data
+        .par_chunks_mut(channels * n)
+        .zip(paths.par_iter())
+        .enumerate()
+        .map(|(index, (out, path))| {
+            let raw = decode_raw(path)?;
+            if (raw.width, raw.height) != (width, height) {
+                return Err(Error::SizeMismatch {
+                    path: path.clone(),
+                    index,
+                    width,
+                    height,
+                    found_width: raw.width,
+                    found_height: raw.height,
+                });
+            }
+            if channels == 3 && raw.channels != 3 {
+                return Err(Error::UnsupportedImage {
+                    path: path.clone(),
+                    reason: format!(
+                        "image {index} has {} channel(s); a per-channel solve needs RGB images",
+                        raw.channels
+                    ),
+                });
+            }
+            let cv = Convert {
+                transfer: options.transfer,
+                saturation: options.saturation,
+                intensity: lights.lights()[index].intensity.map(|v| v as f32),
+                srgb_lut: &lut,
+            };
+            let r = convert_into(&raw, &cv, out, path);
+            progress.advance(1);
+            Ok(r)
+        })
+        .collect();
+    progress.end();
+    let mut saturated = Vec::with_capacity(paths.len());
+    let mut info = Vec::with_capacity(paths.len());
+    for r in results {
+        let (s, i) = r?;
+        saturated.push(s);
+        info.push(i);
+    }
+    Ok(ImageStack {
+        width,
+        height,
+        count: paths.len(),
+        channels,
+        data,
+        saturated,
+        info,
+    })
+}
+
+impl ImageStack {
+    /// A stack from in-memory images (e.g. rendered ones): `images[k]` holds `channels` planes of
+    /// `width * height` linear values, already divided by the light intensities.
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] when an image has the wrong length or `channels` is not 1 or 3.
+    pub fn from_images(
+        width: usize,
+        height: usize,
+        channels: usize,
+        images: Vec<Vec<f32>>,
+    ) -> Result<Self> {
+        if channels != 1 && channels != 3 {
+            return Err(Error::param(
+                "channels",
+                format!("{channels} channels; 1 or 3 expected"),
+            ));
+        }
+        let n = width * height;
+        let mut data = Vec::with_capacity(images.len() * channels * n);
+        let mut info = Vec::with_capacity(images.len());
+        for (k, img) in images.iter().enumerate() {
+            if img.len() != channels * n {
+                return Err(Error::param(
+                    "images",
+                    format!(
+                        "image {k} has {} values, {} expected for {width}x{height}x{channels}",
+                        img.len(),
+                        channels * n
+                    ),
+                ));
+            }
+            data.extend_from_slice(img);
+            info.push(ImageInfo {
+                path: PathBuf::from(format!("<memory {k}>")),
+                format: SampleFormat::F32,
+                channels,
+                linearised: false,
+                saturated: 0,
+                non_finite: img.iter().filter(|v| !v.is_finite()).count(),
+            });
+        }
+        Ok(ImageStack {
+            width,
+            height,
+            count: images.len(),
+            channels,
+            data,
+            saturated: vec![None; images.len()],
+            info,
+        })
+    }
+
+    /// Columns.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Rows.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Number of images.
+    pub fn count(&self) -> usize {
+        self.count
+    }
+
+    /// Channels per image (1 or 3).
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+
+    /// Pixels per image.
+    pub fn pixels(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// Channel `channel` of image `image`, row-major.
+    ///
+    /// # Panics
+    /// When `image >= count()` or `channel >= channels()`.
+    pub fn plane(&self, image: usize, channel: usize) -> &[f32] {
+        let n = self.pixels();
+        let start = (image * self.channels + channel) * n;
+        &self.data[start..start + n]
+    }
+
+    /// Saturation bits of image `image` (bit `p % 64` of word `p / 64` set when pixel `p` has a
+    /// saturated channel), or `None` when the image has no saturated pixel.
+    pub fn saturation_bits(&self, image: usize) -> Option<&[u64]> {
+        self.saturated.get(image).and_then(|s| s.as_deref())
+    }
+
+    /// Whether pixel `pixel` of image `image` is saturated in any channel.
+    pub fn is_saturated(&self, image: usize, pixel: usize) -> bool {
+        self.saturation_bits(image)
+            .is_some_and(|b| b[pixel / 64] >> (pixel % 64) & 1 == 1)
+    }
+
+    /// Marks pixel `pixel` of image `image` as saturated (for synthetic stacks that clip).
+    pub fn mark_saturated(&mut self, image: usize, pixel: usize) {
+        let words = self.pixels().div_ceil(64);
+        if let Some(slot) = self.saturated.get_mut(image) {
+            let bits = slot.get_or_insert_with(|| vec![0; words]);
+            bits[pixel / 64] |= 1 << (pixel % 64);
+        }
+    }
+
+    /// What was loaded, per image.
+    pub fn info(&self) -> &[ImageInfo] {
+        &self.info
+    }
+
+    /// All samples, image-major then channel then pixel.
+    pub fn data(&self) -> &[f32] {
+        &self.data
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn srgb_round_trip_and_known_points() {
+        assert!((srgb_to_linear(1.0) - 1.0).abs() < 1e-6);
+        assert!((srgb_to_linear(0.5) - 0.214_041).abs() < 1e-5);
+        for i in 0..=100 {
+            let v = i as f32 / 100.0;
+            assert!((linear_to_srgb(srgb_to_linear(v)) - v).abs() < 1e-5);
+        }
+    }
+}

@@ -1,0 +1,605 @@
+//! Distant light sources: directions, per-channel intensities and the files that describe them.
+//!
+//! Camera frame: x to the right, y up, z towards the camera; a light direction points from the
+//! surface towards the light. Directions are normalised on construction.
+//!
+//! Two file formats are read:
+//! - JSON: `{"lights": [{"file": "img_000.exr", "direction": [x, y, z], "intensity": 1.0}, ...]}`
+//!   where `intensity` (a scalar or `[r, g, b]`, default 1) and `file` are optional;
+//! - plain text: one `x y z` line per light, `#` comments and blank lines ignored, with an
+//!   optional first line holding only the number of lights (the layout of the classic `lights.txt`).
+
+use crate::error::{Error, Result};
+use crate::linalg::condition_from_gram;
+use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Condition number of the light matrix above which a light set is rejected as degenerate.
+pub const MAX_LIGHT_CONDITION: f64 = 1e4;
+
+/// One distant light.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Light {
+    /// Unit vector from the surface towards the light, camera frame.
+    pub direction: Vector3<f64>,
+    /// Relative irradiance per colour channel (R, G, B); grey data uses the BT.601 mix.
+    pub intensity: [f64; 3],
+    /// Image file this light belongs to, when the lights file names one.
+    pub file: Option<String>,
+}
+
+/// An ordered set of distant lights, one per image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Lights {
+    lights: Vec<Light>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct JsonFile {
+    lights: Vec<JsonLight>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct JsonLight {
+    #[serde(default)]
+    file: Option<String>,
+    direction: [f64; 3],
+    #[serde(default)]
+    intensity: Option<JsonIntensity>,
+}
+
+#[derive(Deserialize, Serialize, Clone, Copy)]
+#[serde(untagged)]
+enum JsonIntensity {
+    Scalar(f64),
+    Rgb([f64; 3]),
+}
+
+#[derive(Serialize)]
+struct JsonOut<'a> {
+    lights: Vec<JsonLightOut<'a>>,
+}
+
+#[derive(Serialize)]
+struct JsonLightOut<'a> {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    file: Option<&'a str>,
+    direction: [f64; 3],
+    intensity: JsonIntensity,
+}
+
+impl Light {
+    /// A light of unit intensity in direction `direction` (normalised by [`Lights::new`]).
+    pub fn new(direction: Vector3<f64>) -> Self {
+        Light {
+            direction,
+            intensity: [1.0; 3],
+            file: None,
+        }
+    }
+
+    /// The intensity seen by a grey (BT.601-mixed) image.
+    pub fn grey_intensity(&self) -> f64 {
+        crate::input::GREY_WEIGHTS
+            .iter()
+            .zip(&self.intensity)
+            .map(|(w, i)| f64::from(*w) * i)
+            .sum()
+    }
+}
+
+impl Lights {
+    /// Validates and normalises a light set.
+    ///
+    /// # Errors
+    /// [`Error::InvalidLight`] for a zero or non-finite direction or a non-positive or
+    /// non-finite intensity.
+    pub fn new(mut lights: Vec<Light>) -> Result<Self> {
+        for (index, light) in lights.iter_mut().enumerate() {
+            let d = light.direction;
+            if !d.iter().all(|v| v.is_finite()) {
+                return Err(Error::InvalidLight {
+                    index,
+                    reason: format!("direction {:?} is not finite", d.as_slice()),
+                });
+            }
+            let norm = d.norm();
+            if norm < 1e-12 {
+                return Err(Error::InvalidLight {
+                    index,
+                    reason: "direction is the zero vector".into(),
+                });
+            }
+            light.direction = d / norm;
+            if let Some(bad) = light
+                .intensity
+                .iter()
+                .find(|i| !i.is_finite() || **i <= 0.0)
+            {
+                return Err(Error::InvalidLight {
+                    index,
+                    reason: format!("intensity {bad} must be finite and positive"),
+                });
+            }
+        }
+        Ok(Lights { lights })
+    }
+
+    /// Lights of unit intensity from directions.
+    ///
+    /// # Errors
+    /// As [`Lights::new`].
+    pub fn from_directions(directions: &[Vector3<f64>]) -> Result<Self> {
+        Lights::new(directions.iter().map(|d| Light::new(*d)).collect())
+    }
+
+    /// Reads a lights file, JSON or plain text (decided by content: JSON starts with `{`).
+    ///
+    /// # Errors
+    /// [`Error::Io`] when unreadable, [`Error::LightsFile`] when malformed, and the errors of
+    /// [`Lights::new`].
+    pub fn from_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        if text.trim_start().starts_with('{') {
+            Lights::from_json_str(&text, path)
+        } else {
+            Lights::from_text_str(&text, path)
+        }
+    }
+
+    /// Parses the JSON format; `source` names the file in errors.
+    ///
+    /// # Errors
+    /// [`Error::LightsFile`] when malformed; the errors of [`Lights::new`].
+    pub fn from_json_str(text: &str, source: &Path) -> Result<Self> {
+        let parsed: JsonFile = serde_json::from_str(text).map_err(|e| Error::LightsFile {
+            path: source.to_path_buf(),
+            line: Some(e.line()),
+            reason: format!(
+                "{e}; expected {{\"lights\": [{{\"file\": \"img.exr\", \"direction\": [x, y, z], \"intensity\": 1.0}}, ...]}}"
+            ),
+        })?;
+        let lights = parsed
+            .lights
+            .into_iter()
+            .map(|l| Light {
+                direction: Vector3::from(l.direction),
+                intensity: match l.intensity {
+                    None => [1.0; 3],
+                    Some(JsonIntensity::Scalar(s)) => [s; 3],
+                    Some(JsonIntensity::Rgb(rgb)) => rgb,
+                },
+                file: l.file,
+            })
+            .collect();
+        Lights::new(lights)
+    }
+
+    /// Parses `x y z` lines (optionally preceded by a line holding the count).
+    ///
+    /// # Errors
+    /// [`Error::LightsFile`] naming the line when malformed; the errors of [`Lights::new`].
+    pub fn from_text_str(text: &str, source: &Path) -> Result<Self> {
+        let rows = parse_number_rows(text, source)?;
+        let rows = strip_count_line(rows);
+        let mut directions = Vec::with_capacity(rows.len());
+        for (line, values) in rows {
+            if values.len() != 3 {
+                return Err(Error::LightsFile {
+                    path: source.to_path_buf(),
+                    line: Some(line),
+                    reason: format!("expected 3 numbers `x y z`, found {}", values.len()),
+                });
+            }
+            directions.push(Vector3::new(values[0], values[1], values[2]));
+        }
+        if directions.is_empty() {
+            return Err(Error::LightsFile {
+                path: source.to_path_buf(),
+                line: None,
+                reason: "no light directions found".into(),
+            });
+        }
+        Lights::from_directions(&directions)
+    }
+
+    /// Replaces the intensities by those of a text file of `r g b` (or single-value) lines,
+    /// as DiLiGenT's `light_intensities.txt`.
+    ///
+    /// # Errors
+    /// [`Error::LightsFile`] when malformed or when the number of lines differs from the
+    /// number of lights; [`Error::InvalidLight`] for a non-positive intensity.
+    pub fn with_intensities_file(mut self, path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let rows = strip_count_line(parse_number_rows(&text, path)?);
+        if rows.len() != self.lights.len() {
+            return Err(Error::LightsFile {
+                path: path.to_path_buf(),
+                line: None,
+                reason: format!(
+                    "{} intensity lines for {} lights",
+                    rows.len(),
+                    self.lights.len()
+                ),
+            });
+        }
+        for (light, (line, values)) in self.lights.iter_mut().zip(rows) {
+            light.intensity = match values.as_slice() {
+                [s] => [*s; 3],
+                [r, g, b] => [*r, *g, *b],
+                _ => {
+                    return Err(Error::LightsFile {
+                        path: path.to_path_buf(),
+                        line: Some(line),
+                        reason: format!("expected `r g b` or one value, found {}", values.len()),
+                    });
+                }
+            };
+        }
+        Lights::new(self.lights)
+    }
+
+    /// Number of lights.
+    pub fn len(&self) -> usize {
+        self.lights.len()
+    }
+
+    /// True when there are no lights.
+    pub fn is_empty(&self) -> bool {
+        self.lights.is_empty()
+    }
+
+    /// The lights in order.
+    pub fn lights(&self) -> &[Light] {
+        &self.lights
+    }
+
+    /// Light `index`.
+    pub fn get(&self, index: usize) -> Option<&Light> {
+        self.lights.get(index)
+    }
+
+    /// Unit directions in order.
+    pub fn directions(&self) -> Vec<Vector3<f64>> {
+        self.lights.iter().map(|l| l.direction).collect()
+    }
+
+    /// Condition number σ_max/σ_min of the m×3 light matrix L (rows = directions).
+    /// Least-squares error in g grows with it; coplanar lights give infinity.
+    pub fn condition_number(&self) -> f64 {
+        let gram = self.lights.iter().fold(Matrix3::zeros(), |acc, l| {
+            acc + l.direction * l.direction.transpose()
+        });
+        condition_from_gram(&gram)
+    }
+
+    /// Checks that the set can determine g = ρN: at least 3 lights and a condition number
+    /// below `max_condition`.
+    ///
+    /// # Errors
+    /// [`Error::TooFewImages`] or [`Error::DegenerateLights`].
+    pub fn check_usable(&self, max_condition: f64) -> Result<()> {
+        if self.lights.len() < 3 {
+            return Err(Error::TooFewImages {
+                count: self.lights.len(),
+            });
+        }
+        let condition = self.condition_number();
+        if !(condition <= max_condition) {
+            return Err(Error::DegenerateLights {
+                condition,
+                limit: max_condition,
+            });
+        }
+        Ok(())
+    }
+
+    /// Returns the lights reordered to follow `images`.
+    ///
+    /// When every light names a `file`, each image is matched to the light whose `file` equals
+    /// the image path as given, or else its file name. When no light names a file, the order
+    /// is kept and the counts must agree.
+    ///
+    /// # Errors
+    /// [`Error::LightsMismatch`] when counts differ, a file is unmatched or matched twice, or
+    /// only some lights name files.
+    pub fn matched_to(&self, images: &[PathBuf]) -> Result<Lights> {
+        let named = self.lights.iter().filter(|l| l.file.is_some()).count();
+        if named == 0 {
+            if self.lights.len() != images.len() {
+                return Err(Error::LightsMismatch {
+                    reason: format!(
+                        "{} lights for {} images; give one light per image, in the order of the images",
+                        self.lights.len(),
+                        images.len()
+                    ),
+                });
+            }
+            return Ok(self.clone());
+        }
+        if named != self.lights.len() {
+            return Err(Error::LightsMismatch {
+                reason: format!(
+                    "{named} of {} lights name a `file`; name a file for every light or for none",
+                    self.lights.len()
+                ),
+            });
+        }
+        let mut used = vec![false; self.lights.len()];
+        let mut out = Vec::with_capacity(images.len());
+        for (index, image) in images.iter().enumerate() {
+            let full = image.to_string_lossy();
+            let base = image
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let found = self
+                .lights
+                .iter()
+                .position(|l| l.file.as_deref() == Some(full.as_ref()))
+                .or_else(|| {
+                    self.lights.iter().position(|l| {
+                        l.file
+                            .as_deref()
+                            .map(|f| Path::new(f).file_name().map(|n| n.to_string_lossy()))
+                            == Some(Some(base.as_str().into()))
+                    })
+                });
+            let Some(k) = found else {
+                return Err(Error::LightsMismatch {
+                    reason: format!(
+                        "image {index} ({}) has no light in the lights file",
+                        image.display()
+                    ),
+                });
+            };
+            if used[k] {
+                return Err(Error::LightsMismatch {
+                    reason: format!(
+                        "image {index} ({}) matches light {k}, which another image already uses",
+                        image.display()
+                    ),
+                });
+            }
+            used[k] = true;
+            out.push(self.lights[k].clone());
+        }
+        if let Some(k) = used.iter().position(|u| !u) {
+            return Err(Error::LightsMismatch {
+                reason: format!(
+                    "light {k} (file {:?}) matches no image given",
+                    self.lights[k].file.as_deref().unwrap_or("")
+                ),
+            });
+        }
+        Lights::new(out)
+    }
+
+    /// Serialises to the JSON lights format (intensity written as `[r, g, b]`, or a scalar when
+    /// the three are equal).
+    pub fn to_json(&self) -> String {
+        let out = JsonOut {
+            lights: self
+                .lights
+                .iter()
+                .map(|l| JsonLightOut {
+                    file: l.file.as_deref(),
+                    direction: [l.direction.x, l.direction.y, l.direction.z],
+                    intensity: if l.intensity[0] == l.intensity[1]
+                        && l.intensity[1] == l.intensity[2]
+                    {
+                        JsonIntensity::Scalar(l.intensity[0])
+                    } else {
+                        JsonIntensity::Rgb(l.intensity)
+                    },
+                })
+                .collect(),
+        };
+        // Serialising plain numbers and strings cannot fail.
+        serde_json::to_string_pretty(&out).unwrap_or_default()
+    }
+
+    /// Sets the `file` of every light (for writing a lights file beside rendered images).
+    ///
+    /// # Errors
+    /// [`Error::LightsMismatch`] when the counts differ.
+    pub fn with_files(mut self, files: &[String]) -> Result<Self> {
+        if files.len() != self.lights.len() {
+            return Err(Error::LightsMismatch {
+                reason: format!(
+                    "{} file names for {} lights",
+                    files.len(),
+                    self.lights.len()
+                ),
+            });
+        }
+        for (l, f) in self.lights.iter_mut().zip(files) {
+            l.file = Some(f.clone());
+        }
+        Ok(self)
+    }
+
+    /// `count` lights evenly spaced in azimuth on a ring at `elevation_deg` above the image
+    /// plane (90° is the viewing direction), starting at azimuth `azimuth0_deg`.
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] for `count == 0` or an elevation outside (0, 90].
+    pub fn ring(count: usize, elevation_deg: f64, azimuth0_deg: f64) -> Result<Self> {
+        if count == 0 {
+            return Err(Error::param("count", "a ring needs at least one light"));
+        }
+        if !(elevation_deg > 0.0 && elevation_deg <= 90.0) {
+            return Err(Error::param(
+                "elevation",
+                format!("{elevation_deg}° is outside (0°, 90°]"),
+            ));
+        }
+        let e = elevation_deg.to_radians();
+        let dirs: Vec<_> = (0..count)
+            .map(|k| {
+                let a = (azimuth0_deg + 360.0 * k as f64 / count as f64).to_radians();
+                Vector3::new(e.cos() * a.cos(), e.cos() * a.sin(), e.sin())
+            })
+            .collect();
+        Lights::from_directions(&dirs)
+    }
+
+    /// `count` lights on a Fibonacci spiral over the cap of the upper hemisphere above
+    /// `min_elevation_deg`: a near-uniform spread of directions.
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] for `count == 0` or an elevation outside [0, 90).
+    pub fn fibonacci(count: usize, min_elevation_deg: f64) -> Result<Self> {
+        if count == 0 {
+            return Err(Error::param("count", "needs at least one light"));
+        }
+        if !(0.0..90.0).contains(&min_elevation_deg) {
+            return Err(Error::param(
+                "min_elevation",
+                format!("{min_elevation_deg}° is outside [0°, 90°)"),
+            ));
+        }
+        let z_min = min_elevation_deg.to_radians().sin();
+        let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+        let dirs: Vec<_> = (0..count)
+            .map(|k| {
+                // Equal-area sampling of z over [z_min, 1].
+                let z = 1.0 - (1.0 - z_min) * (k as f64 + 0.5) / count as f64;
+                let r = (1.0 - z * z).max(0.0).sqrt();
+                let a = golden * k as f64;
+                Vector3::new(r * a.cos(), r * a.sin(), z)
+            })
+            .collect();
+        Lights::from_directions(&dirs)
+    }
+}
+
+/// Parses whitespace-separated numbers per line, skipping blanks and `#` comments; keeps the
+/// 1-based line number of each row.
+fn parse_number_rows(text: &str, source: &Path) -> Result<Vec<(usize, Vec<f64>)>> {
+    let mut rows = Vec::new();
+    for (i, raw) in text.lines().enumerate() {
+        let line = raw.split('#').next().unwrap_or("").trim();
+        if line.is_empty() {
+            continue;
+        }
+        let values = line
+            .split(|c: char| c.is_whitespace() || c == ',')
+            .filter(|t| !t.is_empty())
+            .map(|t| {
+                t.parse::<f64>().map_err(|_| Error::LightsFile {
+                    path: source.to_path_buf(),
+                    line: Some(i + 1),
+                    reason: format!("`{t}` is not a number"),
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        rows.push((i + 1, values));
+    }
+    Ok(rows)
+}
+
+/// Drops a leading line that holds only the count of the following lines.
+fn strip_count_line(mut rows: Vec<(usize, Vec<f64>)>) -> Vec<(usize, Vec<f64>)> {
+    if let Some((_, first)) = rows.first() {
+        if first.len() == 1 && first[0] == (rows.len() - 1) as f64 && rows.len() > 1 {
+            let second_len = rows[1].1.len();
+            if second_len != 1 {
+                rows.remove(0);
+            }
+        }
+    }
+    rows
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use approx::assert_relative_eq;
+
+    #[test]
+    fn json_with_files_intensities_and_normalisation() {
+        let text = r#"{"lights": [
+            {"file": "a.exr", "direction": [0, 0, 2]},
+            {"file": "b.exr", "direction": [1, 0, 1], "intensity": 2.0},
+            {"file": "c.exr", "direction": [0, 1, 1], "intensity": [1, 2, 3]}]}"#;
+        let l = Lights::from_json_str(text, Path::new("l.json")).unwrap();
+        assert_eq!(l.len(), 3);
+        assert_relative_eq!(l.lights()[0].direction.z, 1.0);
+        assert_relative_eq!(l.lights()[1].direction.x, 0.5f64.sqrt(), epsilon = 1e-12);
+        assert_eq!(l.lights()[1].intensity, [2.0; 3]);
+        assert_eq!(l.lights()[2].intensity, [1.0, 2.0, 3.0]);
+        // Reordering by file name, with directories on the command line.
+        let imgs: Vec<PathBuf> = ["x/c.exr", "x/a.exr", "x/b.exr"]
+            .iter()
+            .map(PathBuf::from)
+            .collect();
+        let m = l.matched_to(&imgs).unwrap();
+        assert_eq!(m.lights()[0].file.as_deref(), Some("c.exr"));
+        assert_eq!(m.lights()[2].file.as_deref(), Some("b.exr"));
+        // Round trip through to_json.
+        let back = Lights::from_json_str(&l.to_json(), Path::new("x")).unwrap();
+        for (a, b) in back.lights().iter().zip(l.lights()) {
+            assert!((a.direction - b.direction).norm() < 1e-15);
+            assert_eq!((a.intensity, &a.file), (b.intensity, &b.file));
+        }
+    }
+
+    #[test]
+    fn text_with_count_line_and_comments() {
+        let text = "3\n# a comment\n0 0 1\n1 0 1\n0 1 1\n";
+        let l = Lights::from_text_str(text, Path::new("l.txt")).unwrap();
+        assert_eq!(l.len(), 3);
+        let no_count = Lights::from_text_str("0 0 1\n1 0 1\n0 1 1", Path::new("l.txt")).unwrap();
+        assert_eq!(l, no_count);
+    }
+
+    #[test]
+    fn errors_name_the_problem() {
+        let e = Lights::from_text_str("0 0 1\n1 0\n", Path::new("l.txt")).unwrap_err();
+        assert!(e.to_string().contains("line 2"), "{e}");
+        let e = Lights::from_json_str(r#"{"lights":[{"direction":[0,0,0]}]}"#, Path::new("j"))
+            .unwrap_err();
+        assert!(
+            e.to_string().contains("light 0") && e.to_string().contains("zero"),
+            "{e}"
+        );
+        let e = Lights::from_json_str(
+            r#"{"lights":[{"direction":[0,0,1],"intensity":-1}]}"#,
+            Path::new("j"),
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("intensity"), "{e}");
+        let l = Lights::ring(3, 45.0, 0.0).unwrap();
+        let e = l.matched_to(&[PathBuf::from("a.png")]).unwrap_err();
+        assert!(e.to_string().contains("3 lights for 1 images"), "{e}");
+    }
+
+    #[test]
+    fn conditioning_detects_coplanar_sets() {
+        let ring = Lights::ring(8, 45.0, 0.0).unwrap();
+        // Ring: LᵀL = diag(n/2 cos²e, n/2 cos²e, n sin²e) → condition √2 at 45°.
+        assert_relative_eq!(ring.condition_number(), 2f64.sqrt(), epsilon = 1e-9);
+        let flat = Lights::from_directions(&[
+            Vector3::new(1.0, 0.0, 1.0),
+            Vector3::new(-1.0, 0.0, 1.0),
+            Vector3::new(0.0, 0.0, 1.0),
+        ])
+        .unwrap();
+        assert!(flat.check_usable(MAX_LIGHT_CONDITION).is_err());
+        assert!(ring.check_usable(MAX_LIGHT_CONDITION).is_ok());
+    }
+
+    #[test]
+    fn fibonacci_respects_elevation() {
+        let l = Lights::fibonacci(50, 30.0).unwrap();
+        assert_eq!(l.len(), 50);
+        for d in l.directions() {
+            assert!(d.z >= 30f64.to_radians().sin() - 1e-12);
+            assert_relative_eq!(d.norm(), 1.0, epsilon = 1e-12);
+        }
+    }
+}

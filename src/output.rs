@@ -1,0 +1,361 @@
+//! Writing results: float EXR maps, PNG previews and JSON, all atomically.
+//!
+//! Every file is first written to a hidden temporary file in the destination folder and renamed
+//! into place only when all files of the run were written ([`OutputDir::commit`]); a failed or
+//! interrupted run leaves no partial file (temporaries are removed when the [`OutputDir`] is
+//! dropped uncommitted; a killed process can leave only hidden `.*.tmp-*` files).
+
+use crate::error::{Error, Result};
+use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
+use crate::input::linear_to_srgb;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+/// A folder that receives a set of output files atomically.
+#[derive(Debug)]
+pub struct OutputDir {
+    dir: PathBuf,
+    staged: Vec<(PathBuf, PathBuf)>,
+}
+
+/// One named channel of an EXR file.
+pub type ExrChannel<'a> = (&'a str, &'a [f32]);
+
+fn temp_path(dir: &Path, name: &str) -> PathBuf {
+    dir.join(format!(".{name}.tmp-{}", std::process::id()))
+}
+
+impl OutputDir {
+    /// Creates `dir` (and parents) if needed.
+    ///
+    /// # Errors
+    /// [`Error::Io`] when the folder cannot be created or is not a folder.
+    pub fn create(dir: &Path) -> Result<Self> {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        Ok(OutputDir {
+            dir: dir.to_path_buf(),
+            staged: Vec::new(),
+        })
+    }
+
+    /// The destination folder.
+    pub fn path(&self) -> &Path {
+        &self.dir
+    }
+
+    fn stage(&mut self, name: &str, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+        let tmp = temp_path(&self.dir, name);
+        let result = write(&tmp);
+        if result.is_err() {
+            let _ = std::fs::remove_file(&tmp);
+            return result;
+        }
+        self.staged.push((tmp, self.dir.join(name)));
+        Ok(())
+    }
+
+    /// Stages a float32 EXR file `name` with the given channels (ZIP compression) and string
+    /// attributes in its header.
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] when a channel's length is not `width * height`;
+    /// [`Error::Encode`] or [`Error::Io`] when writing fails.
+    pub fn stage_exr(
+        &mut self,
+        name: &str,
+        width: usize,
+        height: usize,
+        channels: &[ExrChannel],
+        attributes: &[(&str, String)],
+    ) -> Result<()> {
+        self.stage(name, |tmp| {
+            write_exr(tmp, width, height, channels, attributes)
+        })
+    }
+
+    /// Stages an 8-bit PNG (`channels` 1 or 3, interleaved).
+    ///
+    /// # Errors
+    /// [`Error::Encode`] or [`Error::Io`] when writing fails.
+    pub fn stage_png8(
+        &mut self,
+        name: &str,
+        width: usize,
+        height: usize,
+        channels: usize,
+        data: &[u8],
+    ) -> Result<()> {
+        self.stage(name, |tmp| write_png8(tmp, width, height, channels, data))
+    }
+
+    /// Stages a 16-bit grey PNG.
+    ///
+    /// # Errors
+    /// [`Error::Encode`] or [`Error::Io`] when writing fails.
+    pub fn stage_png16(
+        &mut self,
+        name: &str,
+        width: usize,
+        height: usize,
+        data: &[u16],
+    ) -> Result<()> {
+        self.stage(name, |tmp| write_png16(tmp, width, height, data))
+    }
+
+    /// Stages a file with the given bytes (JSON, text).
+    ///
+    /// # Errors
+    /// [`Error::Io`] when writing fails.
+    pub fn stage_bytes(&mut self, name: &str, bytes: &[u8]) -> Result<()> {
+        self.stage(name, |tmp| {
+            let mut f = std::fs::File::create(tmp).map_err(|e| Error::io(tmp, e))?;
+            f.write_all(bytes).map_err(|e| Error::io(tmp, e))?;
+            f.sync_all().map_err(|e| Error::io(tmp, e))
+        })
+    }
+
+    /// Moves every staged file into place; returns the final paths.
+    ///
+    /// # Errors
+    /// [`Error::Io`] when a rename fails (the remaining temporaries are removed).
+    pub fn commit(mut self) -> Result<Vec<PathBuf>> {
+        let staged = std::mem::take(&mut self.staged);
+        let mut done = Vec::with_capacity(staged.len());
+        let mut iter = staged.into_iter();
+        while let Some((tmp, dest)) = iter.next() {
+            if let Err(e) = std::fs::rename(&tmp, &dest) {
+                let _ = std::fs::remove_file(&tmp);
+                for (t, _) in iter {
+                    let _ = std::fs::remove_file(t);
+                }
+                return Err(Error::io(dest, e));
+            }
+            done.push(dest);
+        }
+        Ok(done)
+    }
+}
+
+impl Drop for OutputDir {
+    fn drop(&mut self) {
+        for (tmp, _) in &self.staged {
+            let _ = std::fs::remove_file(tmp);
+        }
+    }
+}
+
+/// Writes a float32 EXR (ZIP) at `path` directly (not atomically; see [`OutputDir`]).
+///
+/// # Errors
+/// As [`OutputDir::stage_exr`].
+pub fn write_exr(
+    path: &Path,
+    width: usize,
+    height: usize,
+    channels: &[ExrChannel],
+    attributes: &[(&str, String)],
+) -> Result<()> {
+    use exr::prelude::*;
+    let n = width * height;
+    let mut list = SmallVec::new();
+    for (cname, data) in channels {
+        if data.len() != n {
+            return Err(crate::Error::param(
+                "channel",
+                format!(
+                    "channel {cname} has {} values for {width}x{height}",
+                    data.len()
+                ),
+            ));
+        }
+        let text = Text::new_or_none(cname).ok_or_else(|| {
+            crate::Error::param("channel", format!("channel name {cname:?} is not Latin-1"))
+        })?;
+        list.push(AnyChannel::new(text, FlatSamples::F32(data.to_vec())));
+    }
+    let mut attrs = LayerAttributes::default();
+    for (key, value) in attributes {
+        if let (Some(k), Some(v)) = (Text::new_or_none(key), Text::new_or_none(value)) {
+            attrs.other.insert(k, AttributeValue::Text(v));
+        }
+    }
+    let layer = Layer::new(
+        (width, height),
+        attrs,
+        Encoding::SMALL_LOSSLESS,
+        AnyChannels::sort(list),
+    );
+    Image::from_layer(layer)
+        .write()
+        .to_file(path)
+        .map_err(|e| match e {
+            exr::error::Error::Io(io) => crate::Error::io(path, io),
+            other => crate::Error::Encode {
+                path: path.to_path_buf(),
+                reason: other.to_string(),
+            },
+        })
+}
+
+fn encode_err(path: &Path, e: image::ImageError) -> Error {
+    match e {
+        image::ImageError::IoError(io) => Error::io(path, io),
+        other => Error::Encode {
+            path: path.to_path_buf(),
+            reason: other.to_string(),
+        },
+    }
+}
+
+fn create_buffered(path: &Path) -> Result<BufWriter<std::fs::File>> {
+    Ok(BufWriter::new(
+        std::fs::File::create(path).map_err(|e| Error::io(path, e))?,
+    ))
+}
+
+/// Writes an 8-bit PNG with 1 or 3 interleaved channels.
+///
+/// # Errors
+/// [`Error::Encode`] or [`Error::Io`].
+pub fn write_png8(
+    path: &Path,
+    width: usize,
+    height: usize,
+    channels: usize,
+    data: &[u8],
+) -> Result<()> {
+    use image::ImageEncoder;
+    let color = match channels {
+        1 => image::ExtendedColorType::L8,
+        3 => image::ExtendedColorType::Rgb8,
+        _ => {
+            return Err(Error::param(
+                "channels",
+                format!("{channels}: 1 or 3 expected"),
+            ));
+        }
+    };
+    let mut w = create_buffered(path)?;
+    image::codecs::png::PngEncoder::new(&mut w)
+        .write_image(data, width as u32, height as u32, color)
+        .map_err(|e| encode_err(path, e))?;
+    w.flush().map_err(|e| Error::io(path, e))
+}
+
+/// Writes a 16-bit grey PNG.
+///
+/// # Errors
+/// [`Error::Encode`] or [`Error::Io`].
+pub fn write_png16(path: &Path, width: usize, height: usize, data: &[u16]) -> Result<()> {
+    let buf: image::ImageBuffer<image::Luma<u16>, Vec<u16>> =
+        image::ImageBuffer::from_raw(width as u32, height as u32, data.to_vec())
+            .ok_or_else(|| Error::param("data", "wrong length for the image size"))?;
+    let mut w = create_buffered(path)?;
+    buf.write_to(&mut w, image::ImageFormat::Png)
+        .map_err(|e| encode_err(path, e))?;
+    w.flush().map_err(|e| Error::io(path, e))
+}
+
+/// Splits a normal map into its n_x, n_y, n_z planes (for the R, G, B channels of an EXR).
+pub fn normal_planes(normals: &NormalMap) -> [Vec<f32>; 3] {
+    [0, 1, 2].map(|c| normals.data().iter().map(|n| n[c]).collect())
+}
+
+/// A normal map coloured the usual way: RGB = (n + 1)/2 with y up, black where undefined.
+pub fn normal_preview(normals: &NormalMap) -> Vec<u8> {
+    let mut out = Vec::with_capacity(normals.len() * 3);
+    for n in normals.data() {
+        for c in 0..3 {
+            let v = n[c];
+            out.push(if v.is_finite() {
+                ((v + 1.0) * 0.5 * 255.0).round().clamp(0.0, 255.0) as u8
+            } else {
+                0
+            });
+        }
+    }
+    out
+}
+
+/// A depth map shown as a shaded relief (normals of the depth map lit from the upper left),
+/// black where undefined.
+pub fn depth_preview(depth: &ScalarMap) -> Vec<u8> {
+    let (w, h) = (depth.width(), depth.height());
+    let l = nalgebra::Vector3::new(-1.0f32, 1.0, 1.5).normalize();
+    let d = depth.data();
+    let at = |x: isize, y: isize| -> Option<f32> {
+        (x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h)
+            .then(|| d[y as usize * w + x as usize])
+            .filter(|v| v.is_finite())
+    };
+    let mut out = vec![0u8; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (xi, yi) = (x as isize, y as isize);
+            let Some(z) = at(xi, yi) else { continue };
+            let dx = match (at(xi - 1, yi), at(xi + 1, yi)) {
+                (Some(a), Some(b)) => (b - a) / 2.0,
+                (None, Some(b)) => b - z,
+                (Some(a), None) => z - a,
+                (None, None) => 0.0,
+            };
+            // y up: ∂z/∂y = −∂z/∂row.
+            let dy = match (at(xi, yi - 1), at(xi, yi + 1)) {
+                (Some(a), Some(b)) => (a - b) / 2.0,
+                (None, Some(b)) => z - b,
+                (Some(a), None) => a - z,
+                (None, None) => 0.0,
+            };
+            let n = nalgebra::Vector3::new(-dx, -dy, 1.0).normalize();
+            let shade = 0.15 + 0.85 * n.dot(&l).max(0.0);
+            out[y * w + x] = (linear_to_srgb(shade) * 255.0).round() as u8;
+        }
+    }
+    out
+}
+
+/// A scalar map scaled by its 99th percentile and sRGB-encoded; black where undefined.
+pub fn scalar_preview(map: &ScalarMap) -> Vec<u8> {
+    let mut vals: Vec<f32> = map
+        .data()
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .collect();
+    let scale = if vals.is_empty() {
+        1.0
+    } else {
+        let k = ((vals.len() - 1) as f64 * 0.99) as usize;
+        let (_, v, _) = vals.select_nth_unstable_by(k, f32::total_cmp);
+        if *v > 0.0 { *v } else { 1.0 }
+    };
+    map.data()
+        .iter()
+        .map(|v| {
+            if v.is_finite() {
+                (linear_to_srgb((v / scale).clamp(0.0, 1.0)) * 255.0).round() as u8
+            } else {
+                0
+            }
+        })
+        .collect()
+}
+
+/// A mask as 8-bit grey: 255 inside, 0 outside.
+pub fn mask_bytes(mask: &Mask) -> Vec<u8> {
+    mask.data()
+        .iter()
+        .map(|&m| if m { 255 } else { 0 })
+        .collect()
+}
+
+/// Sets every pixel outside `mask` to NaN.
+pub fn nan_outside(map: &ScalarMap, mask: &Mask) -> ScalarMap {
+    let data = map
+        .data()
+        .iter()
+        .zip(mask.data())
+        .map(|(v, m)| if *m { *v } else { f32::NAN })
+        .collect();
+    Grid::from_vec(map.width(), map.height(), data).unwrap_or_else(|_| map.clone())
+}

@@ -1,0 +1,467 @@
+//! The whole reconstruction, stage by stage: solve → normals and albedo → integrability →
+//! depth, and writing the results with a JSON report.
+//!
+//! Each stage is also callable alone (see [`crate::solve`], [`crate::normals`],
+//! [`crate::integrate`], [`crate::output`]); this module only composes them.
+
+use crate::dataset::Capture;
+use crate::error::{Error, Result};
+use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
+use crate::input::ColorMode;
+use crate::integrate::{Integrator, integrate};
+use crate::lights::MAX_LIGHT_CONDITION;
+use crate::normals::{
+    IntegrabilitySummary, albedo_and_normals, combine_channels, gradients, integrability,
+};
+use crate::output::{
+    OutputDir, depth_preview, mask_bytes, nan_outside, normal_planes, normal_preview,
+    scalar_preview,
+};
+use crate::progress::Progress;
+use crate::solve::{PixelStatus, Solution, SolveOptions, StatusCounts, solve};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// What to compute. The default: [`SolveOptions::default`] and Poisson integration.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Config {
+    /// Per-pixel estimator and its parameters.
+    pub solve: SolveOptions,
+    /// Normal integrator, or `None` to skip depth.
+    pub integrator: Option<Integrator>,
+    /// The intensities are calibrated so that albedo is at most 1: pixels with ρ > 1 are then
+    /// reported as a warning.
+    pub albedo_normalised: bool,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Config {
+            solve: SolveOptions::default(),
+            integrator: Some(Integrator::Poisson),
+            albedo_normalised: false,
+        }
+    }
+}
+
+/// Wall-clock time of each stage, in seconds.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct Timings {
+    /// Reading and converting images (filled in by the caller that loaded them).
+    pub load: f64,
+    /// The per-pixel solve.
+    pub solve: f64,
+    /// Albedo, normals, gradients and the curl.
+    pub normals: f64,
+    /// Normal integration.
+    pub integrate: f64,
+    /// Writing the outputs.
+    pub write: f64,
+}
+
+/// Everything a reconstruction produced.
+#[derive(Debug, Clone)]
+pub struct Reconstruction {
+    /// Unit normals; NaN where not solved.
+    pub normals: NormalMap,
+    /// Albedo per channel (one map for grey solves, R, G, B for per-channel ones).
+    pub albedo: Vec<ScalarMap>,
+    /// RMS residual of the model over used samples (largest over channels).
+    pub residual: ScalarMap,
+    /// Samples used per pixel (fewest over channels).
+    pub samples: Grid<u16>,
+    /// Condition number of the used lights (largest over channels).
+    pub condition: ScalarMap,
+    /// Outcome per pixel.
+    pub status: Grid<PixelStatus>,
+    /// Pixels with a normal.
+    pub solved: Mask,
+    /// Curl of the gradient field.
+    pub curl: ScalarMap,
+    /// Summary of |curl|.
+    pub integrability: IntegrabilitySummary,
+    /// Depth (pixel units, zero-mean), when an integrator was chosen.
+    pub depth: Option<ScalarMap>,
+    /// Pixel outcome counts.
+    pub counts: StatusCounts,
+    /// Pixels with albedo above 1 (any channel).
+    pub albedo_above_one: usize,
+    /// Stage timings.
+    pub timings: Timings,
+    /// Things the user should know (saturation, flagged pixels, …).
+    pub warnings: Vec<String>,
+}
+
+/// Runs solve, normals, integrability and (optionally) integration on a capture.
+///
+/// # Errors
+/// The errors of [`solve`] and [`integrate`]; [`Error::DegenerateLights`] or
+/// [`Error::TooFewImages`] when the light set cannot determine normals.
+pub fn reconstruct(
+    capture: &Capture,
+    config: &Config,
+    progress: &dyn Progress,
+) -> Result<Reconstruction> {
+    capture.lights.check_usable(MAX_LIGHT_CONDITION)?;
+    let t = Instant::now();
+    let solutions: Vec<Solution> = (0..capture.stack.channels())
+        .map(|c| {
+            solve(
+                &capture.stack,
+                c,
+                &capture.lights,
+                &capture.mask,
+                &config.solve,
+                progress,
+            )
+        })
+        .collect::<Result<_>>()?;
+    let solve_s = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let (albedo, normals, status) = if solutions.len() == 1 {
+        let (a, n) = albedo_and_normals(&solutions[0]);
+        (vec![a], n, solutions[0].status.clone())
+    } else {
+        combine_channels(&solutions)
+    };
+    let first = &solutions[0];
+    let (w, h) = (first.g.width(), first.g.height());
+    let fold = |f: &dyn Fn(&Solution, usize) -> f32, pick: fn(f32, f32) -> f32| {
+        Grid::from_fn(w, h, |x, y| {
+            let i = y * w + x;
+            solutions
+                .iter()
+                .map(|s| f(s, i))
+                .reduce(pick)
+                .unwrap_or(f32::NAN)
+        })
+    };
+    let residual = fold(&|s, i| s.residual.data()[i], f32::max);
+    let condition = fold(&|s, i| s.condition.data()[i], f32::max);
+    let samples = Grid::from_fn(w, h, |x, y| {
+        solutions
+            .iter()
+            .map(|s| *s.samples.at(x, y))
+            .min()
+            .unwrap_or(0)
+    });
+    let solved = status.map(|s| *s == PixelStatus::Solved);
+    let (p, q) = gradients(&normals, &solved);
+    let integ = integrability(&p, &q);
+    let counts = StatusCounts::from_grid(&status);
+    let albedo_above_one = (0..w * h)
+        .filter(|&i| albedo.iter().any(|a| a.data()[i] > 1.0))
+        .count();
+    let normals_s = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let depth = match config.integrator {
+        Some(integrator) if solved.count() > 0 => {
+            Some(integrate(&p, &q, &solved, integrator, progress)?)
+        }
+        _ => None,
+    };
+    let integrate_s = t.elapsed().as_secs_f64();
+
+    let mut warnings = Vec::new();
+    let linearised = capture.stack.info().iter().filter(|i| i.linearised).count();
+    if linearised > 0 {
+        warnings.push(format!(
+            "{linearised} 8-bit image(s) were decoded as sRGB-encoded (gamma) data; pass --linear if they hold linear radiance"
+        ));
+    }
+    let saturated: usize = capture.stack.info().iter().map(|i| i.saturated).sum();
+    if saturated > 0 {
+        warnings.push(format!(
+            "{saturated} saturated samples{}",
+            if config.solve.method == crate::solve::Method::LeastSquares {
+                " (used by plain least squares, which biases normals there)"
+            } else {
+                " were excluded from the solve"
+            }
+        ));
+    }
+    let non_finite: usize = capture.stack.info().iter().map(|i| i.non_finite).sum();
+    if non_finite > 0 {
+        warnings.push(format!(
+            "{non_finite} NaN or infinite samples were excluded"
+        ));
+    }
+    let flagged = counts.too_few_samples + counts.ill_conditioned + counts.dark;
+    if flagged > 0 {
+        warnings.push(format!(
+            "{flagged} of {} masked pixels have no normal: {} with fewer than 3 usable samples, {} with ill-conditioned lights, {} dark",
+            counts.masked, counts.too_few_samples, counts.ill_conditioned, counts.dark
+        ));
+    }
+    if config.albedo_normalised && albedo_above_one > 0 {
+        warnings.push(format!(
+            "{albedo_above_one} pixels have albedo > 1 although intensities were declared normalised: check the light intensities or exposure"
+        ));
+    }
+    Ok(Reconstruction {
+        normals,
+        albedo,
+        residual,
+        samples,
+        condition,
+        status,
+        solved,
+        curl: integ.curl,
+        integrability: integ.summary,
+        depth,
+        counts,
+        albedo_above_one,
+        timings: Timings {
+            load: 0.0,
+            solve: solve_s,
+            normals: normals_s,
+            integrate: integrate_s,
+            write: 0.0,
+        },
+        warnings,
+    })
+}
+
+/// Summary of the input, for the report.
+#[derive(Debug, Clone, Serialize)]
+pub struct InputSummary {
+    /// Image files (empty for in-memory captures).
+    pub images: Vec<PathBuf>,
+    /// Number of images.
+    pub count: usize,
+    /// Image width.
+    pub width: usize,
+    /// Image height.
+    pub height: usize,
+    /// Lights file.
+    pub lights: Option<PathBuf>,
+    /// Mask file.
+    pub mask: Option<PathBuf>,
+    /// Condition number of the full light matrix.
+    pub light_condition_number: f64,
+    /// Storage format of the first image.
+    pub format: Option<crate::input::SampleFormat>,
+    /// 8-bit images decoded as sRGB.
+    pub linearised_images: usize,
+    /// Saturated samples over all images.
+    pub saturated_samples: usize,
+    /// Grey mix or per-channel.
+    pub color: ColorMode,
+}
+
+impl InputSummary {
+    /// Summarises a capture.
+    pub fn of(capture: &Capture) -> Self {
+        let info = capture.stack.info();
+        InputSummary {
+            images: capture.images.clone(),
+            count: capture.stack.count(),
+            width: capture.stack.width(),
+            height: capture.stack.height(),
+            lights: capture.lights_source.clone(),
+            mask: capture.mask_source.clone(),
+            light_condition_number: capture.lights.condition_number(),
+            format: info.first().map(|i| i.format),
+            linearised_images: info.iter().filter(|i| i.linearised).count(),
+            saturated_samples: info.iter().map(|i| i.saturated).sum(),
+            color: if capture.stack.channels() == 3 {
+                ColorMode::PerChannel
+            } else {
+                ColorMode::Grey
+            },
+        }
+    }
+}
+
+/// Residual statistics over solved pixels.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct ResidualSummary {
+    /// Mean RMS residual.
+    pub mean: f64,
+    /// Median RMS residual.
+    pub median: f64,
+}
+
+/// The `report.json` written beside the outputs.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    /// Crate version that wrote it.
+    pub version: &'static str,
+    /// The input.
+    pub inputs: InputSummary,
+    /// Method and parameters.
+    pub config: Config,
+    /// Pixel outcome counts.
+    pub pixels: StatusCounts,
+    /// Pixels with albedo > 1.
+    pub albedo_above_one: usize,
+    /// Model residual over solved pixels.
+    pub residual: ResidualSummary,
+    /// The integrability check.
+    pub integrability: IntegrabilitySummary,
+    /// Stage timings in seconds.
+    pub timings_s: Timings,
+    /// Warnings raised.
+    pub warnings: Vec<String>,
+    /// Files written (names within the output folder).
+    pub outputs: Vec<String>,
+    /// Errors against ground truth, when known (e.g. for the demo scene).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub evaluation: Option<serde_json::Value>,
+}
+
+/// Names of the files [`write_outputs`] writes, in order.
+pub const OUTPUT_FILES: [&str; 10] = [
+    "normal.exr",
+    "albedo.exr",
+    "depth.exr",
+    "residual.exr",
+    "curl.exr",
+    "mask.png",
+    "normal.png",
+    "albedo.png",
+    "depth.png",
+    "report.json",
+];
+
+/// Writes a reconstruction to `dir` atomically: the EXR maps, PNG previews and `report.json`.
+/// Returns the report as written.
+///
+/// # Errors
+/// [`Error::Io`] or [`Error::Encode`] when a file cannot be written; nothing is left behind then.
+pub fn write_outputs(
+    recon: &mut Reconstruction,
+    capture: &Capture,
+    config: &Config,
+    dir: &Path,
+    evaluation: Option<serde_json::Value>,
+    extra_files: &[(&str, Vec<u8>)],
+) -> Result<Report> {
+    let t = Instant::now();
+    let (w, h) = (recon.normals.width(), recon.normals.height());
+    let mut out = OutputDir::create(dir)?;
+    let method = config.solve.method.name().to_string();
+    let attrs = [
+        ("photostereo:method", method),
+        (
+            "photostereo:frame",
+            "x right, y up, z towards the camera; row 0 at the top".to_string(),
+        ),
+        (
+            "photostereo:units",
+            "depth in pixel units (orthographic), larger is nearer".to_string(),
+        ),
+        ("photostereo:lights", capture.lights.len().to_string()),
+    ];
+    let [nx, ny, nz] = normal_planes(&recon.normals);
+    out.stage_exr(
+        "normal.exr",
+        w,
+        h,
+        &[("R", &nx), ("G", &ny), ("B", &nz)],
+        &attrs,
+    )?;
+    let albedo: Vec<ScalarMap> = recon
+        .albedo
+        .iter()
+        .map(|a| nan_outside(a, &recon.solved))
+        .collect();
+    match albedo.as_slice() {
+        [grey] => out.stage_exr("albedo.exr", w, h, &[("Y", grey.data())], &attrs)?,
+        [r, g, b] => out.stage_exr(
+            "albedo.exr",
+            w,
+            h,
+            &[("R", r.data()), ("G", g.data()), ("B", b.data())],
+            &attrs,
+        )?,
+        _ => return Err(Error::param("albedo", "1 or 3 channels expected")),
+    }
+    let nan_map = Grid::new(w, h, f32::NAN);
+    let depth = recon.depth.as_ref().unwrap_or(&nan_map);
+    out.stage_exr("depth.exr", w, h, &[("Z", depth.data())], &attrs)?;
+    let samples: Vec<f32> = recon
+        .samples
+        .data()
+        .iter()
+        .zip(recon.status.data())
+        .map(|(s, st)| {
+            if *st == PixelStatus::Outside {
+                f32::NAN
+            } else {
+                f32::from(*s)
+            }
+        })
+        .collect();
+    let in_mask = recon.status.map(|s| *s != PixelStatus::Outside);
+    let condition = nan_outside(&recon.condition, &in_mask);
+    out.stage_exr(
+        "residual.exr",
+        w,
+        h,
+        &[
+            ("residual", recon.residual.data()),
+            ("samples", &samples),
+            ("condition", condition.data()),
+        ],
+        &attrs,
+    )?;
+    out.stage_exr("curl.exr", w, h, &[("curl", recon.curl.data())], &attrs)?;
+    out.stage_png8("mask.png", w, h, 1, &mask_bytes(&recon.solved))?;
+    out.stage_png8("normal.png", w, h, 3, &normal_preview(&recon.normals))?;
+    if let [grey] = albedo.as_slice() {
+        out.stage_png8("albedo.png", w, h, 1, &scalar_preview(grey))?;
+    } else {
+        let planes: Vec<Vec<u8>> = albedo.iter().map(scalar_preview).collect();
+        let rgb: Vec<u8> = (0..w * h)
+            .flat_map(|i| planes.iter().map(move |p| p[i]))
+            .collect();
+        out.stage_png8("albedo.png", w, h, 3, &rgb)?;
+    }
+    out.stage_png8("depth.png", w, h, 1, &depth_preview(depth))?;
+    for (name, bytes) in extra_files {
+        out.stage_bytes(name, bytes)?;
+    }
+    let mut res: Vec<f64> = recon
+        .residual
+        .data()
+        .iter()
+        .filter(|v| v.is_finite())
+        .map(|v| f64::from(*v))
+        .collect();
+    res.sort_by(f64::total_cmp);
+    let residual = if res.is_empty() {
+        ResidualSummary::default()
+    } else {
+        ResidualSummary {
+            mean: res.iter().sum::<f64>() / res.len() as f64,
+            median: res[res.len() / 2],
+        }
+    };
+    recon.timings.write = t.elapsed().as_secs_f64();
+    let mut outputs: Vec<String> = OUTPUT_FILES.iter().map(|s| s.to_string()).collect();
+    outputs.extend(extra_files.iter().map(|(n, _)| n.to_string()));
+    let report = Report {
+        version: env!("CARGO_PKG_VERSION"),
+        inputs: InputSummary::of(capture),
+        config: *config,
+        pixels: recon.counts,
+        albedo_above_one: recon.albedo_above_one,
+        residual,
+        integrability: recon.integrability,
+        timings_s: recon.timings,
+        warnings: recon.warnings.clone(),
+        outputs,
+        evaluation,
+    };
+    let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Encode {
+        path: dir.join("report.json"),
+        reason: e.to_string(),
+    })?;
+    out.stage_bytes("report.json", &json)?;
+    out.commit()?;
+    Ok(report)
+}
