@@ -1,1 +1,72 @@
-fn main() {}
+//! Criterion benchmarks of the pipeline stages on crate-rendered data (and DiLiGenT cat when
+//! `../shared/data` is present). Run: `cargo bench --bench pipeline`.
+//!
+//! Speed targets live here and in `photostereo bench`, not in timed tests.
+
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use photostereo::demo::synthesize;
+use photostereo::integrate::{Integrator, integrate};
+use photostereo::lights::Lights;
+use photostereo::normals::gradients;
+use photostereo::progress::Silent;
+use photostereo::render::RenderOptions;
+use photostereo::scene::{Albedo, Scene};
+use photostereo::solve::{Method, SolveOptions, solve};
+use std::hint::black_box;
+
+/// Per-pixel solve on a 512×512 sphere under 24 lights, per method (throughput in samples).
+fn bench_solve(c: &mut Criterion) {
+    let scene = Scene::sphere(512, 240.0, Albedo::Constant(0.6));
+    let lights = Lights::fibonacci(24, 25.0).unwrap();
+    let opts = RenderOptions { noise_sigma: 0.005, cast_shadows: false, ..RenderOptions::default() };
+    let synth = synthesize(scene, lights, &opts).unwrap();
+    let cap = &synth.capture;
+    let mut g = c.benchmark_group("solve_512x512_24_lights");
+    g.throughput(Throughput::Elements((cap.mask.count() * cap.lights.len()) as u64));
+    for method in [Method::LeastSquares, Method::Threshold, Method::ShadowWeighted] {
+        let o = SolveOptions { method, ..SolveOptions::default() };
+        g.bench_function(method.name(), |b| {
+            b.iter(|| black_box(solve(&cap.stack, 0, &cap.lights, &cap.mask, &o, &Silent).unwrap()))
+        });
+    }
+    g.finish();
+}
+
+/// Integration of a sphere's gradients at several sizes, per integrator.
+fn bench_integrate(c: &mut Criterion) {
+    let mut g = c.benchmark_group("integrate");
+    g.sample_size(10);
+    for size in [256usize, 512, 1024] {
+        let hf = Scene::sphere(size, 0.45 * size as f64, Albedo::Constant(0.5)).height_field();
+        let (p, q) = gradients(&hf.normals, &hf.mask);
+        g.throughput(Throughput::Elements((size * size) as u64));
+        for integrator in [Integrator::Poisson, Integrator::Path] {
+            g.bench_with_input(BenchmarkId::new(integrator.name(), size), &size, |b, _| {
+                b.iter(|| black_box(integrate(&p, &q, &hf.mask, integrator, &Silent).unwrap()))
+            });
+        }
+    }
+    g.finish();
+}
+
+/// Loading DiLiGenT cat (96 16-bit PNGs), when the shared data are present.
+fn bench_load_diligent(c: &mut Criterion) {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/diligent/catPNG");
+    if !dir.is_dir() {
+        eprintln!("skipping load_diligent_cat: {} is absent", dir.display());
+        return;
+    }
+    let mut g = c.benchmark_group("diligent_cat");
+    g.sample_size(10);
+    g.bench_function("load", |b| {
+        b.iter(|| {
+            black_box(
+                photostereo::dataset::Capture::from_diligent(&dir, &Default::default(), &Silent).unwrap(),
+            )
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench_solve, bench_integrate, bench_load_diligent);
+criterion_main!(benches);

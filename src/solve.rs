@@ -234,7 +234,10 @@ pub fn solve_pixel(
         b += l * (w * v);
         n += 1;
     }
-    let (g, condition, status) = finish_pixel(n, &gram, a, b, options.max_condition);
+    let (g, condition, status) =
+        finish_pixel(n, condition_from_gram(&gram), options.max_condition, || {
+            solve_spd(a, b)
+        });
     let residual = if status == PixelStatus::Solved {
         let ss: f64 = (0..values.len())
             .filter(|&k| used(k))
@@ -253,28 +256,55 @@ pub fn solve_pixel(
     }
 }
 
-/// Decides and solves a pixel from its accumulated normal equations.
+/// Decides a pixel's outcome: too few samples, ill-conditioned (by the condition number of its
+/// used directions, computed by the caller), or solved by `solve`.
 fn finish_pixel(
     n: usize,
-    gram: &Matrix3<f64>,
-    a: Matrix3<f64>,
-    b: Vector3<f64>,
+    condition: f64,
     max_condition: f64,
+    solve: impl FnOnce() -> Option<Vector3<f64>>,
 ) -> (Vector3<f64>, f64, PixelStatus) {
     let nan = Vector3::repeat(f64::NAN);
     if n < MIN_SAMPLES {
         return (nan, f64::INFINITY, PixelStatus::TooFewSamples);
     }
-    let condition = condition_from_gram(gram);
     if !(condition <= max_condition) {
         return (nan, condition, PixelStatus::IllConditioned);
     }
-    match solve_spd(a, b) {
+    match solve() {
         None => (nan, condition, PixelStatus::IllConditioned),
         Some(g) if g.iter().all(|v| v.is_finite()) && g.norm() > 1e-12 => {
             (g, condition, PixelStatus::Solved)
         }
         Some(_) => (nan, condition, PixelStatus::Dark),
+    }
+}
+
+/// The condition number and inverse of the last Gram matrix seen: neighbouring pixels usually
+/// use the same lights (plain least squares: all pixels), so the eigenvalues and inverse are
+/// computed once per distinct light subset rather than per pixel.
+struct GramCache {
+    key: [f32; 6],
+    condition: f64,
+    inverse: Option<Matrix3<f64>>,
+}
+
+impl GramCache {
+    fn new() -> Self {
+        GramCache {
+            key: [f32::NAN; 6],
+            condition: f64::NAN,
+            inverse: None,
+        }
+    }
+
+    fn get(&mut self, key: [f32; 6], gram: &Matrix3<f64>) -> (f64, Option<Matrix3<f64>>) {
+        if key != self.key {
+            self.key = key;
+            self.condition = condition_from_gram(gram);
+            self.inverse = gram.try_inverse();
+        }
+        (self.condition, self.inverse)
     }
 }
 
@@ -557,24 +587,32 @@ fn solve_block(
     }
     // Solve each pixel.
     let mut out = Vec::with_capacity(len);
+    let mut cache = GramCache::new();
     for i in 0..len {
-        let sym = |m: &[Vec<f32>; 6]| {
-            let e = |q: usize| f64::from(m[q][i]);
-            Matrix3::new(e(0), e(1), e(2), e(1), e(3), e(4), e(2), e(4), e(5))
+        let key = [0, 1, 2, 3, 4, 5].map(|q| s.gram[q][i]);
+        let sym = |e: [f32; 6]| {
+            let e = e.map(f64::from);
+            Matrix3::new(e[0], e[1], e[2], e[1], e[3], e[4], e[2], e[4], e[5])
         };
-        let gram = sym(&s.gram);
-        let a = if rule.intensity_weight {
-            sym(&s.a)
-        } else {
-            gram
-        };
+        let gram = sym(key);
         let b = Vector3::new(
             f64::from(s.b[0][i]),
             f64::from(s.b[1][i]),
             f64::from(s.b[2][i]),
         );
         let n = s.count[i] as usize;
-        let (g, condition, status) = finish_pixel(n, &gram, a, b, max_condition);
+        let (condition, inverse) = if n >= MIN_SAMPLES {
+            cache.get(key, &gram)
+        } else {
+            (f64::INFINITY, None)
+        };
+        let (g, condition, status) = finish_pixel(n, condition, max_condition, || {
+            if rule.intensity_weight {
+                solve_spd(sym([0, 1, 2, 3, 4, 5].map(|q| s.a[q][i])), b)
+            } else {
+                inverse.map(|m| m * b)
+            }
+        });
         if status == PixelStatus::Solved {
             s.g[i] = [g.x as f32, g.y as f32, g.z as f32];
         }

@@ -1,0 +1,275 @@
+//! The command line end to end: data sets written to disk, read back, reconstructed, written,
+//! evaluated — and bad input answered with a clear error and no partial output.
+
+mod common;
+
+use photostereo::dataset::{ImageFormat, write_synthetic};
+use photostereo::demo::synthesize;
+use photostereo::lights::Lights;
+use photostereo::render::RenderOptions;
+use photostereo::scene::{Albedo, Scene};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn run(args: &[&std::ffi::OsStr]) -> Output {
+    Command::new(common::bin()).args(args).output().unwrap()
+}
+
+fn os<S: AsRef<std::ffi::OsStr> + ?Sized>(s: &S) -> &std::ffi::OsStr {
+    s.as_ref()
+}
+
+/// A noise-free sphere data set written as EXR files with `lights.json`; returns the image
+/// paths in file order.
+fn sphere_dataset(dir: &Path, format: ImageFormat) -> Vec<PathBuf> {
+    let scene = Scene::sphere(96, 40.0, Albedo::Smooth { mean: 0.6, amplitude: 0.2, period: 23.0 });
+    let lights = Lights::fibonacci(10, 30.0).unwrap();
+    let synth = synthesize(scene, lights.clone(), &RenderOptions::default()).unwrap();
+    write_synthetic(&synth.rendering, &lights, dir, format).unwrap();
+    (0..10).map(|k| dir.join(format!("img_{k:03}.{}", format.extension()))).collect()
+}
+
+/// Mean angular error of `out/normal.exr` against `gt` via the `eval` subcommand.
+fn eval(out: &Path, gt: &Path, mask: &Path) -> serde_json::Value {
+    let o = run(&[
+        os("eval"),
+        os("--normals"),
+        out.join("normal.exr").as_os_str(),
+        os("--gt"),
+        gt.as_os_str(),
+        os("--mask"),
+        mask.as_os_str(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+/// Files in a folder (names), sorted.
+fn listing(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .map(|r| r.map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect())
+        .unwrap_or_default();
+    v.sort();
+    v
+}
+
+#[test]
+fn images_with_json_lights_given_in_shuffled_order() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let mut images = sphere_dataset(&data, ImageFormat::Exr);
+    // The lights file names each image: command-line order does not matter.
+    images.reverse();
+    images.swap(2, 7);
+    let out = tmp.path().join("out");
+    let mut args: Vec<&std::ffi::OsStr> = images.iter().map(|p| p.as_os_str()).collect();
+    let (lights, mask) = (data.join("lights.json"), data.join("mask.png"));
+    args.extend([os("--lights"), lights.as_os_str(), os("--mask"), mask.as_os_str(), os("-q"), os("-o"), out.as_os_str()]);
+    let o = run(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("integrability"), "{stdout}");
+    for f in photostereo::pipeline::OUTPUT_FILES {
+        assert!(out.join(f).is_file(), "missing {f}");
+    }
+    // No temporary files remain.
+    assert!(listing(&out).iter().all(|f| !f.starts_with('.')), "{:?}", listing(&out));
+    let e = eval(&out, &data.join("normal_gt.exr"), &mask);
+    assert!(e["mean_deg"].as_f64().unwrap() < 0.05, "{e}");
+    // The report carries counts, integrability and timings.
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    let masked = report["pixels"]["masked"].as_u64().unwrap();
+    assert_eq!(masked, report["pixels"]["solved"].as_u64().unwrap());
+    assert!(masked > 4000);
+    // Exact normals are integrable: the curl vanishes except at the grazing rim.
+    assert!(report["integrability"]["median_abs_curl"].as_f64().unwrap() < 1e-3);
+    assert!(report["timings_s"]["solve"].as_f64().unwrap() >= 0.0);
+    assert_eq!(report["inputs"]["count"], 10);
+    // Outside the mask every EXR holds NaN; inside, unit normals.
+    let n = photostereo::input::read_image(&out.join("normal.exr")).unwrap();
+    let m = photostereo::input::read_mask(&mask).unwrap();
+    for (px, inside) in n.data.chunks_exact(3).zip(m.data()) {
+        if *inside {
+            let len = (px[0] * px[0] + px[1] * px[1] + px[2] * px[2]).sqrt();
+            assert!((len - 1.0).abs() < 1e-5);
+        } else {
+            assert!(px.iter().all(|v| v.is_nan()));
+        }
+    }
+    let d = photostereo::input::read_image(&out.join("depth.exr")).unwrap();
+    assert_eq!(d.channels, 1);
+    assert_eq!(d.data.iter().filter(|v| v.is_finite()).count(), m.count());
+}
+
+#[test]
+fn text_lights_and_16_bit_png_give_the_same_normals() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let images = sphere_dataset(&data, ImageFormat::Png16);
+    // Plain `x y z` lines in image order, with the optional count line.
+    let lights = Lights::fibonacci(10, 30.0).unwrap();
+    let mut txt = format!("{}\n", lights.len());
+    for d in lights.directions() {
+        txt += &format!("{} {} {}\n", d.x, d.y, d.z);
+    }
+    let lights_txt = tmp.path().join("lights.txt");
+    std::fs::write(&lights_txt, txt).unwrap();
+    let out = tmp.path().join("out");
+    let mask = data.join("mask.png");
+    let mut args: Vec<&std::ffi::OsStr> = images.iter().map(|p| p.as_os_str()).collect();
+    args.extend([os("--lights"), lights_txt.as_os_str(), os("--mask"), mask.as_os_str(), os("-q"), os("-o"), out.as_os_str()]);
+    let o = run(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // 16-bit quantisation (step 1.5e-5) costs well under a hundredth of a degree here.
+    let e = eval(&out, &data.join("normal_gt.exr"), &mask);
+    assert!(e["mean_deg"].as_f64().unwrap() < 0.02, "{e}");
+}
+
+/// A folder in the DiLiGenT layout with per-channel light intensities, written as 16-bit RGB
+/// PNG: intensities must be divided out per channel for the normals and albedo to come out.
+fn diligent_like(dir: &Path) -> PathBuf {
+    std::fs::create_dir_all(dir).unwrap();
+    let scene = Scene::sphere(80, 34.0, Albedo::Constant(0.5));
+    let lights = Lights::fibonacci(8, 35.0).unwrap();
+    let synth = synthesize(scene, lights.clone(), &RenderOptions::default()).unwrap();
+    let (w, h) = (80u32, 80u32);
+    let mut names = String::new();
+    let mut dirs = String::new();
+    let mut intens = String::new();
+    for (k, img) in synth.rendering.images.iter().enumerate() {
+        // Colour light: the camera sees E_c·ρ·(n·l) in channel c.
+        let e = [0.9, 0.6 + 0.05 * k as f32, 0.4];
+        let mut rgb = Vec::with_capacity(img.len() * 3);
+        for v in img.data() {
+            for ec in e {
+                rgb.push((v * ec).clamp(0.0, 1.0) * 65535.0);
+            }
+        }
+        let buf: image::ImageBuffer<image::Rgb<u16>, Vec<u16>> =
+            image::ImageBuffer::from_raw(w, h, rgb.iter().map(|v| v.round() as u16).collect()).unwrap();
+        let name = format!("{:03}.png", k + 1);
+        buf.save(dir.join(&name)).unwrap();
+        names += &format!("{name}\n");
+        let d = lights.directions()[k];
+        dirs += &format!("{} {} {}\n", d.x, d.y, d.z);
+        intens += &format!("{} {} {}\n", e[0], e[1], e[2]);
+    }
+    std::fs::write(dir.join("filenames.txt"), names).unwrap();
+    std::fs::write(dir.join("light_directions.txt"), dirs).unwrap();
+    std::fs::write(dir.join("light_intensities.txt"), intens).unwrap();
+    let mask: Vec<u8> = synth.truth.mask.data().iter().map(|m| if *m { 255 } else { 0 }).collect();
+    image::GrayImage::from_raw(w, h, mask).unwrap().save(dir.join("mask.png")).unwrap();
+    let (nx, ny, nz) = (
+        synth.truth.normals.map(|n| n.x),
+        synth.truth.normals.map(|n| n.y),
+        synth.truth.normals.map(|n| n.z),
+    );
+    photostereo::output::write_exr(
+        &dir.join("normal_gt.exr"),
+        80,
+        80,
+        &[("R", nx.data()), ("G", ny.data()), ("B", nz.data())],
+        &[],
+    )
+    .unwrap();
+    dir.to_path_buf()
+}
+
+#[test]
+fn diligent_layout_folder_with_colour_intensities() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = diligent_like(&tmp.path().join("objPNG"));
+    for color in ["grey", "per-channel"] {
+        let out = tmp.path().join(format!("out-{color}"));
+        let o = run(&[dir.as_os_str(), os("--color"), os(color), os("-q"), os("-o"), out.as_os_str()]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let e = eval(&out, &dir.join("normal_gt.exr"), &dir.join("mask.png"));
+        assert!(e["mean_deg"].as_f64().unwrap() < 0.05, "{color}: {e}");
+        // Albedo: 0.5 in every channel once intensities are divided out.
+        let a = photostereo::input::read_image(&out.join("albedo.exr")).unwrap();
+        assert_eq!(a.channels, if color == "grey" { 1 } else { 3 });
+        let finite: Vec<f32> = a.data.iter().copied().filter(|v| v.is_finite()).collect();
+        let mean = finite.iter().sum::<f32>() / finite.len() as f32;
+        assert!((mean - 0.5).abs() < 1e-3, "{color}: mean albedo {mean}");
+    }
+}
+
+#[test]
+fn demo_writes_outputs_scene_and_evaluation() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("demo");
+    let o = run(&[os("demo"), os("-q"), os("-o"), out.as_os_str()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("error against ground truth"), "{stdout}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    let mean = report["evaluation"]["normals"]["mean_deg"].as_f64().unwrap();
+    // Default noise σ = 0.005 under 12 lights: about half a degree.
+    assert!(mean < 1.0, "{mean}");
+    // The rendered inputs re-run through the main command.
+    let scene = out.join("scene");
+    assert!(scene.join("lights.json").is_file() && scene.join("normal_gt.exr").is_file());
+    let images: Vec<PathBuf> = (0..12).map(|k| scene.join(format!("img_{k:03}.exr"))).collect();
+    let out2 = tmp.path().join("again");
+    let lights = scene.join("lights.json");
+    let mut args: Vec<&std::ffi::OsStr> = images.iter().map(|p| p.as_os_str()).collect();
+    args.extend([os("--lights"), lights.as_os_str(), os("-q"), os("-o"), out2.as_os_str()]);
+    let o = run(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let a = photostereo::input::read_image(&out.join("normal.exr")).unwrap();
+    let b = photostereo::input::read_image(&out2.join("normal.exr")).unwrap();
+    assert_eq!(a.data.len(), b.data.len());
+    assert!(a.data.iter().zip(&b.data).all(|(x, y)| (x - y).abs() < 1e-6));
+}
+
+/// Bad input: non-zero exit, a message naming what is wrong, and nothing written.
+#[test]
+fn bad_input_fails_cleanly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let images = sphere_dataset(&data, ImageFormat::Exr);
+    let out = tmp.path().join("out");
+    let lights = data.join("lights.json");
+    let img_args: Vec<&std::ffi::OsStr> = images.iter().map(|p| p.as_os_str()).collect();
+    let cases: Vec<(Vec<&std::ffi::OsStr>, &str)> = vec![
+        // No lights file.
+        ([img_args.clone(), vec![os("-o"), out.as_os_str()]].concat(), "--lights"),
+        // A light for an image that is not given.
+        ([img_args[..9].to_vec(), vec![os("--lights"), lights.as_os_str(), os("-o"), out.as_os_str()]].concat(), "matches no image"),
+        // A missing image.
+        ([img_args[..9].to_vec(), vec![os("missing.exr"), os("--lights"), lights.as_os_str(), os("-o"), out.as_os_str()]].concat(), "has no light"),
+        // An invalid parameter.
+        ([img_args.clone(), vec![os("--lights"), lights.as_os_str(), os("--shadow-threshold"), os("1.5"), os("-o"), out.as_os_str()]].concat(), "shadow-threshold"),
+    ];
+    for (args, needle) in &cases[..3] {
+        let o = run(args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "succeeded: {args:?}");
+        assert!(err.contains("error:") && err.contains(needle), "{err}");
+        assert!(listing(&out).is_empty(), "{:?}", listing(&out));
+    }
+    let o = run(&cases[3].0);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("shadow-threshold"));
+    assert!(listing(&out).is_empty());
+    // A mask of another size is refused.
+    let small = tmp.path().join("small.png");
+    image::GrayImage::from_pixel(10, 10, image::Luma([255])).save(&small).unwrap();
+    let mut args = img_args.clone();
+    args.extend([os("--lights"), lights.as_os_str(), os("--mask"), small.as_os_str(), os("-o"), out.as_os_str()]);
+    let o = run(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("small.png") && err.contains("10x10"), "{err}");
+    assert!(listing(&out).is_empty());
+    // Output path is an existing file.
+    let file = tmp.path().join("a-file");
+    std::fs::write(&file, b"x").unwrap();
+    let mut args = img_args.clone();
+    args.extend([os("--lights"), lights.as_os_str(), os("-o"), file.as_os_str()]);
+    let o = run(&args);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("a-file"));
+    assert_eq!(std::fs::read(&file).unwrap(), b"x");
+}

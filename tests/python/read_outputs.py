@@ -1,0 +1,74 @@
+"""Reads every EXR that `photostereo` writes with Python's OpenEXR package, as a notebook user
+would, and checks channel names, sizes, types, the NaN mask and the values against the demo's
+ground truth. Prints a JSON summary; exits non-zero on the first failed check.
+
+Usage: python3 read_outputs.py OUT_DIR   (OUT_DIR written by `photostereo demo -o OUT_DIR`)
+"""
+import json
+import sys
+
+import numpy as np
+import OpenEXR
+
+
+def channels(path):
+    """Channel name -> float32 array (H, W); grouped RGB channels are split into R, G, B."""
+    with OpenEXR.File(path) as f:
+        out = {}
+        for name, ch in f.channels().items():
+            px = np.asarray(ch.pixels)
+            if name == "RGB" and px.ndim == 3:
+                for i, c in enumerate("RGB"):
+                    out[c] = px[..., i]
+            else:
+                out[name] = px
+        return out, dict(f.header())
+
+
+def check(cond, msg):
+    if not cond:
+        print("FAILED: " + msg, file=sys.stderr)
+        sys.exit(1)
+
+
+out = sys.argv[1]
+summary = {}
+normal, header = channels(f"{out}/normal.exr")
+check(sorted(normal) == ["B", "G", "R"], f"normal.exr channels {sorted(normal)}")
+check("photostereo:method" in header, "normal.exr lacks the photostereo:method attribute")
+h, w = normal["R"].shape
+n = np.dstack([normal[c] for c in "RGB"])
+check(n.dtype == np.float32, f"normal dtype {n.dtype}")
+valid = np.isfinite(n).all(axis=2)
+check(np.allclose(np.linalg.norm(n[valid], axis=1), 1.0, atol=1e-5), "normals are not unit vectors")
+
+gt, _ = channels(f"{out}/scene/normal_gt.exr")
+g = np.dstack([gt[c] for c in "RGB"])
+cos = np.clip(np.sum(n[valid] * g[valid], axis=1), -1, 1)
+summary["mean_angular_error_deg"] = float(np.degrees(np.arccos(cos)).mean())
+check(summary["mean_angular_error_deg"] < 1.0, f"normals disagree with ground truth: {summary}")
+
+depth, _ = channels(f"{out}/depth.exr")
+check(list(depth) == ["Z"] and depth["Z"].shape == (h, w), f"depth.exr channels {list(depth)}")
+check((np.isfinite(depth["Z"]) == valid).all(), "depth NaN mask differs from the normal map's")
+dgt, _ = channels(f"{out}/scene/depth_gt.exr")
+d, t = depth["Z"][valid], dgt["Z"][valid]
+rmse = float(np.sqrt(np.mean(((d - d.mean()) - (t - t.mean())) ** 2)))
+summary["depth_rmse_over_range"] = rmse / float(t.max() - t.min())
+check(summary["depth_rmse_over_range"] < 0.05, f"depth disagrees with ground truth: {summary}")
+
+albedo, _ = channels(f"{out}/albedo.exr")
+check(list(albedo) == ["Y"], f"albedo.exr channels {list(albedo)}")
+check((np.isfinite(albedo["Y"]) == valid).all(), "albedo NaN mask differs")
+
+res, _ = channels(f"{out}/residual.exr")
+check(sorted(res) == ["condition", "residual", "samples"], f"residual.exr channels {sorted(res)}")
+check((res["samples"][valid] >= 3).all(), "solved pixels with fewer than 3 samples")
+
+curl, _ = channels(f"{out}/curl.exr")
+check(list(curl) == ["curl"], f"curl.exr channels {list(curl)}")
+
+report = json.load(open(f"{out}/report.json"))
+check(report["pixels"]["solved"] == int(valid.sum()), "report pixel count differs from the NaN mask")
+summary["pixels"] = int(valid.sum())
+print(json.dumps(summary))
