@@ -18,13 +18,26 @@ use std::hint::black_box;
 fn bench_solve(c: &mut Criterion) {
     let scene = Scene::sphere(512, 240.0, Albedo::Constant(0.6));
     let lights = Lights::fibonacci(24, 25.0).unwrap();
-    let opts = RenderOptions { noise_sigma: 0.005, cast_shadows: false, ..RenderOptions::default() };
+    let opts = RenderOptions {
+        noise_sigma: 0.005,
+        cast_shadows: false,
+        ..RenderOptions::default()
+    };
     let synth = synthesize(scene, lights, &opts).unwrap();
     let cap = &synth.capture;
     let mut g = c.benchmark_group("solve_512x512_24_lights");
-    g.throughput(Throughput::Elements((cap.mask.count() * cap.lights.len()) as u64));
-    for method in [Method::LeastSquares, Method::Threshold, Method::ShadowWeighted] {
-        let o = SolveOptions { method, ..SolveOptions::default() };
+    g.throughput(Throughput::Elements(
+        (cap.mask.count() * cap.lights.len()) as u64,
+    ));
+    for method in [
+        Method::LeastSquares,
+        Method::Threshold,
+        Method::ShadowWeighted,
+    ] {
+        let o = SolveOptions {
+            method,
+            ..SolveOptions::default()
+        };
         g.bench_function(method.name(), |b| {
             b.iter(|| black_box(solve(&cap.stack, 0, &cap.lights, &cap.mask, &o, &Silent).unwrap()))
         });
@@ -51,7 +64,8 @@ fn bench_integrate(c: &mut Criterion) {
 
 /// Loading DiLiGenT cat (96 16-bit PNGs), when the shared data are present.
 fn bench_load_diligent(c: &mut Criterion) {
-    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/diligent/catPNG");
+    let dir =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/diligent/catPNG");
     if !dir.is_dir() {
         eprintln!("skipping load_diligent_cat: {} is absent", dir.display());
         return;
@@ -61,7 +75,8 @@ fn bench_load_diligent(c: &mut Criterion) {
     g.bench_function("load", |b| {
         b.iter(|| {
             black_box(
-                photostereo::dataset::Capture::from_diligent(&dir, &Default::default(), &Silent).unwrap(),
+                photostereo::dataset::Capture::from_diligent(&dir, &Default::default(), &Silent)
+                    .unwrap(),
             )
         })
     });

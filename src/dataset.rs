@@ -227,11 +227,15 @@ impl ImageFormat {
     }
 }
 
+/// Sub-folder of a synthetic data set that holds its ground truth.
+pub const GROUND_TRUTH_DIR: &str = "gt";
+
 /// Writes a synthetic capture as a data set that the command line reads directly
-/// (`photostereo DIR/*.exr --lights DIR/lights.json --mask DIR/mask.png`): images `img_NNN`,
-/// `lights.json` naming them, `mask.png`, and the ground truth `normal_gt.exr` (R, G, B),
-/// `depth_gt.exr` (Z, pixel units), `albedo_gt.exr` (Y) and per-light shadow masks
-/// `shadow_NNN.png` (255 where attached or cast shadow). Returns the files written.
+/// (`photostereo DIR/*.exr --lights DIR/lights.json --mask DIR/mask.png`; for PNG images
+/// `DIR/img_*.png`): images `img_NNN`, `lights.json` naming them and `mask.png` at the top, and
+/// the ground truth in [`GROUND_TRUTH_DIR`]: `normal_gt.exr` (R, G, B), `depth_gt.exr`
+/// (Z, pixel units), `albedo_gt.exr` (Y) and per-light shadow masks `shadow_NNN.png` (255 where
+/// in attached or cast shadow). Returns the files written.
 ///
 /// # Errors
 /// [`Error::Io`] or [`Error::Encode`] when writing fails (nothing is left half-written).
@@ -263,20 +267,27 @@ pub fn write_synthetic(
     }
     for (k, (a, c)) in rendering.attached.iter().zip(&rendering.cast).enumerate() {
         let both = Grid::from_fn(w, h, |x, y| *a.at(x, y) || *c.at(x, y));
-        out.stage_png8(&format!("shadow_{k:03}.png"), w, h, 1, &mask_bytes(&both))?;
+        out.stage_png8(
+            &format!("{GROUND_TRUTH_DIR}/shadow_{k:03}.png"),
+            w,
+            h,
+            1,
+            &mask_bytes(&both),
+        )?;
     }
     let lights = lights.clone().with_files(&names)?;
     out.stage_bytes("lights.json", lights.to_json().as_bytes())?;
     out.stage_png8("mask.png", w, h, 1, &mask_bytes(&t.mask))?;
     let [nx, ny, nz] = normal_planes(&t.normals);
+    let gt = |name: &str| format!("{GROUND_TRUTH_DIR}/{name}");
     out.stage_exr(
-        "normal_gt.exr",
+        &gt("normal_gt.exr"),
         w,
         h,
         &[("R", &nx), ("G", &ny), ("B", &nz)],
         &[],
     )?;
-    out.stage_exr("depth_gt.exr", w, h, &[("Z", t.depth.data())], &[])?;
-    out.stage_exr("albedo_gt.exr", w, h, &[("Y", t.albedo.data())], &[])?;
+    out.stage_exr(&gt("depth_gt.exr"), w, h, &[("Z", t.depth.data())], &[])?;
+    out.stage_exr(&gt("albedo_gt.exr"), w, h, &[("Y", t.albedo.data())], &[])?;
     out.commit()
 }

@@ -341,10 +341,10 @@ pub fn read_image(path: &Path) -> Result<DecodedImage> {
         for c in 0..raw.channels {
             let j = i * raw.stride + c;
             data.push(match &raw.samples {
-                Samples::U8(s) => f32::from(s[j]) / 255.0,
-                Samples::U16(s) => f32::from(s[j]) / 65535.0,
+                Samples::U8(s) => f32::from(s[j]) * (1.0 / 255.0),
+                Samples::U16(s) => f32::from(s[j]) * (1.0 / 65535.0),
                 Samples::U16Be(s) => {
-                    f32::from(u16::from_be_bytes([s[2 * j], s[2 * j + 1]])) / 65535.0
+                    f32::from(u16::from_be_bytes([s[2 * j], s[2 * j + 1]])) * (1.0 / 65535.0)
                 }
                 Samples::F32(s) => s[j],
             });
@@ -430,7 +430,8 @@ fn combine_row<const STRIDE: usize, const CIN: usize, const COUT: usize>(
             }
         }
     }
-    if row_max >= level {
+    // An infinite level means no saturation limit (float data without `--saturation`).
+    if level.is_finite() && row_max >= level {
         for (x, s) in stored.chunks_exact(STRIDE).enumerate() {
             if s[..CIN].iter().any(|v| *v >= level) {
                 let i = offset + x;
@@ -439,10 +440,11 @@ fn combine_row<const STRIDE: usize, const CIN: usize, const COUT: usize>(
             }
         }
     }
-    // Non-short-circuiting so that it vectorises.
-    if check_finite && !linear.iter().fold(true, |a, v| a & v.is_finite()) {
-        for (x, l) in linear.chunks_exact(STRIDE).enumerate() {
-            if !l[..CIN].iter().all(|v| v.is_finite()) {
+    // Finiteness of the stored values (the sRGB curve clamps, so the linear ones would hide
+    // infinities). Non-short-circuiting so that it vectorises.
+    if check_finite && !stored.iter().fold(true, |a, v| a & v.is_finite()) {
+        for (x, s) in stored.chunks_exact(STRIDE).enumerate() {
+            if !s[..CIN].iter().all(|v| v.is_finite()) {
                 c.non_finite += 1;
                 for k in 0..COUT {
                     out[k * n + offset + x] = f32::NAN;

@@ -288,7 +288,7 @@ impl Lights {
             });
         }
         let condition = self.condition_number();
-        if !(condition <= max_condition) {
+        if condition.is_nan() || condition > max_condition {
             return Err(Error::DegenerateLights {
                 condition,
                 limit: max_condition,
@@ -504,13 +504,12 @@ fn parse_number_rows(text: &str, source: &Path) -> Result<Vec<(usize, Vec<f64>)>
 
 /// Drops a leading line that holds only the count of the following lines.
 fn strip_count_line(mut rows: Vec<(usize, Vec<f64>)>) -> Vec<(usize, Vec<f64>)> {
-    if let Some((_, first)) = rows.first() {
-        if first.len() == 1 && first[0] == (rows.len() - 1) as f64 && rows.len() > 1 {
-            let second_len = rows[1].1.len();
-            if second_len != 1 {
-                rows.remove(0);
-            }
-        }
+    let is_count = rows.len() > 1
+        && rows[0].1.len() == 1
+        && rows[0].1[0] == (rows.len() - 1) as f64
+        && rows[1].1.len() != 1;
+    if is_count {
+        rows.remove(0);
     }
     rows
 }

@@ -21,8 +21,13 @@ pub struct OutputDir {
 /// One named channel of an EXR file.
 pub type ExrChannel<'a> = (&'a str, &'a [f32]);
 
-fn temp_path(dir: &Path, name: &str) -> PathBuf {
-    dir.join(format!(".{name}.tmp-{}", std::process::id()))
+/// The hidden temporary beside `dest`.
+fn temp_path(dest: &Path) -> PathBuf {
+    let name = dest
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    dest.with_file_name(format!(".{name}.tmp-{}", std::process::id()))
 }
 
 impl OutputDir {
@@ -43,14 +48,20 @@ impl OutputDir {
         &self.dir
     }
 
+    /// Writes `name` (a file name, or a relative path whose folders are created) to its
+    /// temporary with `write`, to be renamed into place by [`OutputDir::commit`].
     fn stage(&mut self, name: &str, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
-        let tmp = temp_path(&self.dir, name);
+        let dest = self.dir.join(name);
+        if let Some(parent) = dest.parent() {
+            std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
+        }
+        let tmp = temp_path(&dest);
         let result = write(&tmp);
         if result.is_err() {
             let _ = std::fs::remove_file(&tmp);
             return result;
         }
-        self.staged.push((tmp, self.dir.join(name)));
+        self.staged.push((tmp, dest));
         Ok(())
     }
 

@@ -293,10 +293,10 @@ impl Scene {
                 let mut best: Option<(f64, Vector3<f64>, f32)> =
                     self.ground.map(|g| (0.0, Vector3::z(), g.at(x, y)));
                 for (prim, alb) in &self.objects {
-                    if let Some((z, n)) = prim.eval(x, y) {
-                        if best.is_none_or(|(bz, _, _)| z > bz) {
-                            best = Some((z, n, alb.at(x, y)));
-                        }
+                    if let Some((z, n)) = prim.eval(x, y)
+                        && best.is_none_or(|(bz, _, _)| z > bz)
+                    {
+                        best = Some((z, n, alb.at(x, y)));
                     }
                 }
                 if let Some((z, n, a)) = best {

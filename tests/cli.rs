@@ -22,11 +22,21 @@ fn os<S: AsRef<std::ffi::OsStr> + ?Sized>(s: &S) -> &std::ffi::OsStr {
 /// A noise-free sphere data set written as EXR files with `lights.json`; returns the image
 /// paths in file order.
 fn sphere_dataset(dir: &Path, format: ImageFormat) -> Vec<PathBuf> {
-    let scene = Scene::sphere(96, 40.0, Albedo::Smooth { mean: 0.6, amplitude: 0.2, period: 23.0 });
+    let scene = Scene::sphere(
+        96,
+        40.0,
+        Albedo::Smooth {
+            mean: 0.6,
+            amplitude: 0.2,
+            period: 23.0,
+        },
+    );
     let lights = Lights::fibonacci(10, 30.0).unwrap();
     let synth = synthesize(scene, lights.clone(), &RenderOptions::default()).unwrap();
     write_synthetic(&synth.rendering, &lights, dir, format).unwrap();
-    (0..10).map(|k| dir.join(format!("img_{k:03}.{}", format.extension()))).collect()
+    (0..10)
+        .map(|k| dir.join(format!("img_{k:03}.{}", format.extension())))
+        .collect()
 }
 
 /// Mean angular error of `out/normal.exr` against `gt` via the `eval` subcommand.
@@ -47,7 +57,10 @@ fn eval(out: &Path, gt: &Path, mask: &Path) -> serde_json::Value {
 /// Files in a folder (names), sorted.
 fn listing(dir: &Path) -> Vec<String> {
     let mut v: Vec<String> = std::fs::read_dir(dir)
-        .map(|r| r.map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect())
+        .map(|r| {
+            r.map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect()
+        })
         .unwrap_or_default();
     v.sort();
     v
@@ -64,7 +77,15 @@ fn images_with_json_lights_given_in_shuffled_order() {
     let out = tmp.path().join("out");
     let mut args: Vec<&std::ffi::OsStr> = images.iter().map(|p| p.as_os_str()).collect();
     let (lights, mask) = (data.join("lights.json"), data.join("mask.png"));
-    args.extend([os("--lights"), lights.as_os_str(), os("--mask"), mask.as_os_str(), os("-q"), os("-o"), out.as_os_str()]);
+    args.extend([
+        os("--lights"),
+        lights.as_os_str(),
+        os("--mask"),
+        mask.as_os_str(),
+        os("-q"),
+        os("-o"),
+        out.as_os_str(),
+    ]);
     let o = run(&args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let stdout = String::from_utf8_lossy(&o.stdout);
@@ -73,8 +94,12 @@ fn images_with_json_lights_given_in_shuffled_order() {
         assert!(out.join(f).is_file(), "missing {f}");
     }
     // No temporary files remain.
-    assert!(listing(&out).iter().all(|f| !f.starts_with('.')), "{:?}", listing(&out));
-    let e = eval(&out, &data.join("normal_gt.exr"), &mask);
+    assert!(
+        listing(&out).iter().all(|f| !f.starts_with('.')),
+        "{:?}",
+        listing(&out)
+    );
+    let e = eval(&out, &data.join("gt/normal_gt.exr"), &mask);
     assert!(e["mean_deg"].as_f64().unwrap() < 0.05, "{e}");
     // The report carries counts, integrability and timings.
     let report: serde_json::Value =
@@ -118,11 +143,19 @@ fn text_lights_and_16_bit_png_give_the_same_normals() {
     let out = tmp.path().join("out");
     let mask = data.join("mask.png");
     let mut args: Vec<&std::ffi::OsStr> = images.iter().map(|p| p.as_os_str()).collect();
-    args.extend([os("--lights"), lights_txt.as_os_str(), os("--mask"), mask.as_os_str(), os("-q"), os("-o"), out.as_os_str()]);
+    args.extend([
+        os("--lights"),
+        lights_txt.as_os_str(),
+        os("--mask"),
+        mask.as_os_str(),
+        os("-q"),
+        os("-o"),
+        out.as_os_str(),
+    ]);
     let o = run(&args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     // 16-bit quantisation (step 1.5e-5) costs well under a hundredth of a degree here.
-    let e = eval(&out, &data.join("normal_gt.exr"), &mask);
+    let e = eval(&out, &data.join("gt/normal_gt.exr"), &mask);
     assert!(e["mean_deg"].as_f64().unwrap() < 0.02, "{e}");
 }
 
@@ -147,7 +180,8 @@ fn diligent_like(dir: &Path) -> PathBuf {
             }
         }
         let buf: image::ImageBuffer<image::Rgb<u16>, Vec<u16>> =
-            image::ImageBuffer::from_raw(w, h, rgb.iter().map(|v| v.round() as u16).collect()).unwrap();
+            image::ImageBuffer::from_raw(w, h, rgb.iter().map(|v| v.round() as u16).collect())
+                .unwrap();
         let name = format!("{:03}.png", k + 1);
         buf.save(dir.join(&name)).unwrap();
         names += &format!("{name}\n");
@@ -158,8 +192,17 @@ fn diligent_like(dir: &Path) -> PathBuf {
     std::fs::write(dir.join("filenames.txt"), names).unwrap();
     std::fs::write(dir.join("light_directions.txt"), dirs).unwrap();
     std::fs::write(dir.join("light_intensities.txt"), intens).unwrap();
-    let mask: Vec<u8> = synth.truth.mask.data().iter().map(|m| if *m { 255 } else { 0 }).collect();
-    image::GrayImage::from_raw(w, h, mask).unwrap().save(dir.join("mask.png")).unwrap();
+    let mask: Vec<u8> = synth
+        .truth
+        .mask
+        .data()
+        .iter()
+        .map(|m| if *m { 255 } else { 0 })
+        .collect();
+    image::GrayImage::from_raw(w, h, mask)
+        .unwrap()
+        .save(dir.join("mask.png"))
+        .unwrap();
     let (nx, ny, nz) = (
         synth.truth.normals.map(|n| n.x),
         synth.truth.normals.map(|n| n.y),
@@ -182,7 +225,14 @@ fn diligent_layout_folder_with_colour_intensities() {
     let dir = diligent_like(&tmp.path().join("objPNG"));
     for color in ["grey", "per-channel"] {
         let out = tmp.path().join(format!("out-{color}"));
-        let o = run(&[dir.as_os_str(), os("--color"), os(color), os("-q"), os("-o"), out.as_os_str()]);
+        let o = run(&[
+            dir.as_os_str(),
+            os("--color"),
+            os(color),
+            os("-q"),
+            os("-o"),
+            out.as_os_str(),
+        ]);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let e = eval(&out, &dir.join("normal_gt.exr"), &dir.join("mask.png"));
         assert!(e["mean_deg"].as_f64().unwrap() < 0.05, "{color}: {e}");
@@ -205,23 +255,38 @@ fn demo_writes_outputs_scene_and_evaluation() {
     assert!(stdout.contains("error against ground truth"), "{stdout}");
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
-    let mean = report["evaluation"]["normals"]["mean_deg"].as_f64().unwrap();
+    let mean = report["evaluation"]["normals"]["mean_deg"]
+        .as_f64()
+        .unwrap();
     // Default noise σ = 0.005 under 12 lights: about half a degree.
     assert!(mean < 1.0, "{mean}");
     // The rendered inputs re-run through the main command.
     let scene = out.join("scene");
-    assert!(scene.join("lights.json").is_file() && scene.join("normal_gt.exr").is_file());
-    let images: Vec<PathBuf> = (0..12).map(|k| scene.join(format!("img_{k:03}.exr"))).collect();
+    assert!(scene.join("lights.json").is_file() && scene.join("gt/normal_gt.exr").is_file());
+    let images: Vec<PathBuf> = (0..12)
+        .map(|k| scene.join(format!("img_{k:03}.exr")))
+        .collect();
     let out2 = tmp.path().join("again");
     let lights = scene.join("lights.json");
     let mut args: Vec<&std::ffi::OsStr> = images.iter().map(|p| p.as_os_str()).collect();
-    args.extend([os("--lights"), lights.as_os_str(), os("-q"), os("-o"), out2.as_os_str()]);
+    args.extend([
+        os("--lights"),
+        lights.as_os_str(),
+        os("-q"),
+        os("-o"),
+        out2.as_os_str(),
+    ]);
     let o = run(&args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let a = photostereo::input::read_image(&out.join("normal.exr")).unwrap();
     let b = photostereo::input::read_image(&out2.join("normal.exr")).unwrap();
     assert_eq!(a.data.len(), b.data.len());
-    assert!(a.data.iter().zip(&b.data).all(|(x, y)| (x - y).abs() < 1e-6));
+    assert!(
+        a.data
+            .iter()
+            .zip(&b.data)
+            .all(|(x, y)| (x - y).abs() < 1e-6)
+    );
 }
 
 /// Bad input: non-zero exit, a message naming what is wrong, and nothing written.
@@ -235,13 +300,55 @@ fn bad_input_fails_cleanly() {
     let img_args: Vec<&std::ffi::OsStr> = images.iter().map(|p| p.as_os_str()).collect();
     let cases: Vec<(Vec<&std::ffi::OsStr>, &str)> = vec![
         // No lights file.
-        ([img_args.clone(), vec![os("-o"), out.as_os_str()]].concat(), "--lights"),
+        (
+            [img_args.clone(), vec![os("-o"), out.as_os_str()]].concat(),
+            "--lights",
+        ),
         // A light for an image that is not given.
-        ([img_args[..9].to_vec(), vec![os("--lights"), lights.as_os_str(), os("-o"), out.as_os_str()]].concat(), "matches no image"),
+        (
+            [
+                img_args[..9].to_vec(),
+                vec![
+                    os("--lights"),
+                    lights.as_os_str(),
+                    os("-o"),
+                    out.as_os_str(),
+                ],
+            ]
+            .concat(),
+            "matches no image",
+        ),
         // A missing image.
-        ([img_args[..9].to_vec(), vec![os("missing.exr"), os("--lights"), lights.as_os_str(), os("-o"), out.as_os_str()]].concat(), "has no light"),
+        (
+            [
+                img_args[..9].to_vec(),
+                vec![
+                    os("missing.exr"),
+                    os("--lights"),
+                    lights.as_os_str(),
+                    os("-o"),
+                    out.as_os_str(),
+                ],
+            ]
+            .concat(),
+            "has no light",
+        ),
         // An invalid parameter.
-        ([img_args.clone(), vec![os("--lights"), lights.as_os_str(), os("--shadow-threshold"), os("1.5"), os("-o"), out.as_os_str()]].concat(), "shadow-threshold"),
+        (
+            [
+                img_args.clone(),
+                vec![
+                    os("--lights"),
+                    lights.as_os_str(),
+                    os("--shadow-threshold"),
+                    os("1.5"),
+                    os("-o"),
+                    out.as_os_str(),
+                ],
+            ]
+            .concat(),
+            "shadow-threshold",
+        ),
     ];
     for (args, needle) in &cases[..3] {
         let o = run(args);
@@ -256,18 +363,35 @@ fn bad_input_fails_cleanly() {
     assert!(listing(&out).is_empty());
     // A mask of another size is refused.
     let small = tmp.path().join("small.png");
-    image::GrayImage::from_pixel(10, 10, image::Luma([255])).save(&small).unwrap();
+    image::GrayImage::from_pixel(10, 10, image::Luma([255]))
+        .save(&small)
+        .unwrap();
     let mut args = img_args.clone();
-    args.extend([os("--lights"), lights.as_os_str(), os("--mask"), small.as_os_str(), os("-o"), out.as_os_str()]);
+    args.extend([
+        os("--lights"),
+        lights.as_os_str(),
+        os("--mask"),
+        small.as_os_str(),
+        os("-o"),
+        out.as_os_str(),
+    ]);
     let o = run(&args);
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("small.png") && err.contains("10x10"), "{err}");
+    assert!(
+        !o.status.success() && err.contains("small.png") && err.contains("10x10"),
+        "{err}"
+    );
     assert!(listing(&out).is_empty());
     // Output path is an existing file.
     let file = tmp.path().join("a-file");
     std::fs::write(&file, b"x").unwrap();
     let mut args = img_args.clone();
-    args.extend([os("--lights"), lights.as_os_str(), os("-o"), file.as_os_str()]);
+    args.extend([
+        os("--lights"),
+        lights.as_os_str(),
+        os("-o"),
+        file.as_os_str(),
+    ]);
     let o = run(&args);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("a-file"));

@@ -16,7 +16,11 @@ fn ls_mean_error(dir: &Path) -> f64 {
         .arg(out.path())
         .output()
         .unwrap();
-    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
     let eval = Command::new(common::bin())
         .arg("eval")
         .arg("--normals")
@@ -27,7 +31,11 @@ fn ls_mean_error(dir: &Path) -> f64 {
         .arg(dir.join("mask.png"))
         .output()
         .unwrap();
-    assert!(eval.status.success(), "{}", String::from_utf8_lossy(&eval.stderr));
+    assert!(
+        eval.status.success(),
+        "{}",
+        String::from_utf8_lossy(&eval.stderr)
+    );
     let v: serde_json::Value = serde_json::from_slice(&eval.stdout).unwrap();
     assert_eq!(v["missing"], 0);
     v["mean_deg"].as_f64().unwrap()
@@ -60,17 +68,26 @@ fn diligent_default_method_beats_the_baseline() {
     for obj in ["cat", "bear"] {
         let dir = require_shared!(format!("diligent/{obj}PNG"));
         let capture = Capture::from_diligent(&dir, &LoadOptions::default(), &Silent).unwrap();
-        let config = Config { integrator: None, ..Config::default() };
+        let config = Config {
+            integrator: None,
+            ..Config::default()
+        };
         let recon = reconstruct(&capture, &config, &Silent).unwrap();
         let gt = read_image(&dir.join("normal_gt.exr")).unwrap();
         let gt = photostereo::grid::Grid::from_vec(
             gt.width,
             gt.height,
-            gt.data.chunks_exact(3).map(|c| nalgebra::Vector3::new(c[0], c[1], c[2])).collect(),
+            gt.data
+                .chunks_exact(3)
+                .map(|c| nalgebra::Vector3::new(c[0], c[1], c[2]))
+                .collect(),
         )
         .unwrap();
         let s = photostereo::metrics::angular_errors(&recon.normals, &gt, &capture.mask).unwrap();
-        println!("{obj}: default method {:.3}° ({} px, {} unsolved)", s.mean_deg, s.pixels, s.missing);
+        println!(
+            "{obj}: default method {:.3}° ({} px, {} unsolved)",
+            s.mean_deg, s.pixels, s.missing
+        );
         assert!(s.mean_deg < 7.5, "{obj}: {}°", s.mean_deg);
         assert!(s.missing * 1000 < s.pixels, "{obj}: {} unsolved", s.missing);
     }

@@ -17,11 +17,45 @@ fn scene() -> Scene {
         width: 96,
         height: 72,
         objects: vec![
-            (Primitive::Sphere { cx: -20.0, cy: 5.0, radius: 18.0, base: 0.0 }, Albedo::Smooth { mean: 0.6, amplitude: 0.2, period: 15.0 }),
-            (Primitive::Pyramid { cx: 25.0, cy: -8.0, half: 14.0, height: 10.0, base: 0.0 }, Albedo::Constant(0.8)),
-            (Primitive::Gaussian { cx: 22.0, cy: 22.0, sigma: 6.0, height: 9.0, base: 0.0 }, Albedo::Constant(0.7)),
+            (
+                Primitive::Sphere {
+                    cx: -20.0,
+                    cy: 5.0,
+                    radius: 18.0,
+                    base: 0.0,
+                },
+                Albedo::Smooth {
+                    mean: 0.6,
+                    amplitude: 0.2,
+                    period: 15.0,
+                },
+            ),
+            (
+                Primitive::Pyramid {
+                    cx: 25.0,
+                    cy: -8.0,
+                    half: 14.0,
+                    height: 10.0,
+                    base: 0.0,
+                },
+                Albedo::Constant(0.8),
+            ),
+            (
+                Primitive::Gaussian {
+                    cx: 22.0,
+                    cy: 22.0,
+                    sigma: 6.0,
+                    height: 9.0,
+                    base: 0.0,
+                },
+                Albedo::Constant(0.7),
+            ),
         ],
-        ground: Some(Albedo::Checker { size: 12.0, a: 0.3, b: 0.45 }),
+        ground: Some(Albedo::Checker {
+            size: 12.0,
+            a: 0.3,
+            b: 0.45,
+        }),
     }
 }
 
@@ -32,7 +66,11 @@ fn rendered_scene_matches_golden_images() {
     let r = render_lambertian(&scene(), &lights, &RenderOptions::default()).unwrap();
     let regenerate = std::env::var_os("REGENERATE").is_some();
     for (k, img) in r.images.iter().enumerate() {
-        let codes: Vec<u16> = img.data().iter().map(|v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16).collect();
+        let codes: Vec<u16> = img
+            .data()
+            .iter()
+            .map(|v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16)
+            .collect();
         let path = golden_dir().join(format!("render_{k}.png"));
         if regenerate {
             std::fs::create_dir_all(golden_dir()).unwrap();
@@ -40,11 +78,26 @@ fn rendered_scene_matches_golden_images() {
             continue;
         }
         let truth = image::open(&path)
-            .unwrap_or_else(|e| panic!("{}: {e}; run with REGENERATE=1 to create it", path.display()))
+            .unwrap_or_else(|e| {
+                panic!(
+                    "{}: {e}; run with REGENERATE=1 to create it",
+                    path.display()
+                )
+            })
             .into_luma16();
         assert_eq!((truth.width(), truth.height()), (96, 72));
-        let worst = truth.as_raw().iter().zip(&codes).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
-        assert!(worst <= 1, "{}: differs by up to {worst} codes", path.display());
+        let worst = truth
+            .as_raw()
+            .iter()
+            .zip(&codes)
+            .map(|(a, b)| a.abs_diff(*b))
+            .max()
+            .unwrap();
+        assert!(
+            worst <= 1,
+            "{}: differs by up to {worst} codes",
+            path.display()
+        );
     }
 }
 
@@ -55,18 +108,37 @@ fn shadow_masks_match_golden_masks() {
     let r = render_lambertian(&scene(), &lights, &RenderOptions::default()).unwrap();
     let regenerate = std::env::var_os("REGENERATE").is_some();
     for (k, (a, c)) in r.attached.iter().zip(&r.cast).enumerate() {
-        let bytes: Vec<u8> = a.data().iter().zip(c.data()).map(|(a, c)| (*a as u8) * 128 + (*c as u8) * 127).collect();
+        let bytes: Vec<u8> = a
+            .data()
+            .iter()
+            .zip(c.data())
+            .map(|(a, c)| (*a as u8) * 128 + (*c as u8) * 127)
+            .collect();
         let path = golden_dir().join(format!("shadow_{k}.png"));
         if regenerate {
             photostereo::output::write_png8(&path, 96, 72, 1, &bytes).unwrap();
             continue;
         }
         let truth = image::open(&path)
-            .unwrap_or_else(|e| panic!("{}: {e}; run with REGENERATE=1 to create it", path.display()))
+            .unwrap_or_else(|e| {
+                panic!(
+                    "{}: {e}; run with REGENERATE=1 to create it",
+                    path.display()
+                )
+            })
             .into_luma8();
-        let differ = truth.as_raw().iter().zip(&bytes).filter(|(a, b)| a != b).count();
+        let differ = truth
+            .as_raw()
+            .iter()
+            .zip(&bytes)
+            .filter(|(a, b)| a != b)
+            .count();
         assert!(differ <= 3, "{}: {differ} pixels differ", path.display());
         // The scene does cast shadows under every light.
-        assert!(c.count() > 50, "light {k}: {} cast-shadow pixels", c.count());
+        assert!(
+            c.count() > 50,
+            "light {k}: {} cast-shadow pixels",
+            c.count()
+        );
     }
 }

@@ -13,7 +13,10 @@ pub fn shared_data() -> Option<PathBuf> {
 #[macro_export]
 macro_rules! require_shared {
     ($sub:expr) => {
-        match common::shared_data().map(|d| d.join($sub)).filter(|p| p.exists()) {
+        match common::shared_data()
+            .map(|d| d.join($sub))
+            .filter(|p| p.exists())
+        {
             Some(p) => p,
             None => {
                 eprintln!(

@@ -42,7 +42,7 @@ check(n.dtype == np.float32, f"normal dtype {n.dtype}")
 valid = np.isfinite(n).all(axis=2)
 check(np.allclose(np.linalg.norm(n[valid], axis=1), 1.0, atol=1e-5), "normals are not unit vectors")
 
-gt, _ = channels(f"{out}/scene/normal_gt.exr")
+gt, _ = channels(f"{out}/scene/gt/normal_gt.exr")
 g = np.dstack([gt[c] for c in "RGB"])
 cos = np.clip(np.sum(n[valid] * g[valid], axis=1), -1, 1)
 summary["mean_angular_error_deg"] = float(np.degrees(np.arccos(cos)).mean())
@@ -51,7 +51,7 @@ check(summary["mean_angular_error_deg"] < 1.0, f"normals disagree with ground tr
 depth, _ = channels(f"{out}/depth.exr")
 check(list(depth) == ["Z"] and depth["Z"].shape == (h, w), f"depth.exr channels {list(depth)}")
 check((np.isfinite(depth["Z"]) == valid).all(), "depth NaN mask differs from the normal map's")
-dgt, _ = channels(f"{out}/scene/depth_gt.exr")
+dgt, _ = channels(f"{out}/scene/gt/depth_gt.exr")
 d, t = depth["Z"][valid], dgt["Z"][valid]
 rmse = float(np.sqrt(np.mean(((d - d.mean()) - (t - t.mean())) ** 2)))
 summary["depth_rmse_over_range"] = rmse / float(t.max() - t.min())

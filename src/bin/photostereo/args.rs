@@ -224,10 +224,10 @@ impl MethodArgs {
 impl LoadArgs {
     /// The library load options these flags describe.
     pub fn options(&self) -> Result<LoadOptions> {
-        if let Some(s) = self.saturation {
-            if !(s.is_finite() && s > 0.0) {
-                bail!("--saturation {s}: must be a positive level");
-            }
+        if let Some(s) = self.saturation
+            && !(s.is_finite() && s > 0.0)
+        {
+            bail!("--saturation {s}: must be a positive level");
         }
         Ok(LoadOptions {
             color: match self.color {

@@ -38,18 +38,18 @@ impl Progress for Bars {
     }
 
     fn advance(&self, units: u64) {
-        if let Ok(c) = self.current.lock() {
-            if let Some(b) = c.as_ref() {
-                b.inc(units);
-            }
+        if let Ok(c) = self.current.lock()
+            && let Some(b) = c.as_ref()
+        {
+            b.inc(units);
         }
     }
 
     fn end(&self) {
-        if let Ok(mut c) = self.current.lock() {
-            if let Some(b) = c.take() {
-                b.finish_and_clear();
-            }
+        if let Ok(mut c) = self.current.lock()
+            && let Some(b) = c.take()
+        {
+            b.finish_and_clear();
         }
     }
 }

@@ -122,7 +122,7 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
         );
     }
     println!(
-        "inputs and ground truth (normal_gt.exr, depth_gt.exr, albedo_gt.exr) in {}/scene/",
+        "inputs in {0}/scene/, ground truth (normal_gt.exr, depth_gt.exr, albedo_gt.exr, shadow masks) in {0}/scene/gt/",
         a.output.display()
     );
     Ok(())
