@@ -7,9 +7,10 @@
 //! weights [`GREY_WEIGHTS`] or kept as three channels for a per-channel solve.
 
 use crate::error::{Error, Result};
-use crate::grid::{Grid, Mask};
+use crate::grid::{Grid, Mask, NormalMap};
 use crate::lights::Lights;
 use crate::progress::Progress;
+use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -357,6 +358,41 @@ pub fn read_image(path: &Path) -> Result<DecodedImage> {
         format: raw.format,
         data,
     })
+}
+
+/// Reads a normal map: an EXR (or float TIFF) with R, G, B = n_x, n_y, n_z as stored, or an 8/16-bit
+/// PNG/TIFF encoded n = 2v − 1 with v the code scaled to [0, 1] (renormalised, as quantisation
+/// shortens the vectors; all-zero codes — the usual background — become NaN).
+///
+/// # Errors
+/// As [`read_image`]; [`Error::UnsupportedImage`] when the image does not have 3 channels.
+pub fn read_normal_map(path: &Path) -> Result<NormalMap> {
+    let img = read_image(path)?;
+    if img.channels != 3 {
+        return Err(Error::UnsupportedImage {
+            path: path.to_path_buf(),
+            reason: format!(
+                "a normal map needs 3 channels (R, G, B = n_x, n_y, n_z), found {}",
+                img.channels
+            ),
+        });
+    }
+    let encoded = img.format.is_integer();
+    let normals = img
+        .data
+        .chunks_exact(3)
+        .map(|c| {
+            let v = Vector3::new(c[0], c[1], c[2]);
+            if !encoded {
+                v
+            } else if v == Vector3::zeros() {
+                Vector3::repeat(f32::NAN)
+            } else {
+                (v * 2.0 - Vector3::repeat(1.0)).normalize()
+            }
+        })
+        .collect();
+    Grid::from_vec(img.width, img.height, normals)
 }
 
 /// Reads a mask image: a pixel belongs to the object when any channel is > 0.

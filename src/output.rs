@@ -292,7 +292,7 @@ pub fn normal_preview(normals: &NormalMap) -> Vec<u8> {
 /// black where undefined.
 pub fn depth_preview(depth: &ScalarMap) -> Vec<u8> {
     let (w, h) = (depth.width(), depth.height());
-    let l = nalgebra::Vector3::new(-1.0f32, 1.0, 1.5).normalize();
+    let l = nalgebra::Vector3::new(-1.0f32, 1.0, 1.0).normalize();
     let d = depth.data();
     let at = |x: isize, y: isize| -> Option<f32> {
         (x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h)
@@ -318,8 +318,9 @@ pub fn depth_preview(depth: &ScalarMap) -> Vec<u8> {
                 (None, None) => 0.0,
             };
             let n = nalgebra::Vector3::new(-dx, -dy, 1.0).normalize();
-            let shade = 0.15 + 0.85 * n.dot(&l).max(0.0);
-            out[y * w + x] = (linear_to_srgb(shade) * 255.0).round() as u8;
+            // Displayed without gamma so that the relief keeps its contrast.
+            let shade = 0.1 + 0.9 * n.dot(&l).max(0.0);
+            out[y * w + x] = (shade * 255.0).round() as u8;
         }
     }
     out

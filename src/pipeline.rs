@@ -338,7 +338,6 @@ pub fn write_outputs(
     config: &Config,
     dir: &Path,
     evaluation: Option<serde_json::Value>,
-    extra_files: &[(&str, Vec<u8>)],
 ) -> Result<Report> {
     let t = Instant::now();
     let (w, h) = (recon.normals.width(), recon.normals.height());
@@ -422,9 +421,6 @@ pub fn write_outputs(
         out.stage_png8("albedo.png", w, h, 3, &rgb)?;
     }
     out.stage_png8("depth.png", w, h, 1, &depth_preview(depth))?;
-    for (name, bytes) in extra_files {
-        out.stage_bytes(name, bytes)?;
-    }
     let mut res: Vec<f64> = recon
         .residual
         .data()
@@ -442,8 +438,7 @@ pub fn write_outputs(
         }
     };
     recon.timings.write = t.elapsed().as_secs_f64();
-    let mut outputs: Vec<String> = OUTPUT_FILES.iter().map(|s| s.to_string()).collect();
-    outputs.extend(extra_files.iter().map(|(n, _)| n.to_string()));
+    let outputs: Vec<String> = OUTPUT_FILES.iter().map(|s| s.to_string()).collect();
     let report = Report {
         version: env!("CARGO_PKG_VERSION"),
         inputs: InputSummary::of(capture),

@@ -62,7 +62,7 @@ fn diligent_bear_least_squares_baseline() {
 #[test]
 fn diligent_default_method_beats_the_baseline() {
     use photostereo::dataset::Capture;
-    use photostereo::input::{LoadOptions, read_image};
+    use photostereo::input::{LoadOptions, read_normal_map};
     use photostereo::pipeline::{Config, reconstruct};
     use photostereo::progress::Silent;
     for obj in ["cat", "bear"] {
@@ -73,16 +73,7 @@ fn diligent_default_method_beats_the_baseline() {
             ..Config::default()
         };
         let recon = reconstruct(&capture, &config, &Silent).unwrap();
-        let gt = read_image(&dir.join("normal_gt.exr")).unwrap();
-        let gt = photostereo::grid::Grid::from_vec(
-            gt.width,
-            gt.height,
-            gt.data
-                .chunks_exact(3)
-                .map(|c| nalgebra::Vector3::new(c[0], c[1], c[2]))
-                .collect(),
-        )
-        .unwrap();
+        let gt = read_normal_map(&dir.join("normal_gt.exr")).unwrap();
         let s = photostereo::metrics::angular_errors(&recon.normals, &gt, &capture.mask).unwrap();
         println!(
             "{obj}: default method {:.3}° ({} px, {} unsolved)",
@@ -91,4 +82,23 @@ fn diligent_default_method_beats_the_baseline() {
         assert!(s.mean_deg < 7.5, "{obj}: {}°", s.mean_deg);
         assert!(s.missing * 1000 < s.pixels, "{obj}: {} unsolved", s.missing);
     }
+}
+
+/// A 16-bit PNG normal map (n = v/65535·2 − 1) decodes to the same normals as the EXR ground
+/// truth: the integration set's `normal_map.png` equals DiLiGenT's `Normal_gt` inside the mask.
+#[test]
+fn png_normal_map_decodes_like_the_exr_ground_truth() {
+    use photostereo::input::{read_mask, read_normal_map};
+    let png = require_shared!("integration/cat/normal_map.png");
+    let exr = require_shared!("diligent/catPNG/normal_gt.exr");
+    let mask = read_mask(&png.with_file_name("mask.png")).unwrap();
+    let a = read_normal_map(&png).unwrap();
+    let b = read_normal_map(&exr).unwrap();
+    let s = photostereo::metrics::angular_errors(&a, &b, &mask).unwrap();
+    println!(
+        "normal_map.png vs normal_gt.exr: mean {:.5}°, p95 {:.5}°",
+        s.mean_deg, s.p95_deg
+    );
+    assert_eq!(s.pixels, mask.count());
+    assert!(s.mean_deg < 0.01 && s.p95_deg < 0.02, "{s:?}");
 }

@@ -1,10 +1,9 @@
 //! End-to-end tests of the `data-synth` binary: render data sets into temporary folders, load
 //! them back with the photostereo library and reconstruct them.
 
-use nalgebra::Vector3;
 use photostereo::dataset::Capture;
-use photostereo::grid::{Grid, NormalMap};
-use photostereo::input::{LoadOptions, read_image};
+
+use photostereo::input::{LoadOptions, read_normal_map};
 use photostereo::metrics::{AngularErrorStats, angular_errors};
 use photostereo::pipeline::{Config, reconstruct};
 use photostereo::progress::Silent;
@@ -42,18 +41,6 @@ fn image_paths(dir: &Path, count: usize, ext: &str) -> Vec<PathBuf> {
         .collect()
 }
 
-/// Reads a 3-channel normal map.
-fn read_normals(path: &Path) -> NormalMap {
-    let img = read_image(path).expect("normal map reads");
-    assert_eq!(img.channels, 3, "{}", path.display());
-    let normals = img
-        .data
-        .chunks_exact(3)
-        .map(|c| Vector3::new(c[0], c[1], c[2]))
-        .collect();
-    Grid::from_vec(img.width, img.height, normals).expect("normal map size")
-}
-
 /// Loads a written data set as the command line would, reconstructs it with the default
 /// configuration, and measures the normals against `normal_gt.exr` inside `mask.png`.
 fn reconstruction_error(dir: &Path, count: usize, ext: &str) -> AngularErrorStats {
@@ -68,7 +55,7 @@ fn reconstruction_error(dir: &Path, count: usize, ext: &str) -> AngularErrorStat
     )
     .expect("data set loads");
     let recon = reconstruct(&capture, &Config::default(), &Silent).expect("reconstructs");
-    let gt = read_normals(&dir.join("gt/normal_gt.exr"));
+    let gt = read_normal_map(&dir.join("gt/normal_gt.exr")).expect("normal map reads");
     let stats = angular_errors(&recon.normals, &gt, &capture.mask).expect("comparable");
     assert_eq!(stats.missing, 0, "unsolved pixels: {stats:?}");
     stats

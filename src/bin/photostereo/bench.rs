@@ -41,7 +41,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         let load_s = t.elapsed().as_secs_f64();
         let mut recon = reconstruct(&capture, &config, &Silent)?;
         recon.timings.load = load_s;
-        write_outputs(&mut recon, &capture, &config, &tmp, None, &[])?;
+        write_outputs(&mut recon, &capture, &config, &tmp, None)?;
         total.push(t.elapsed().as_secs_f64());
         load.push(load_s);
         solve.push(recon.timings.solve);

@@ -11,7 +11,7 @@ use clap::Parser;
 use photostereo::dataset::Capture;
 use photostereo::demo;
 use photostereo::grid::Grid;
-use photostereo::input::read_image;
+use photostereo::input::read_normal_map;
 use photostereo::metrics::angular_errors;
 use photostereo::pipeline::{Config, Reconstruction, Report, reconstruct, write_outputs};
 use photostereo::progress::{Progress, Silent};
@@ -62,7 +62,7 @@ fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
     let (capture, load_s) = load_capture(&rc, progress)?;
     let mut recon = reconstruct(&capture, &rc.config, progress)?;
     recon.timings.load = load_s;
-    let report = write_outputs(&mut recon, &capture, &rc.config, &rc.output, None, &[])?;
+    let report = write_outputs(&mut recon, &capture, &rc.config, &rc.output, None)?;
     print_summary(&recon, &report, &rc.config, &rc.output);
     Ok(())
 }
@@ -96,7 +96,6 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
         &config,
         &a.output,
         Some(eval_json),
-        &[],
     )?;
     print_summary(&recon, &report, &config, &a.output);
     println!("error against ground truth:");
@@ -129,25 +128,8 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
 }
 
 fn run_eval(a: EvalArgs) -> Result<()> {
-    let read = |p: &Path| -> Result<_> {
-        let img = read_image(p)?;
-        anyhow::ensure!(
-            img.channels == 3,
-            "{}: a normal map needs 3 channels (R, G, B = n_x, n_y, n_z), found {}",
-            p.display(),
-            img.channels
-        );
-        Ok(Grid::from_vec(
-            img.width,
-            img.height,
-            img.data
-                .chunks_exact(3)
-                .map(|c| nalgebra::Vector3::new(c[0], c[1], c[2]))
-                .collect(),
-        )?)
-    };
-    let est = read(&a.normals)?;
-    let gt = read(&a.gt)?;
+    let est = read_normal_map(&a.normals)?;
+    let gt = read_normal_map(&a.gt)?;
     let mask = match &a.mask {
         Some(m) => photostereo::input::read_mask(m)?,
         None => Grid::new(gt.width(), gt.height(), true),
