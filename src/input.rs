@@ -768,7 +768,11 @@ impl ImageStack {
                     ),
                 ));
             }
-            data.extend_from_slice(img);
+            // Infinite samples become NaN, which every solver skips.
+            data.extend(
+                img.iter()
+                    .map(|v| if v.is_finite() { *v } else { f32::NAN }),
+            );
             info.push(ImageInfo {
                 path: PathBuf::from(format!("<memory {k}>")),
                 format: SampleFormat::F32,
