@@ -210,11 +210,18 @@ fn load_mask_for(path: &Path, stack: &ImageStack) -> Result<Mask> {
 /// File format of written images.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ImageFormat {
-    /// Float32 EXR, channel `Y`, linear.
+    /// Float32 EXR, linear: channel `Y`, or `R, G, B` for colour renderings.
     #[default]
     Exr,
-    /// 16-bit grey PNG, linear, values clipped to [0, 1] (clipped samples are saturated).
+    /// 16-bit PNG, linear, values clipped to [0, 1] and quantised (clipped samples read back as
+    /// saturated).
     Png16,
+    /// 8-bit PNG, values clipped to [0, 1], sRGB-encoded when `srgb` (as cameras write JPEG/PNG),
+    /// then quantised.
+    Png8 {
+        /// Encode with the sRGB transfer function (the reader decodes it by default).
+        srgb: bool,
+    },
 }
 
 impl ImageFormat {
@@ -222,10 +229,15 @@ impl ImageFormat {
     pub fn extension(self) -> &'static str {
         match self {
             ImageFormat::Exr => "exr",
-            ImageFormat::Png16 => "png",
+            ImageFormat::Png16 | ImageFormat::Png8 { .. } => "png",
         }
     }
 }
+
+/// Value in `gt/shadow_NNN.png` of a pixel in attached shadow (facing away from the light).
+pub const SHADOW_ATTACHED: u8 = 128;
+/// Value in `gt/shadow_NNN.png` of a pixel in cast shadow (facing the light, but blocked).
+pub const SHADOW_CAST: u8 = 255;
 
 /// Sub-folder of a synthetic data set that holds its ground truth.
 pub const GROUND_TRUTH_DIR: &str = "gt";
@@ -234,8 +246,9 @@ pub const GROUND_TRUTH_DIR: &str = "gt";
 /// (`photostereo DIR/*.exr --lights DIR/lights.json --mask DIR/mask.png`; for PNG images
 /// `DIR/img_*.png`): images `img_NNN`, `lights.json` naming them and `mask.png` at the top, and
 /// the ground truth in [`GROUND_TRUTH_DIR`]: `normal_gt.exr` (R, G, B), `depth_gt.exr`
-/// (Z, pixel units), `albedo_gt.exr` (Y) and per-light shadow masks `shadow_NNN.png` (255 where
-/// in attached or cast shadow). Returns the files written.
+/// (Z, pixel units), `albedo_gt.exr` (Y) and per-light shadow masks `shadow_NNN.png`
+/// ([`SHADOW_ATTACHED`] where n·l ≤ 0, [`SHADOW_CAST`] where the light is blocked, 0 where lit),
+/// and `saturated_NNN.png` (255 where clipped) for images that clip. Returns the files written.
 ///
 /// # Errors
 /// [`Error::Io`] or [`Error::Encode`] when writing fails (nothing is left half-written).
@@ -252,28 +265,86 @@ pub fn write_synthetic(
     let names: Vec<String> = (0..rendering.images.len())
         .map(|k| format!("img_{k:03}.{}", format.extension()))
         .collect();
-    for (name, img) in names.iter().zip(&rendering.images) {
+    let ch = rendering.channels;
+    for (name, planes) in names.iter().zip(&rendering.images) {
+        // Interleaved samples, clipped to [0, 1] for integer formats.
+        let interleaved = |f: &dyn Fn(f32) -> f32| -> Vec<f32> {
+            (0..w * h)
+                .flat_map(|i| planes.iter().map(move |p| p.data()[i]))
+                .map(f)
+                .collect()
+        };
         match format {
-            ImageFormat::Exr => out.stage_exr(name, w, h, &[("Y", img.data())], &[])?,
+            ImageFormat::Exr => {
+                let named: Vec<(&str, &[f32])> = if ch == 1 {
+                    vec![("Y", planes[0].data())]
+                } else {
+                    vec![
+                        ("R", planes[0].data()),
+                        ("G", planes[1].data()),
+                        ("B", planes[2].data()),
+                    ]
+                };
+                out.stage_exr(name, w, h, &named, &[])?;
+            }
             ImageFormat::Png16 => {
-                let codes: Vec<u16> = img
-                    .data()
+                let codes: Vec<u16> = interleaved(&|v| v.clamp(0.0, 1.0) * 65535.0)
                     .iter()
-                    .map(|v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16)
+                    .map(|v| v.round() as u16)
                     .collect();
-                out.stage_png16(name, w, h, &codes)?;
+                out.stage_png16(name, w, h, ch, &codes)?;
+            }
+            ImageFormat::Png8 { srgb } => {
+                let encode = |v: f32| {
+                    let v = v.clamp(0.0, 1.0);
+                    255.0
+                        * if srgb {
+                            crate::input::linear_to_srgb(v)
+                        } else {
+                            v
+                        }
+                };
+                let codes: Vec<u8> = interleaved(&encode)
+                    .iter()
+                    .map(|v| v.round() as u8)
+                    .collect();
+                out.stage_png8(name, w, h, ch, &codes)?;
             }
         }
     }
     for (k, (a, c)) in rendering.attached.iter().zip(&rendering.cast).enumerate() {
-        let both = Grid::from_fn(w, h, |x, y| *a.at(x, y) || *c.at(x, y));
+        let code: Vec<u8> = a
+            .data()
+            .iter()
+            .zip(c.data())
+            .map(|(a, c)| {
+                if *c {
+                    SHADOW_CAST
+                } else if *a {
+                    SHADOW_ATTACHED
+                } else {
+                    0
+                }
+            })
+            .collect();
         out.stage_png8(
             &format!("{GROUND_TRUTH_DIR}/shadow_{k:03}.png"),
             w,
             h,
             1,
-            &mask_bytes(&both),
+            &code,
         )?;
+    }
+    for (k, sat) in rendering.saturated.iter().enumerate() {
+        if sat.count() > 0 {
+            out.stage_png8(
+                &format!("{GROUND_TRUTH_DIR}/saturated_{k:03}.png"),
+                w,
+                h,
+                1,
+                &mask_bytes(sat),
+            )?;
+        }
     }
     let lights = lights.clone().with_files(&names)?;
     out.stage_bytes("lights.json", lights.to_json().as_bytes())?;

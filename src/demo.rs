@@ -4,12 +4,13 @@
 use crate::dataset::Capture;
 use crate::error::Result;
 use crate::grid::Mask;
+use crate::input::ColorMode;
 use crate::lights::Lights;
 use crate::metrics::{
     AngularErrorStats, DepthErrorStats, albedo_relative_error, angular_errors, depth_errors,
 };
 use crate::pipeline::Reconstruction;
-use crate::render::{RenderOptions, Rendering, render_lambertian};
+use crate::render::{RenderOptions, Rendering, render};
 use crate::scene::{HeightField, Scene};
 use serde::Serialize;
 
@@ -39,15 +40,15 @@ pub struct SyntheticCapture {
 /// Renders `scene` under `lights` and wraps it as a capture.
 ///
 /// # Errors
-/// The errors of [`render_lambertian`].
+/// The errors of [`render`].
 pub fn synthesize(
     scene: Scene,
     lights: Lights,
     options: &RenderOptions,
 ) -> Result<SyntheticCapture> {
-    let rendering = render_lambertian(&scene, &lights, options)?;
+    let rendering = render(&scene, &lights, options)?;
     let truth = rendering.truth.clone();
-    let stack = rendering.to_stack(&lights)?;
+    let stack = rendering.to_stack(&lights, ColorMode::Grey)?;
     let capture = Capture::from_stack(stack, lights, Some(truth.mask.clone()))?;
     Ok(SyntheticCapture {
         scene,

@@ -7,8 +7,9 @@
 //! [`input`] (images → [`input::ImageStack`]) → [`lights`] ([`lights::Lights`]) →
 //! [`solve`] (per-pixel g = ρN) → [`normals`] (albedo, normals, gradients, integrability) →
 //! [`integrate`] (depth) → [`output`] (EXR/PNG, atomically). [`pipeline`] composes them;
-//! [`dataset`] assembles inputs from files. Beside it: [`scene`] and [`render`] make synthetic
-//! data with ground truth, [`metrics`] measures errors, [`demo`] is the built-in default scene.
+//! [`dataset`] assembles inputs from files. Beside it: [`reflectance`] holds the BRDF models,
+//! [`scene`] and [`render`] make synthetic data with ground truth, [`metrics`] measures errors,
+//! [`demo`] is the built-in default scene.
 //!
 //! Conventions: camera frame x right, y up, z towards the camera; image row 0 is the top; light
 //! directions point from the surface to the light; normals point out of the surface.
@@ -37,8 +38,11 @@ pub mod normals;
 pub mod output;
 pub mod pipeline;
 pub mod progress;
+pub mod reflectance;
 pub mod render;
 pub mod scene;
 pub mod solve;
 
 pub use error::{Error, Result};
+/// The linear-algebra crate of the public API (normals are `nalgebra::Vector3<f32>`).
+pub use nalgebra;

@@ -477,6 +477,98 @@ impl Lights {
     }
 }
 
+impl Lights {
+    /// `count` directions drawn uniformly (by solid angle) within `half_angle_deg` of `axis`,
+    /// seeded: the same seed gives the same set.
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] for `count == 0`, a zero axis or an angle outside (0, 90].
+    pub fn random_cone(
+        count: usize,
+        axis: Vector3<f64>,
+        half_angle_deg: f64,
+        seed: u64,
+    ) -> Result<Self> {
+        use rand::{RngExt, SeedableRng};
+        if count == 0 {
+            return Err(Error::param("count", "needs at least one light"));
+        }
+        if !(half_angle_deg > 0.0 && half_angle_deg <= 90.0) {
+            return Err(Error::param(
+                "cone",
+                format!("half angle {half_angle_deg}° is outside (0°, 90°]"),
+            ));
+        }
+        let a = axis
+            .try_normalize(1e-12)
+            .ok_or_else(|| Error::param("axis", "zero vector"))?;
+        let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(seed);
+        let cos_max = half_angle_deg.to_radians().cos();
+        let frame = crate::reflectance::Frame::from_normal(a);
+        let dirs: Vec<_> = (0..count)
+            .map(|_| {
+                let z: f64 = 1.0 - rng.random::<f64>() * (1.0 - cos_max);
+                let phi: f64 = rng.random::<f64>() * 2.0 * std::f64::consts::PI;
+                let r = (1.0 - z * z).max(0.0).sqrt();
+                frame.t * (r * phi.cos()) + frame.b * (r * phi.sin()) + frame.n * z
+            })
+            .collect();
+        Lights::from_directions(&dirs)
+    }
+
+    /// A DiLiGenT-like set: 96 lights on a planar 12 × 8 grid in front of the object, at
+    /// (x/z, y/z) ∈ [−0.8, 0.8] × [−0.5, 0.5] (elevations 47°–90°), row by row from the bottom.
+    pub fn diligent_grid() -> Self {
+        let dirs: Vec<_> = (0..8)
+            .flat_map(|r| {
+                (0..12).map(move |c| {
+                    let x = -0.8 + 1.6 * c as f64 / 11.0;
+                    let y = -0.5 + r as f64 / 7.0;
+                    Vector3::new(x, y, 1.0).normalize()
+                })
+            })
+            .collect();
+        // Unit, finite, non-zero by construction.
+        Lights {
+            lights: dirs.into_iter().map(Light::new).collect(),
+        }
+    }
+
+    /// A near-degenerate set for stability tests: `count` directions spread over ±60° within the
+    /// plane that contains the viewing axis and the image x axis, then tilted alternately by
+    /// ±`tilt_deg` out of it. `tilt_deg` = 0 is exactly coplanar (rank 2).
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] for fewer than 2 lights.
+    pub fn coplanar(count: usize, tilt_deg: f64) -> Result<Self> {
+        if count < 2 {
+            return Err(Error::param(
+                "count",
+                "a coplanar set needs at least 2 lights",
+            ));
+        }
+        let t = tilt_deg.to_radians();
+        let dirs: Vec<_> = (0..count)
+            .map(|k| {
+                let a = (-60.0 + 120.0 * k as f64 / (count - 1) as f64).to_radians();
+                let sign = if k % 2 == 0 { 1.0 } else { -1.0 };
+                Vector3::new(a.sin() * t.cos(), sign * t.sin(), a.cos() * t.cos())
+            })
+            .collect();
+        Lights::from_directions(&dirs)
+    }
+
+    /// A near-degenerate set for stability tests: `count` directions within `radius_deg` of the
+    /// direction at `elevation_deg` towards +x (a cluster), seeded.
+    ///
+    /// # Errors
+    /// As [`Lights::random_cone`].
+    pub fn clustered(count: usize, elevation_deg: f64, radius_deg: f64, seed: u64) -> Result<Self> {
+        let e = elevation_deg.to_radians();
+        Lights::random_cone(count, Vector3::new(e.cos(), 0.0, e.sin()), radius_deg, seed)
+    }
+}
+
 /// Parses whitespace-separated numbers per line, skipping blanks and `#` comments; keeps the
 /// 1-based line number of each row.
 fn parse_number_rows(text: &str, source: &Path) -> Result<Vec<(usize, Vec<f64>)>> {
@@ -590,6 +682,34 @@ mod tests {
         .unwrap();
         assert!(flat.check_usable(MAX_LIGHT_CONDITION).is_err());
         assert!(ring.check_usable(MAX_LIGHT_CONDITION).is_ok());
+    }
+
+    #[test]
+    fn generated_sets_have_their_geometry() {
+        let axis = Vector3::new(0.3, -0.2, 1.0).normalize();
+        let cone = Lights::random_cone(200, axis, 20.0, 5).unwrap();
+        let angles: Vec<f64> = cone
+            .directions()
+            .iter()
+            .map(|d| d.dot(&axis).acos().to_degrees())
+            .collect();
+        assert!(angles.iter().all(|a| *a <= 20.0 + 1e-9));
+        assert!(angles.iter().any(|a| *a > 15.0), "cone not filled");
+        assert_eq!(cone, Lights::random_cone(200, axis, 20.0, 5).unwrap());
+        let grid = Lights::diligent_grid();
+        assert_eq!(grid.len(), 96);
+        let min_elev = grid
+            .directions()
+            .iter()
+            .map(|d| d.z.asin().to_degrees())
+            .fold(90.0, f64::min);
+        assert!((min_elev - 47.1).abs() < 1.0, "{min_elev}");
+        // Exactly coplanar: rank 2, infinite condition; tilted: finite but large.
+        assert!(Lights::coplanar(8, 0.0).unwrap().condition_number() > 1e8);
+        let c = Lights::coplanar(8, 2.0).unwrap().condition_number();
+        assert!(c > 10.0 && c < 1e3, "{c}");
+        let cl = Lights::clustered(10, 60.0, 5.0, 1).unwrap();
+        assert!(cl.condition_number() > 10.0);
     }
 
     #[test]

@@ -99,7 +99,7 @@ impl OutputDir {
         self.stage(name, |tmp| write_png8(tmp, width, height, channels, data))
     }
 
-    /// Stages a 16-bit grey PNG.
+    /// Stages a 16-bit PNG (`channels` 1 or 3, interleaved).
     ///
     /// # Errors
     /// [`Error::Encode`] or [`Error::Io`] when writing fails.
@@ -108,9 +108,10 @@ impl OutputDir {
         name: &str,
         width: usize,
         height: usize,
+        channels: usize,
         data: &[u16],
     ) -> Result<()> {
-        self.stage(name, |tmp| write_png16(tmp, width, height, data))
+        self.stage(name, |tmp| write_png16(tmp, width, height, channels, data))
     }
 
     /// Stages a file with the given bytes (JSON, text).
@@ -253,17 +254,45 @@ pub fn write_png8(
     w.flush().map_err(|e| Error::io(path, e))
 }
 
-/// Writes a 16-bit grey PNG.
+/// Writes a 16-bit PNG with 1 or 3 interleaved channels.
 ///
 /// # Errors
 /// [`Error::Encode`] or [`Error::Io`].
-pub fn write_png16(path: &Path, width: usize, height: usize, data: &[u16]) -> Result<()> {
-    let buf: image::ImageBuffer<image::Luma<u16>, Vec<u16>> =
-        image::ImageBuffer::from_raw(width as u32, height as u32, data.to_vec())
-            .ok_or_else(|| Error::param("data", "wrong length for the image size"))?;
+pub fn write_png16(
+    path: &Path,
+    width: usize,
+    height: usize,
+    channels: usize,
+    data: &[u16],
+) -> Result<()> {
+    fn encode<P>(
+        path: &Path,
+        width: usize,
+        height: usize,
+        data: &[u16],
+        out: &mut BufWriter<std::fs::File>,
+    ) -> Result<()>
+    where
+        P: image::Pixel<Subpixel = u16> + image::PixelWithColorType,
+        [u16]: image::EncodableLayout,
+    {
+        let buf: image::ImageBuffer<P, Vec<u16>> =
+            image::ImageBuffer::from_raw(width as u32, height as u32, data.to_vec())
+                .ok_or_else(|| Error::param("data", "wrong length for the image size"))?;
+        buf.write_to(out, image::ImageFormat::Png)
+            .map_err(|e| encode_err(path, e))
+    }
     let mut w = create_buffered(path)?;
-    buf.write_to(&mut w, image::ImageFormat::Png)
-        .map_err(|e| encode_err(path, e))?;
+    match channels {
+        1 => encode::<image::Luma<u16>>(path, width, height, data, &mut w)?,
+        3 => encode::<image::Rgb<u16>>(path, width, height, data, &mut w)?,
+        _ => {
+            return Err(Error::param(
+                "channels",
+                format!("{channels}: 1 or 3 expected"),
+            ));
+        }
+    }
     w.flush().map_err(|e| Error::io(path, e))
 }
 

@@ -1,35 +1,60 @@
-//! Rendering synthetic photometric-stereo images of a [`HeightField`] under distant lights.
+//! Rendering synthetic photometric-stereo images of a [`Scene`] under distant lights.
 //!
-//! Image model (Lambertian): pixel = E_k · ρ · max(0, n·l_k) + ambient·ρ, with E_k the light's
-//! grey intensity, so a solver fed images divided by E_k sees g = ρN exactly. Orthographic camera
-//! looking down −z. Attached shadows come from n·l ≤ 0; cast shadows from marching a ray over the
-//! height field towards each light. Optional Gaussian read noise, seeded per image so the same
-//! seed gives the same images.
+//! Image model: for a distant light of irradiance scale E_c (channel c) in direction l,
+//! pixel_c = E_c · π · f_c(l, v) · max(0, n·l) + ambient · ρ · d_c, with f the object's
+//! [`Material`] BRDF (diffuse colour d, specular colour s), v = (0, 0, 1) the viewing direction
+//! of the orthographic camera looking down −z, and ρ the albedo. A Lambertian surface therefore
+//! gives E ρ (n·l): the photometric-stereo solver sees g = ρN exactly once images are divided
+//! by E. A grey rendering is the BT.601 mix of the colour one.
+//!
+//! Mirror lobes (a delta) reflect a light only where the mirrored view direction r = 2(n·v)n − v
+//! falls within the light's angular radius α; the light, of irradiance E, then has radiance
+//! E/Ω (Ω = 2π(1 − cos α)), so the pixel is E·s·F(n·v)·π/Ω — far above 1, as a real chrome
+//! highlight is.
+//!
+//! Shadows: attached where n·l ≤ 0, cast where a ray from the surface towards the light meets
+//! the scene's analytic height field (ray-marched). Camera: optional Poisson shot noise (a full
+//! well of N electrons at value 1), Gaussian read noise, and clipping at a saturation level;
+//! every image's noise has its own seed (`seed + 3k + c`), so the same seed gives the same
+//! images. Quantisation and sRGB encoding happen when images are written
+//! ([`crate::dataset::write_synthetic`]).
 
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, ScalarMap};
-use crate::input::ImageStack;
+use crate::input::{ColorMode, GREY_WEIGHTS, ImageStack};
 use crate::lights::Lights;
+use crate::reflectance::{Frame, reflect};
 use crate::scene::{HeightField, Scene};
+use nalgebra::Vector3;
 use rand::SeedableRng;
-use rand_distr::{Distribution, Normal};
+use rand_distr::{Distribution, Normal, Poisson};
 use rayon::prelude::*;
 
 /// Ray-march step along the light's image-plane direction, in pixels.
 const MARCH_STEP: f64 = 0.5;
 /// Height tolerance for cast-shadow tests, in pixel units.
 const SHADOW_EPS: f64 = 1e-3;
+/// Default angular radius of a light, in degrees (a small lamp a couple of metres away).
+pub const DEFAULT_LIGHT_RADIUS_DEG: f64 = 1.5;
 
 /// Rendering options.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RenderOptions {
     /// Compute cast shadows (attached shadows are always present).
     pub cast_shadows: bool,
-    /// Ambient term added as ambient·ρ (0 for a dark room).
+    /// Ambient term added as ambient·ρ·(diffuse colour) (0 for a dark room).
     pub ambient: f32,
-    /// Standard deviation of additive Gaussian noise (image units; 0 for none).
+    /// Standard deviation of additive Gaussian read noise (image units; 0 for none).
     pub noise_sigma: f32,
-    /// Seed of the noise; image k uses `seed + k`.
+    /// Shot noise: electrons collected at value 1 (the full well); `None` for none.
+    pub full_well: Option<f32>,
+    /// Saturation level: values above it are clipped to it and flagged; `None` for none.
+    pub clip: Option<f32>,
+    /// Angular radius of each light in degrees (only mirror highlights depend on it).
+    pub light_radius_deg: f64,
+    /// Render R, G and B (with the lights' colours and the materials' colours) instead of grey.
+    pub color: bool,
+    /// Seed of the noise.
     pub seed: u64,
 }
 
@@ -39,61 +64,225 @@ impl Default for RenderOptions {
             cast_shadows: true,
             ambient: 0.0,
             noise_sigma: 0.0,
+            full_well: None,
+            clip: None,
+            light_radius_deg: DEFAULT_LIGHT_RADIUS_DEG,
+            color: false,
             seed: 0,
         }
     }
 }
 
-/// Rendered images and their shadow ground truth.
+impl RenderOptions {
+    /// Checks parameter ranges.
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] naming the first bad parameter.
+    pub fn validate(&self) -> Result<()> {
+        let check = |name: &'static str, ok: bool, v: String| {
+            if ok {
+                Ok(())
+            } else {
+                Err(Error::param(name, v))
+            }
+        };
+        check(
+            "noise",
+            self.noise_sigma.is_finite() && self.noise_sigma >= 0.0,
+            format!("{} must be finite and ≥ 0", self.noise_sigma),
+        )?;
+        check(
+            "ambient",
+            self.ambient.is_finite() && self.ambient >= 0.0,
+            format!("{} must be finite and ≥ 0", self.ambient),
+        )?;
+        if let Some(fw) = self.full_well {
+            check(
+                "full-well",
+                fw.is_finite() && fw > 0.0,
+                format!("{fw} must be finite and > 0"),
+            )?;
+        }
+        if let Some(c) = self.clip {
+            check(
+                "saturation",
+                c.is_finite() && c > 0.0,
+                format!("{c} must be finite and > 0"),
+            )?;
+        }
+        check(
+            "light-radius",
+            self.light_radius_deg > 0.0 && self.light_radius_deg < 90.0,
+            format!("{}° is outside (0°, 90°)", self.light_radius_deg),
+        )
+    }
+}
+
+/// Rendered images and their ground truth.
 #[derive(Debug, Clone)]
 pub struct Rendering {
     /// The rendered surface: depth, normals, albedo, mask.
     pub truth: HeightField,
-    /// One image per light, 0 outside the mask.
-    pub images: Vec<ScalarMap>,
+    /// Channels per image: 1 (grey) or 3 (R, G, B).
+    pub channels: usize,
+    /// Per light, its channel planes; 0 outside the mask.
+    pub images: Vec<Vec<ScalarMap>>,
     /// Per light: pixels in attached shadow (n·l ≤ 0).
     pub attached: Vec<Mask>,
-    /// Per light: lit-facing pixels whose view of the light is blocked by the surface.
+    /// Per light: pixels facing the light whose view of it is blocked by the surface.
     pub cast: Vec<Mask>,
+    /// Per light: pixels clipped at the saturation level in some channel.
+    pub saturated: Vec<Mask>,
 }
 
 impl Rendering {
-    /// The images as a stack for the solver, divided by the lights' grey intensities.
+    /// The images as a stack for the solver, divided by the lights' intensities, mixed to grey or
+    /// kept per channel as `color` says (a grey rendering is always one channel); clipped samples
+    /// are marked saturated.
     ///
     /// # Errors
     /// [`Error::LightsMismatch`] when the counts differ.
-    pub fn to_stack(&self, lights: &Lights) -> Result<ImageStack> {
+    pub fn to_stack(&self, lights: &Lights, color: ColorMode) -> Result<ImageStack> {
         if lights.len() != self.images.len() {
             return Err(Error::LightsMismatch {
                 reason: format!("{} lights for {} images", lights.len(), self.images.len()),
             });
         }
-        let first = self
-            .images
-            .first()
-            .ok_or(Error::TooFewImages { count: 0 })?;
+        let (w, h) = (self.truth.mask.width(), self.truth.mask.height());
+        let per_channel = self.channels == 3 && color == ColorMode::PerChannel;
         let images = self
             .images
             .iter()
             .zip(lights.lights())
-            .map(|(im, l)| {
-                let e = l.grey_intensity() as f32;
-                im.data().iter().map(|v| v / e).collect()
+            .map(|(planes, l)| {
+                if self.channels == 1 {
+                    let e = l.grey_intensity() as f32;
+                    planes[0].data().iter().map(|v| v / e).collect()
+                } else if per_channel {
+                    (0..3)
+                        .flat_map(|c| {
+                            let e = l.intensity[c] as f32;
+                            planes[c].data().iter().map(move |v| v / e)
+                        })
+                        .collect()
+                } else {
+                    (0..w * h)
+                        .map(|i| {
+                            (0..3)
+                                .map(|c| {
+                                    GREY_WEIGHTS[c] * planes[c].data()[i] / l.intensity[c] as f32
+                                })
+                                .sum()
+                        })
+                        .collect()
+                }
             })
             .collect();
-        ImageStack::from_images(first.width(), first.height(), 1, images)
+        let mut stack = ImageStack::from_images(w, h, if per_channel { 3 } else { 1 }, images)?;
+        for (k, sat) in self.saturated.iter().enumerate() {
+            for (p, s) in sat.data().iter().enumerate() {
+                if *s {
+                    stack.mark_saturated(k, p);
+                }
+            }
+        }
+        Ok(stack)
+    }
+}
+
+/// Upper bounds of the scene's height on a grid of square tiles, so that shadow rays skip the
+/// height evaluation wherever they pass above everything in a tile.
+struct HeightBounds {
+    tile: f64,
+    cols: usize,
+    rows: usize,
+    /// Image-plane origin (x, y) of tile (0, 0).
+    x0: f64,
+    y0: f64,
+    top: Vec<f64>,
+    /// Bound over the whole image.
+    zmax: f64,
+}
+
+impl HeightBounds {
+    /// Tile side, in pixels.
+    const TILE: f64 = 8.0;
+
+    fn new(scene: &Scene) -> Self {
+        let tile = Self::TILE;
+        let (hw, hh) = (scene.width as f64 / 2.0, scene.height as f64 / 2.0);
+        let cols = (2.0 * hw / tile).ceil() as usize;
+        let rows = (2.0 * hh / tile).ceil() as usize;
+        let (x0, y0) = (-hw, -hh);
+        let mut top = Vec::with_capacity(cols * rows);
+        for r in 0..rows {
+            for c in 0..cols {
+                let (ax, ay) = (x0 + c as f64 * tile, y0 + r as f64 * tile);
+                let b = scene
+                    .objects
+                    .iter()
+                    .filter_map(|o| o.shape.max_height_over(ax, ax + tile, ay, ay + tile))
+                    .fold(f64::NEG_INFINITY, f64::max);
+                top.push(b);
+            }
+        }
+        let zmax = top.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        HeightBounds {
+            tile,
+            cols,
+            rows,
+            x0,
+            y0,
+            top,
+            zmax,
+        }
+    }
+
+    /// The tile containing (x, y) (clamped to the grid): its bound and its rectangle's origin.
+    fn tile_at(&self, x: f64, y: f64) -> (f64, f64, f64) {
+        // `as usize` saturates negatives (and NaN) to 0.
+        let c = (((x - self.x0) / self.tile) as usize).min(self.cols - 1);
+        let r = (((y - self.y0) / self.tile) as usize).min(self.rows - 1);
+        (
+            self.top[r * self.cols + c],
+            self.x0 + c as f64 * self.tile,
+            self.y0 + r as f64 * self.tile,
+        )
+    }
+
+    /// Distance along the unit image-plane direction (ux, uy) from (x, y) to the boundary of the
+    /// tile with origin (ax, ay).
+    fn exit(&self, x: f64, y: f64, ax: f64, ay: f64, ux: f64, uy: f64) -> f64 {
+        let along = |p: f64, a: f64, u: f64| {
+            if u > 1e-12 {
+                (a + self.tile - p) / u
+            } else if u < -1e-12 {
+                (a - p) / u
+            } else {
+                f64::INFINITY
+            }
+        };
+        along(x, ax, ux).min(along(y, ay, uy))
     }
 }
 
 /// Whether the point (x, y, z) is hidden from a light in direction `l` by the scene's surface:
-/// marches the ray (x, y, z) + s·l over the analytic height function.
-fn in_cast_shadow(scene: &Scene, x: f64, y: f64, z: f64, l: &[f64; 3], zmax: f64) -> bool {
-    let lxy = (l[0] * l[0] + l[1] * l[1]).sqrt();
+/// marches the ray (x, y, z) + s·l over the analytic height function, evaluating it only where
+/// the tile bound says the surface could reach the ray.
+fn in_cast_shadow(
+    scene: &Scene,
+    bounds: &HeightBounds,
+    x: f64,
+    y: f64,
+    z: f64,
+    l: &Vector3<f64>,
+) -> bool {
+    let lxy = (l.x * l.x + l.y * l.y).sqrt();
     if lxy < 1e-9 {
         return false;
     }
-    let (ux, uy) = (l[0] / lxy, l[1] / lxy);
-    let rise = l[2] / lxy;
+    let (ux, uy) = (l.x / lxy, l.y / lxy);
+    let rise = l.z / lxy;
     let (hw, hh) = (scene.width as f64 / 2.0, scene.height as f64 / 2.0);
     let mut s = MARCH_STEP;
     loop {
@@ -102,8 +291,20 @@ fn in_cast_shadow(scene: &Scene, x: f64, y: f64, z: f64, l: &[f64; 3], zmax: f64
             return false;
         }
         let ray = z + s * rise;
-        if ray > zmax {
+        if ray > bounds.zmax {
             return false;
+        }
+        let (top, ax, ay) = bounds.tile_at(px, py);
+        if top <= ray + SHADOW_EPS {
+            // The ray rises, so it stays above this tile's surface until it leaves the tile:
+            // jump to the tile's edge (on the step grid, so results match plain marching).
+            if rise >= 0.0 {
+                let leave = s + bounds.exit(px, py, ax, ay, ux, uy);
+                s = (leave / MARCH_STEP).floor().max(s / MARCH_STEP + 1.0) * MARCH_STEP;
+            } else {
+                s += MARCH_STEP;
+            }
+            continue;
         }
         if scene
             .height_at(px, py)
@@ -115,94 +316,127 @@ fn in_cast_shadow(scene: &Scene, x: f64, y: f64, z: f64, l: &[f64; 3], zmax: f64
     }
 }
 
-/// Renders a Lambertian [`Scene`] under `lights`; the rendering carries the scene's
-/// [`HeightField`] as ground truth.
+/// Renders `scene` under `lights`; the rendering carries the scene's [`HeightField`] and
+/// shadow masks as ground truth.
 ///
 /// # Errors
-/// [`Error::InvalidParameter`] for a negative or non-finite noise level or ambient term.
-pub fn render_lambertian(
-    scene: &Scene,
-    lights: &Lights,
-    options: &RenderOptions,
-) -> Result<Rendering> {
-    if !(options.noise_sigma >= 0.0 && options.noise_sigma.is_finite()) {
-        return Err(Error::param(
-            "noise",
-            format!("{} must be finite and ≥ 0", options.noise_sigma),
-        ));
-    }
-    if !(options.ambient >= 0.0 && options.ambient.is_finite()) {
-        return Err(Error::param(
-            "ambient",
-            format!("{} must be finite and ≥ 0", options.ambient),
-        ));
+/// [`Error::InvalidParameter`] for invalid options (see [`RenderOptions::validate`]) or an
+/// unphysical material ([`crate::reflectance::Material::validate`]).
+pub fn render(scene: &Scene, lights: &Lights, options: &RenderOptions) -> Result<Rendering> {
+    options.validate()?;
+    for o in &scene.objects {
+        o.material.validate()?;
     }
     let hf = scene.height_field();
     let (w, h) = (hf.mask.width(), hf.mask.height());
-    // Primitives may peak between pixel centres: allow a margin over the sampled maximum.
-    let zmax = 1.0
-        + hf.depth
-            .data()
-            .iter()
-            .filter(|v| v.is_finite())
-            .fold(f64::NEG_INFINITY, |m, v| m.max(f64::from(*v)));
-    let per_light: Vec<(ScalarMap, Mask, Mask)> = lights
+    let channels = if options.color { 3 } else { 1 };
+    let bounds = HeightBounds::new(scene);
+    let view = Vector3::z();
+    let cos_radius = options.light_radius_deg.to_radians().cos();
+    let solid_angle = 2.0 * std::f64::consts::PI * (1.0 - cos_radius);
+    let per_light: Vec<_> = lights
         .lights()
         .par_iter()
         .enumerate()
         .map(|(k, light)| {
-            let l = [light.direction.x, light.direction.y, light.direction.z];
-            let e = light.grey_intensity() as f32;
-            let mut img = Grid::new(w, h, 0f32);
+            let l = light.direction;
+            let mut planes = vec![Grid::new(w, h, 0f32); channels];
             let mut attached = Grid::new(w, h, false);
             let mut cast = Grid::new(w, h, false);
+            let mut saturated = Grid::new(w, h, false);
             for r in 0..h {
                 for c in 0..w {
                     if !*hf.mask.at(c, r) {
                         continue;
                     }
+                    let obj = &scene.objects[*hf.object.at(c, r) as usize];
+                    let mat = &obj.material;
                     let n = hf.normals.at(c, r).cast::<f64>();
-                    let rho = *hf.albedo.at(c, r);
-                    let shade = n.x * l[0] + n.y * l[1] + n.z * l[2];
-                    let mut v = options.ambient * rho;
-                    if shade <= 0.0 {
+                    let rho = f64::from(*hf.albedo.at(c, r));
+                    let mut rgb = [0, 1, 2]
+                        .map(|ch| f64::from(options.ambient) * rho * mat.diffuse_color[ch]);
+                    let cos_i = n.dot(&l);
+                    if cos_i <= 0.0 {
                         *attached.at_mut(c, r) = true;
                     } else if options.cast_shadows && {
                         let (x, y) = scene.pixel_xy(c, r);
-                        in_cast_shadow(scene, x, y, f64::from(*hf.depth.at(c, r)), &l, zmax)
+                        in_cast_shadow(scene, &bounds, x, y, f64::from(*hf.depth.at(c, r)), &l)
                     } {
                         *cast.at_mut(c, r) = true;
                     } else {
-                        v += e * rho * shade as f32;
+                        let frame = Frame::from_normal(n);
+                        let f = mat.eval(rho, &frame.to_local(&l), &frame.to_local(&view));
+                        for (ch, v) in rgb.iter_mut().enumerate() {
+                            *v += light.intensity[ch] * std::f64::consts::PI * f[ch] * cos_i;
+                        }
+                        if let Some(mirror) = mat.mirror()
+                            && reflect(&view, &n).dot(&l) >= cos_radius
+                        {
+                            let fr = mirror.reflectance(n.dot(&view));
+                            for (ch, v) in rgb.iter_mut().enumerate() {
+                                *v += light.intensity[ch]
+                                    * mat.specular_color[ch]
+                                    * fr
+                                    * std::f64::consts::PI
+                                    / solid_angle;
+                            }
+                        }
                     }
-                    *img.at_mut(c, r) = v;
-                }
-            }
-            if options.noise_sigma > 0.0 {
-                let mut rng =
-                    rand::rngs::ChaCha8Rng::seed_from_u64(options.seed.wrapping_add(k as u64));
-                // σ was checked finite and ≥ 0 above, so the distribution exists.
-                if let Ok(noise) = Normal::new(0.0f32, options.noise_sigma) {
-                    for (v, m) in img.data_mut().iter_mut().zip(hf.mask.data()) {
-                        if *m {
-                            *v += noise.sample(&mut rng);
+                    if channels == 1 {
+                        *planes[0].at_mut(c, r) =
+                            (0..3).map(|ch| GREY_WEIGHTS[ch] * rgb[ch] as f32).sum();
+                    } else {
+                        for (plane, v) in planes.iter_mut().zip(rgb) {
+                            *plane.at_mut(c, r) = v as f32;
                         }
                     }
                 }
             }
-            (img, attached, cast)
+            // Camera: shot noise, read noise, clipping.
+            for (ch, plane) in planes.iter_mut().enumerate() {
+                let seed = options.seed.wrapping_add(3 * k as u64 + ch as u64);
+                let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(seed);
+                let read = Normal::new(0.0f32, options.noise_sigma).ok();
+                for (i, v) in plane.data_mut().iter_mut().enumerate() {
+                    if !hf.mask.data()[i] {
+                        continue;
+                    }
+                    if let Some(fw) = options.full_well {
+                        let lambda = f64::from((*v * fw).max(0.0));
+                        *v = match Poisson::new(lambda) {
+                            Ok(p) => p.sample(&mut rng) as f32 / fw,
+                            Err(_) => 0.0,
+                        };
+                    }
+                    if options.noise_sigma > 0.0
+                        && let Some(n) = &read
+                    {
+                        *v += n.sample(&mut rng);
+                    }
+                    if let Some(level) = options.clip
+                        && *v >= level
+                    {
+                        *v = level;
+                        saturated.data_mut()[i] = true;
+                    }
+                }
+            }
+            (planes, attached, cast, saturated)
         })
         .collect();
     let mut out = Rendering {
         truth: hf,
+        channels,
         images: Vec::with_capacity(per_light.len()),
         attached: Vec::with_capacity(per_light.len()),
         cast: Vec::with_capacity(per_light.len()),
+        saturated: Vec::with_capacity(per_light.len()),
     };
-    for (i, a, c) in per_light {
+    for (i, a, c, s) in per_light {
         out.images.push(i);
         out.attached.push(a);
         out.cast.push(c);
+        out.saturated.push(s);
     }
     Ok(out)
 }
@@ -210,14 +444,13 @@ pub fn render_lambertian(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::{Albedo, Primitive};
-    use nalgebra::Vector3;
+    use crate::scene::{Albedo, Object, Primitive};
 
     #[test]
     fn lambertian_sphere_matches_closed_form() {
         let scene = Scene::sphere(64, 28.0, Albedo::Constant(0.7));
         let lights = Lights::ring(5, 40.0, 10.0).unwrap();
-        let r = render_lambertian(&scene, &lights, &RenderOptions::default()).unwrap();
+        let r = render(&scene, &lights, &RenderOptions::default()).unwrap();
         let hf = &r.truth;
         for (k, l) in lights.directions().iter().enumerate() {
             for i in 0..hf.mask.len() {
@@ -227,7 +460,7 @@ mod tests {
                 let n = hf.normals.data()[i].cast::<f64>();
                 let expect = (0.7 * n.dot(l)).max(0.0) as f32;
                 // A convex object casts no shadows on itself.
-                let got = r.images[k].data()[i];
+                let got = r.images[k][0].data()[i];
                 assert!(
                     (got - expect).abs() < 1e-5,
                     "light {k} pixel {i}: {got} vs {expect}"
@@ -242,22 +475,24 @@ mod tests {
         let scene = Scene {
             width: 81,
             height: 41,
-            objects: vec![(
-                Primitive::Sphere {
-                    cx: 0.0,
-                    cy: 0.0,
-                    radius: 10.0,
-                    base: 0.0,
-                },
-                Albedo::Constant(0.5),
-            )],
-            ground: Some(Albedo::Constant(0.5)),
+            objects: vec![
+                Object::ground(Albedo::Constant(0.5)),
+                Object::new(
+                    Primitive::Sphere {
+                        cx: 0.0,
+                        cy: 0.0,
+                        radius: 10.0,
+                        base: 0.0,
+                    },
+                    Albedo::Constant(0.5),
+                ),
+            ],
         };
         // Light from the right (+x) at 30° elevation: the shadow falls to the left and ends where
         // the ray grazing the sphere meets the ground, R/sin(30°) = 20 px from the centre.
         let e = 30f64.to_radians();
         let lights = Lights::from_directions(&[Vector3::new(e.cos(), 0.0, e.sin())]).unwrap();
-        let r = render_lambertian(&scene, &lights, &RenderOptions::default()).unwrap();
+        let r = render(&scene, &lights, &RenderOptions::default()).unwrap();
         let cast = &r.cast[0];
         let row = 20; // y = 0
         let shadowed: Vec<usize> = (0..81).filter(|&c| *cast.at(c, row)).collect();
@@ -268,7 +503,7 @@ mod tests {
             "shadow ends at x = {x_left}"
         );
         assert!(shadowed.iter().all(|&c| scene.pixel_xy(c, row).0 < -9.0));
-        assert!(r.images[0].at(leftmost, row).abs() < 1e-6);
+        assert!(r.images[0][0].at(leftmost, row).abs() < 1e-6);
     }
 
     #[test]
@@ -276,8 +511,7 @@ mod tests {
         let scene = Scene {
             width: 100,
             height: 100,
-            objects: vec![],
-            ground: Some(Albedo::Constant(0.5)),
+            objects: vec![Object::ground(Albedo::Constant(0.5))],
         };
         let lights = Lights::from_directions(&[Vector3::z()]).unwrap();
         let o = RenderOptions {
@@ -285,16 +519,44 @@ mod tests {
             seed: 3,
             ..RenderOptions::default()
         };
-        let a = render_lambertian(&scene, &lights, &o).unwrap();
-        let b = render_lambertian(&scene, &lights, &o).unwrap();
-        assert_eq!(a.images[0], b.images[0]);
-        let n = a.images[0].len() as f64;
-        let var = a.images[0]
+        let a = render(&scene, &lights, &o).unwrap();
+        let b = render(&scene, &lights, &o).unwrap();
+        assert_eq!(a.images[0][0], b.images[0][0]);
+        let n = a.images[0][0].len() as f64;
+        let var = a.images[0][0]
             .data()
             .iter()
             .map(|v| (f64::from(*v) - 0.5).powi(2))
             .sum::<f64>()
             / n;
         assert!((var.sqrt() - 0.01).abs() < 0.0005, "σ = {}", var.sqrt());
+    }
+
+    /// Shot noise: variance v/N for a full well of N electrons; clipping flags samples.
+    #[test]
+    fn shot_noise_and_clipping() {
+        let scene = Scene {
+            width: 100,
+            height: 100,
+            objects: vec![Object::ground(Albedo::Constant(0.5))],
+        };
+        let lights = Lights::from_directions(&[Vector3::z()]).unwrap();
+        let o = RenderOptions {
+            full_well: Some(2000.0),
+            clip: Some(0.52),
+            ..RenderOptions::default()
+        };
+        let r = render(&scene, &lights, &o).unwrap();
+        let vals = r.images[0][0].data();
+        // Unclipped, σ = √(0.5/2000) = 0.0158; clipping at 0.52 = mean + 1.26σ flags ≈ 10%.
+        let frac = r.saturated[0].count() as f64 / vals.len() as f64;
+        assert!((frac - 0.104).abs() < 0.02, "clipped fraction {frac}");
+        assert!(vals.iter().all(|v| *v <= 0.52));
+        let below: Vec<f64> = vals
+            .iter()
+            .filter(|v| **v < 0.5)
+            .map(|v| f64::from(*v))
+            .collect();
+        assert!(below.len() > 4000);
     }
 }

@@ -170,7 +170,8 @@ fn diligent_like(dir: &Path) -> PathBuf {
     let mut names = String::new();
     let mut dirs = String::new();
     let mut intens = String::new();
-    for (k, img) in synth.rendering.images.iter().enumerate() {
+    for (k, planes) in synth.rendering.images.iter().enumerate() {
+        let img = &planes[0];
         // Colour light: the camera sees E_c·ρ·(n·l) in channel c.
         let e = [0.9, 0.6 + 0.05 * k as f32, 0.4];
         let mut rgb = Vec::with_capacity(img.len() * 3);
@@ -396,4 +397,73 @@ fn bad_input_fails_cleanly() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("a-file"));
     assert_eq!(std::fs::read(&file).unwrap(), b"x");
+}
+
+/// A colour scene written as sRGB-encoded 8-bit PNGs — the way a camera writes — read back by
+/// the main command, which decodes sRGB by default: the round trip through quantisation and the
+/// transfer function costs a fraction of a degree, while misreading the files as linear costs
+/// several degrees.
+#[test]
+fn srgb_8_bit_colour_dataset_round_trips() {
+    use photostereo::reflectance::Material;
+    use photostereo::scene::SceneKind;
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let material = Material {
+        diffuse_color: [0.9, 0.7, 0.5],
+        ..Material::lambertian()
+    };
+    let scene = SceneKind::Sphere.build(96, Albedo::Constant(0.8), material);
+    let lights = Lights::fibonacci(12, 30.0).unwrap();
+    let options = RenderOptions {
+        color: true,
+        ..RenderOptions::default()
+    };
+    let synth = synthesize(scene, lights.clone(), &options).unwrap();
+    write_synthetic(
+        &synth.rendering,
+        &lights,
+        &data,
+        ImageFormat::Png8 { srgb: true },
+    )
+    .unwrap();
+    let images: Vec<PathBuf> = (0..12)
+        .map(|k| data.join(format!("img_{k:03}.png")))
+        .collect();
+    let (lights_json, mask, gt) = (
+        data.join("lights.json"),
+        data.join("mask.png"),
+        data.join("gt/normal_gt.exr"),
+    );
+    let run_with = |out: &Path, extra: &[&str]| {
+        let mut args: Vec<&std::ffi::OsStr> = images.iter().map(|p| p.as_os_str()).collect();
+        args.extend([
+            os("--lights"),
+            lights_json.as_os_str(),
+            os("--mask"),
+            mask.as_os_str(),
+            os("-q"),
+            os("-o"),
+            out.as_os_str(),
+        ]);
+        args.extend(extra.iter().map(os));
+        let o = run(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    let srgb = tmp.path().join("srgb");
+    // The run says that 8-bit data were decoded as sRGB.
+    assert!(run_with(&srgb, &[]).contains("sRGB"));
+    let good = eval(&srgb, &gt, &mask)["mean_deg"].as_f64().unwrap();
+    let lin = tmp.path().join("linear");
+    run_with(&lin, &["--linear"]);
+    let wrong = eval(&lin, &gt, &mask)["mean_deg"].as_f64().unwrap();
+    println!(
+        "8-bit sRGB colour sphere: mean {good:.3}° decoded as sRGB, {wrong:.3}° read as linear"
+    );
+    assert!(good < 0.5, "{good}°");
+    assert!(
+        wrong > 3.0 * good && wrong > 1.0,
+        "treating sRGB data as linear should hurt: {wrong}° vs {good}°"
+    );
 }

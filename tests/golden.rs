@@ -4,8 +4,8 @@
 //! the new images before committing.
 
 use photostereo::lights::Lights;
-use photostereo::render::{RenderOptions, render_lambertian};
-use photostereo::scene::{Albedo, Primitive, Scene};
+use photostereo::render::{RenderOptions, render};
+use photostereo::scene::{Albedo, Object, Primitive, Scene};
 use std::path::PathBuf;
 
 fn golden_dir() -> PathBuf {
@@ -13,49 +13,46 @@ fn golden_dir() -> PathBuf {
 }
 
 fn scene() -> Scene {
+    let sphere = Primitive::Sphere {
+        cx: -20.0,
+        cy: 5.0,
+        radius: 18.0,
+        base: 0.0,
+    };
+    let pyramid = Primitive::Pyramid {
+        cx: 25.0,
+        cy: -8.0,
+        half: 14.0,
+        height: 10.0,
+        base: 0.0,
+    };
+    let bump = Primitive::Gaussian {
+        cx: 22.0,
+        cy: 22.0,
+        sigma: 6.0,
+        height: 9.0,
+        base: 0.0,
+    };
     Scene {
         width: 96,
         height: 72,
         objects: vec![
-            (
-                Primitive::Sphere {
-                    cx: -20.0,
-                    cy: 5.0,
-                    radius: 18.0,
-                    base: 0.0,
-                },
+            Object::ground(Albedo::Checker {
+                size: 12.0,
+                a: 0.3,
+                b: 0.45,
+            }),
+            Object::new(
+                sphere,
                 Albedo::Smooth {
                     mean: 0.6,
                     amplitude: 0.2,
                     period: 15.0,
                 },
             ),
-            (
-                Primitive::Pyramid {
-                    cx: 25.0,
-                    cy: -8.0,
-                    half: 14.0,
-                    height: 10.0,
-                    base: 0.0,
-                },
-                Albedo::Constant(0.8),
-            ),
-            (
-                Primitive::Gaussian {
-                    cx: 22.0,
-                    cy: 22.0,
-                    sigma: 6.0,
-                    height: 9.0,
-                    base: 0.0,
-                },
-                Albedo::Constant(0.7),
-            ),
+            Object::new(pyramid, Albedo::Constant(0.8)),
+            Object::new(bump, Albedo::Constant(0.7)),
         ],
-        ground: Some(Albedo::Checker {
-            size: 12.0,
-            a: 0.3,
-            b: 0.45,
-        }),
     }
 }
 
@@ -63,9 +60,10 @@ fn scene() -> Scene {
 #[test]
 fn rendered_scene_matches_golden_images() {
     let lights = Lights::ring(4, 40.0, 20.0).unwrap();
-    let r = render_lambertian(&scene(), &lights, &RenderOptions::default()).unwrap();
+    let r = render(&scene(), &lights, &RenderOptions::default()).unwrap();
     let regenerate = std::env::var_os("REGENERATE").is_some();
-    for (k, img) in r.images.iter().enumerate() {
+    for (k, planes) in r.images.iter().enumerate() {
+        let img = &planes[0];
         let codes: Vec<u16> = img
             .data()
             .iter()
@@ -74,7 +72,7 @@ fn rendered_scene_matches_golden_images() {
         let path = golden_dir().join(format!("render_{k}.png"));
         if regenerate {
             std::fs::create_dir_all(golden_dir()).unwrap();
-            photostereo::output::write_png16(&path, 96, 72, &codes).unwrap();
+            photostereo::output::write_png16(&path, 96, 72, 1, &codes).unwrap();
             continue;
         }
         let truth = image::open(&path)
@@ -105,7 +103,7 @@ fn rendered_scene_matches_golden_images() {
 #[test]
 fn shadow_masks_match_golden_masks() {
     let lights = Lights::ring(4, 40.0, 20.0).unwrap();
-    let r = render_lambertian(&scene(), &lights, &RenderOptions::default()).unwrap();
+    let r = render(&scene(), &lights, &RenderOptions::default()).unwrap();
     let regenerate = std::env::var_os("REGENERATE").is_some();
     for (k, (a, c)) in r.attached.iter().zip(&r.cast).enumerate() {
         let bytes: Vec<u8> = a

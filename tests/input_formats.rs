@@ -201,7 +201,7 @@ fn png16_grey_keeps_all_16_bits() {
         let mut codes = CODES16;
         codes.rotate_left(k * 3);
         let p = dir.path().join(format!("grey16_{k}.png"));
-        write_png16(&p, 5, 2, &codes).unwrap();
+        write_png16(&p, 5, 2, 1, &codes).unwrap();
         paths.push(p);
         expected.push(codes);
     }
@@ -358,7 +358,7 @@ fn png16_saturation_only_at_maximum_code() {
         grey[p] = 65534;
     }
     let gp = dir.path().join("sat_grey.png");
-    write_png16(&gp, w, h, &grey).unwrap();
+    write_png16(&gp, w, h, 1, &grey).unwrap();
 
     // RGB: one channel at 65535 is enough; 65534 in all three is not.
     let mut rgb = vec![20000u16; n * 3];
@@ -373,7 +373,7 @@ fn png16_saturation_only_at_maximum_code() {
 
     // An image with nothing saturated.
     let clean = dir.path().join("clean.png");
-    write_png16(&clean, w, h, &vec![65534u16; n]).unwrap();
+    write_png16(&clean, w, h, 1, &vec![65534u16; n]).unwrap();
 
     let clean_rgb = dir.path().join("clean_rgb.png");
     save(
@@ -405,7 +405,7 @@ fn png16_saturation_option_lowers_the_level() {
     let dir = tempfile::tempdir().unwrap();
     let codes: [u16; 8] = [0, 1, 32766, 32767, 32768, 32769, 40001, 65535];
     let p = dir.path().join("levels.png");
-    write_png16(&p, 4, 2, &codes).unwrap();
+    write_png16(&p, 4, 2, 1, &codes).unwrap();
     let options = LoadOptions {
         saturation: Some(0.5),
         ..LoadOptions::default()
@@ -537,7 +537,7 @@ fn png8_saturation_uses_stored_values() {
 fn png16_transfer_auto_linear_and_forced_srgb() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("t16.png");
-    write_png16(&p, 5, 2, &CODES16).unwrap();
+    write_png16(&p, 5, 2, 1, &CODES16).unwrap();
     let paths = vec![p.clone(), p.clone(), p];
     let unit = u16_to_unit(&CODES16);
     for transfer in [Transfer::Auto, Transfer::Linear] {
@@ -610,7 +610,7 @@ fn tiff16_matches_png16() {
     let (tg, pg) = (dir.path().join("g16.tif"), dir.path().join("g16.png"));
     let (tc, pc) = (dir.path().join("c16.tif"), dir.path().join("c16.png"));
     save(luma16(5, 2, &CODES16), &tg);
-    write_png16(&pg, 5, 2, &CODES16).unwrap();
+    write_png16(&pg, 5, 2, 1, &CODES16).unwrap();
     save(rgb16(5, 2, &rgb), &tc);
     save(rgb16(5, 2, &rgb), &pc);
 
@@ -940,7 +940,7 @@ fn grey_images_are_divided_by_grey_mixed_intensity() {
     write_exr_channels(&py, 2, 2, vec![("Y", FlatSamples::F32(y.clone()))]);
     let p16 = dir.path().join("g16.png");
     let codes16 = [40001u16, 1, 65534, 12345];
-    write_png16(&p16, 2, 2, &codes16).unwrap();
+    write_png16(&p16, 2, 2, 1, &codes16).unwrap();
     let p8 = dir.path().join("g8.png");
     let codes8 = [10u8, 128, 200, 255];
     write_png8(&p8, 2, 2, 1, &codes8).unwrap();
@@ -988,7 +988,7 @@ fn grey_images_are_divided_by_grey_mixed_intensity() {
 fn saturation_is_judged_before_intensity_division() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("sat.png");
-    write_png16(&p, 3, 1, &[65535, 65534, 1]).unwrap();
+    write_png16(&p, 3, 1, 1, &[65535, 65534, 1]).unwrap();
     let lights = lights_with(&[[4.0; 3], [0.25; 3], [1.0; 3]]);
     let paths = vec![p.clone(), p.clone(), p];
     let stack = load_stack(&paths, &lights, &LoadOptions::default(), &Silent).unwrap();
@@ -1011,9 +1011,9 @@ fn size_mismatch_names_file_and_index() {
     let b = dir.path().join("wider_one.png");
     let c = dir.path().join("third.png");
     let d = dir.path().join("taller.exr");
-    write_png16(&a, 4, 3, &[100; 12]).unwrap();
-    write_png16(&b, 5, 3, &[100; 15]).unwrap();
-    write_png16(&c, 4, 3, &[100; 12]).unwrap();
+    write_png16(&a, 4, 3, 1, &[100; 12]).unwrap();
+    write_png16(&b, 5, 3, 1, &[100; 15]).unwrap();
+    write_png16(&c, 4, 3, 1, &[100; 12]).unwrap();
     write_exr_channels(&d, 4, 4, vec![("Y", FlatSamples::F32(vec![0.5; 16]))]);
 
     let err = load_stack(
@@ -1085,7 +1085,7 @@ fn corrupt_png_error_names_the_file() {
         .collect();
     std::fs::write(&bad, bytes).unwrap();
     let good = dir.path().join("good.png");
-    write_png16(&good, 2, 2, &[1, 2, 3, 4]).unwrap();
+    write_png16(&good, 2, 2, 1, &[1, 2, 3, 4]).unwrap();
     let name = bad.display().to_string();
 
     let err = read_image(&bad).unwrap_err();
@@ -1112,7 +1112,7 @@ fn truncated_png_error_names_the_file() {
     let dir = tempfile::tempdir().unwrap();
     let full = dir.path().join("full.png");
     let codes: Vec<u16> = (0..64 * 64).map(|i| (i * 7919 % 65536) as u16).collect();
-    write_png16(&full, 64, 64, &codes).unwrap();
+    write_png16(&full, 64, 64, 1, &codes).unwrap();
     let bytes = std::fs::read(&full).unwrap();
     let cut = dir.path().join("cut_short.png");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
@@ -1137,7 +1137,7 @@ fn truncated_png_error_names_the_file() {
 fn missing_file_is_io_error_with_path() {
     let dir = tempfile::tempdir().unwrap();
     let good = dir.path().join("good.png");
-    write_png16(&good, 2, 2, &[1, 2, 3, 4]).unwrap();
+    write_png16(&good, 2, 2, 1, &[1, 2, 3, 4]).unwrap();
     for missing in [
         dir.path().join("nope.png"),
         dir.path().join("nope.tif"),
@@ -1169,7 +1169,7 @@ fn per_channel_load_of_grey_image_fails() {
     let rgb = dir.path().join("colour.png");
     save(rgb16(2, 2, &[1000; 12]), &rgb);
     let grey = dir.path().join("grey_only.png");
-    write_png16(&grey, 2, 2, &[1000; 4]).unwrap();
+    write_png16(&grey, 2, 2, 1, &[1000; 4]).unwrap();
     let y = dir.path().join("grey_only.exr");
     write_exr_channels(&y, 2, 2, vec![("Y", FlatSamples::F32(vec![0.5; 4]))]);
     let o = opts(ColorMode::PerChannel, Transfer::Auto);
@@ -1211,7 +1211,7 @@ fn empty_mask_is_rejected() {
 fn image_and_light_counts_must_match() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("a.png");
-    write_png16(&p, 2, 2, &[1, 2, 3, 4]).unwrap();
+    write_png16(&p, 2, 2, 1, &[1, 2, 3, 4]).unwrap();
     let paths = vec![p.clone(), p.clone(), p];
     let err = load_stack(&paths, &unit_lights(4), &LoadOptions::default(), &Silent).unwrap_err();
     assert!(matches!(err, Error::LightsMismatch { .. }), "{err:?}");
@@ -1257,7 +1257,7 @@ fn mask_any_channel_counts() {
 fn mask_from_16_bit_png_keeps_low_codes() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("mask16.png");
-    write_png16(&p, 4, 1, &[0, 1, 255, 65535]).unwrap();
+    write_png16(&p, 4, 1, 1, &[0, 1, 255, 65535]).unwrap();
     let mask = read_mask(&p).unwrap();
     assert_eq!(mask.data(), &[false, true, true, true]);
     // A TIFF works the same way.
@@ -1290,7 +1290,7 @@ fn image_size_of_each_format() {
     let png = dir.path().join("s.png");
     let tif = dir.path().join("s.tif");
     let exr = dir.path().join("s.exr");
-    write_png16(&png, 7, 3, &[5; 21]).unwrap();
+    write_png16(&png, 7, 3, 1, &[5; 21]).unwrap();
     save(rgb8(7, 3, &[5; 63]), &tif);
     write_exr(&exr, 7, 3, &[("Y", &[0.5; 21])], &[]).unwrap();
     for p in [&png, &tif, &exr] {

@@ -8,7 +8,7 @@ use photostereo::metrics::{albedo_relative_error, angular_errors, depth_errors};
 use photostereo::pipeline::{Config, reconstruct};
 use photostereo::progress::Silent;
 use photostereo::render::RenderOptions;
-use photostereo::scene::{Albedo, Primitive, Scene};
+use photostereo::scene::{Albedo, Object, Primitive, Scene};
 use photostereo::solve::{Method, SolveOptions};
 
 /// Twelve lights 30°–90° above the image plane: every sphere pixel near the rim is in attached
@@ -106,8 +106,7 @@ fn noise_matches_the_least_squares_prediction() {
     let scene = Scene {
         width: 200,
         height: 200,
-        objects: vec![],
-        ground: Some(Albedo::Constant(rho)),
+        objects: vec![Object::ground(Albedo::Constant(rho))],
     };
     let lights = Lights::fibonacci(12, 40.0).unwrap();
     let options = RenderOptions {
@@ -180,28 +179,28 @@ fn default_scene_with_cast_shadows_is_recovered() {
 /// plane, noise-free: creases break nothing in the per-pixel solve.
 #[test]
 fn bumps_and_creases_on_a_ground_plane() {
+    let pyramid = Primitive::Pyramid {
+        cx: -25.0,
+        cy: 0.0,
+        half: 25.0,
+        height: 15.0,
+        base: 0.0,
+    };
+    let bump = Primitive::Gaussian {
+        cx: 30.0,
+        cy: 5.0,
+        sigma: 12.0,
+        height: 18.0,
+        base: 0.0,
+    };
     let scene = Scene {
         width: 128,
         height: 96,
         objects: vec![
-            (
-                Primitive::Pyramid {
-                    cx: -25.0,
-                    cy: 0.0,
-                    half: 25.0,
-                    height: 15.0,
-                    base: 0.0,
-                },
-                Albedo::Constant(0.7),
-            ),
-            (
-                Primitive::Gaussian {
-                    cx: 30.0,
-                    cy: 5.0,
-                    sigma: 12.0,
-                    height: 18.0,
-                    base: 0.0,
-                },
+            Object::ground(Albedo::Constant(0.5)),
+            Object::new(pyramid, Albedo::Constant(0.7)),
+            Object::new(
+                bump,
                 Albedo::Checker {
                     size: 8.0,
                     a: 0.4,
@@ -209,7 +208,6 @@ fn bumps_and_creases_on_a_ground_plane() {
                 },
             ),
         ],
-        ground: Some(Albedo::Constant(0.5)),
     };
     let synth = synthesize(scene, twelve_lights(), &RenderOptions::default()).unwrap();
     let recon = reconstruct(&synth.capture, &Config::default(), &Silent).unwrap();

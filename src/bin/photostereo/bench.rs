@@ -131,6 +131,6 @@ pub fn run(a: BenchArgs) -> Result<()> {
     } else {
         out["peer"] = json!(format!("not found: {}", a.peer.display()));
     }
-    println!("{}", serde_json::to_string_pretty(&out)?);
+    say!("{}", serde_json::to_string_pretty(&out)?);
     Ok(())
 }

@@ -1,6 +1,19 @@
 //! `photostereo`: the command-line tool. Flags become a validated configuration
 //! ([`args`]), which drives the library.
 
+/// Prints a line to standard output; when the reader has gone (`photostereo … | head`), the
+/// program ends quietly instead of panicking (the outputs are already written by then).
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        if let Err(e) = writeln!(std::io::stdout().lock(), $($arg)*) {
+            if e.kind() == std::io::ErrorKind::BrokenPipe {
+                std::process::exit(0);
+            }
+        }
+    }};
+}
+
 mod args;
 mod bar;
 mod bench;
@@ -72,7 +85,7 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
     let t = Instant::now();
     let synth = demo::default_capture(a.noise, a.seed)?;
     let render_s = t.elapsed().as_secs_f64();
-    println!(
+    say!(
         "demo scene: {}x{} px, {} lights, noise σ = {}, rendered in {:.2} s",
         synth.capture.stack.width(),
         synth.capture.stack.height(),
@@ -98,9 +111,9 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
         Some(eval_json),
     )?;
     print_summary(&recon, &report, &config, &a.output);
-    println!("error against ground truth:");
+    say!("error against ground truth:");
     let n = &eval.normals;
-    println!(
+    say!(
         "  normals: mean {:.3}°, median {:.3}°, 95th pct {:.3}° over {} px ({:.1}% under 5°)",
         n.mean_deg,
         n.median_deg,
@@ -108,19 +121,19 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
         n.pixels,
         100.0 * n.below_5deg
     );
-    println!(
+    say!(
         "  albedo:  mean relative error {:.3}%",
         100.0 * eval.albedo_mean_relative_error
     );
     if let Some(d) = &eval.depth {
-        println!(
+        say!(
             "  depth:   RMSE {:.3} px after offset = {:.2}% of the {:.1} px depth range",
             d.rmse,
             100.0 * d.rmse_over_range,
             d.gt_range
         );
     }
-    println!(
+    say!(
         "inputs in {0}/scene/, ground truth (normal_gt.exr, depth_gt.exr, albedo_gt.exr, shadow masks) in {0}/scene/gt/",
         a.output.display()
     );
@@ -135,14 +148,14 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         None => Grid::new(gt.width(), gt.height(), true),
     };
     let stats = angular_errors(&est, &gt, &mask)?;
-    println!("{}", serde_json::to_string_pretty(&stats)?);
+    say!("{}", serde_json::to_string_pretty(&stats)?);
     Ok(())
 }
 
 fn print_summary(recon: &Reconstruction, report: &Report, config: &Config, dir: &Path) {
     let i = &report.inputs;
     let c = &recon.counts;
-    println!(
+    say!(
         "{} images {}x{}, method {}, integration {}",
         i.count,
         i.width,
@@ -150,22 +163,30 @@ fn print_summary(recon: &Reconstruction, report: &Report, config: &Config, dir: 
         config.solve.method.name(),
         config.integrator.map_or("none", |m| m.name())
     );
-    println!(
+    say!(
         "  pixels: {} in mask, {} solved, {} too few samples, {} ill-conditioned, {} dark",
-        c.masked, c.solved, c.too_few_samples, c.ill_conditioned, c.dark
+        c.masked,
+        c.solved,
+        c.too_few_samples,
+        c.ill_conditioned,
+        c.dark
     );
-    println!(
+    say!(
         "  integrability: mean |curl| {:.4}, median {:.4}, 95th pct {:.4} (per pixel)",
         recon.integrability.mean_abs_curl,
         recon.integrability.median_abs_curl,
         recon.integrability.p95_abs_curl
     );
     let t = &recon.timings;
-    println!(
+    say!(
         "  time: load {:.3} s, solve {:.3} s, normals {:.3} s, integrate {:.3} s, write {:.3} s",
-        t.load, t.solve, t.normals, t.integrate, t.write
+        t.load,
+        t.solve,
+        t.normals,
+        t.integrate,
+        t.write
     );
-    println!("  wrote {}/ ({})", dir.display(), report.outputs.join(", "));
+    say!("  wrote {}/ ({})", dir.display(), report.outputs.join(", "));
     for w in &recon.warnings {
         eprintln!("warning: {w}");
     }
