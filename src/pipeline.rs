@@ -191,8 +191,13 @@ pub fn reconstruct(
     }
     let flagged = counts.too_few_samples + counts.ill_conditioned + counts.dark;
     if flagged > 0 {
+        let hint = if capture.mask_source.is_none() && !capture.images.is_empty() {
+            " (no mask was given, so the background counts too: pass --mask)"
+        } else {
+            ""
+        };
         warnings.push(format!(
-            "{flagged} of {} masked pixels have no normal: {} with fewer than 3 usable samples, {} with ill-conditioned lights, {} dark",
+            "{flagged} of {} pixels have no normal: {} with fewer than 3 usable samples, {} with ill-conditioned lights, {} dark{hint}",
             counts.masked, counts.too_few_samples, counts.ill_conditioned, counts.dark
         ));
     }

@@ -186,7 +186,7 @@ fn print_summary(recon: &Reconstruction, report: &Report, config: &Config, dir: 
         t.integrate,
         t.write
     );
-    say!("  wrote {}/ ({})", dir.display(), report.outputs.join(", "));
+    say!("  wrote {} ({})", dir.display(), report.outputs.join(", "));
     for w in &recon.warnings {
         eprintln!("warning: {w}");
     }
