@@ -5,9 +5,8 @@
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use photostereo::demo::synthesize;
-use photostereo::integrate::{Integrator, integrate};
+use photostereo::integrate::{IntegrationOptions, Integrator, integrate_normals};
 use photostereo::lights::Lights;
-use photostereo::normals::gradients;
 use photostereo::progress::Silent;
 use photostereo::render::RenderOptions;
 use photostereo::scene::{Albedo, Scene};
@@ -45,17 +44,26 @@ fn bench_solve(c: &mut Criterion) {
     g.finish();
 }
 
-/// Integration of a sphere's gradients at several sizes, per integrator.
+/// Integration of a sphere's normals at several sizes, per integrator (the slow bilateral
+/// method only up to 512²).
 fn bench_integrate(c: &mut Criterion) {
     let mut g = c.benchmark_group("integrate");
     g.sample_size(10);
     for size in [256usize, 512, 1024] {
         let hf = Scene::sphere(size, 0.45 * size as f64, Albedo::Constant(0.5)).height_field();
-        let (p, q) = gradients(&hf.normals, &hf.mask);
         g.throughput(Throughput::Elements((size * size) as u64));
-        for integrator in [Integrator::Poisson, Integrator::Path] {
+        for integrator in Integrator::ALL {
+            if integrator == Integrator::Bilateral && size > 512 {
+                continue;
+            }
+            let options = IntegrationOptions {
+                method: integrator,
+                ..IntegrationOptions::default()
+            };
             g.bench_with_input(BenchmarkId::new(integrator.name(), size), &size, |b, _| {
-                b.iter(|| black_box(integrate(&p, &q, &hf.mask, integrator, &Silent).unwrap()))
+                b.iter(|| {
+                    black_box(integrate_normals(&hf.normals, &hf.mask, &options, &Silent).unwrap())
+                })
             });
         }
     }

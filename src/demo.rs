@@ -97,7 +97,7 @@ pub struct Evaluation {
 pub fn evaluate(recon: &Reconstruction, truth: &HeightField) -> Result<Evaluation> {
     let normals = angular_errors(&recon.normals, &truth.normals, &truth.mask)?;
     let (mean, max) = albedo_relative_error(&recon.albedo[0], &truth.albedo, &truth.mask)?;
-    let depth = match &recon.depth {
+    let depth = match recon.depth() {
         Some(d) => Some(depth_errors(d, &truth.depth, &truth.mask)?),
         None => None,
     };

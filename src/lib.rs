@@ -25,6 +25,7 @@
 //! ```
 #![deny(missing_docs)]
 
+pub mod camera;
 pub mod dataset;
 pub mod demo;
 pub mod error;
@@ -33,6 +34,7 @@ pub mod input;
 pub mod integrate;
 pub mod lights;
 mod linalg;
+pub mod mesh;
 pub mod metrics;
 pub mod normals;
 pub mod output;

@@ -8,7 +8,7 @@ use crate::dataset::Capture;
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
 use crate::input::ColorMode;
-use crate::integrate::{Integrator, integrate};
+use crate::integrate::{Integration, IntegrationOptions, integrate_normals};
 use crate::lights::MAX_LIGHT_CONDITION;
 use crate::normals::{
     IntegrabilitySummary, albedo_and_normals, combine_channels, gradients, integrability,
@@ -23,24 +23,28 @@ use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-/// What to compute. The default: [`SolveOptions::default`] and Poisson integration.
+/// What to compute. The default: [`SolveOptions::default`] and orthographic masked
+/// least-squares integration.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Config {
     /// Per-pixel estimator and its parameters.
     pub solve: SolveOptions,
-    /// Normal integrator, or `None` to skip depth.
-    pub integrator: Option<Integrator>,
+    /// Normal integration (method, camera, solver), or `None` to skip depth.
+    pub integration: Option<IntegrationOptions>,
     /// The intensities are calibrated so that albedo is at most 1: pixels with ρ > 1 are then
     /// reported as a warning.
     pub albedo_normalised: bool,
+    /// Also write the depth map as a triangle mesh, `mesh.ply`.
+    pub mesh: bool,
 }
 
 impl Default for Config {
     fn default() -> Self {
         Config {
             solve: SolveOptions::default(),
-            integrator: Some(Integrator::Poisson),
+            integration: Some(IntegrationOptions::default()),
             albedo_normalised: false,
+            mesh: false,
         }
     }
 }
@@ -81,8 +85,8 @@ pub struct Reconstruction {
     pub curl: ScalarMap,
     /// Summary of |curl|.
     pub integrability: IntegrabilitySummary,
-    /// Depth (pixel units, zero-mean), when an integrator was chosen.
-    pub depth: Option<ScalarMap>,
+    /// Depth and its integration diagnostics, when integration was asked for.
+    pub integration: Option<Integration>,
     /// Pixel outcome counts.
     pub counts: StatusCounts,
     /// Pixels with albedo above 1 (any channel).
@@ -91,6 +95,13 @@ pub struct Reconstruction {
     pub timings: Timings,
     /// Things the user should know (saturation, flagged pixels, …).
     pub warnings: Vec<String>,
+}
+
+impl Reconstruction {
+    /// The depth map, when integration ran (see [`Integration::depth`] for its units).
+    pub fn depth(&self) -> Option<&ScalarMap> {
+        self.integration.as_ref().map(|i| &i.depth)
+    }
 }
 
 /// Runs solve, normals, integrability and (optionally) integration on a capture.
@@ -148,7 +159,12 @@ pub fn reconstruct(
             .unwrap_or(0)
     });
     let solved = status.map(|s| *s == PixelStatus::Solved);
-    let (p, q) = gradients(&normals, &solved);
+    // The integrability check uses the field that is integrated: log-depth gradients under a
+    // pinhole camera, orthographic ones otherwise.
+    let (p, q) = match config.integration.as_ref().and_then(|o| o.camera.as_ref()) {
+        Some(k) => crate::integrate::perspective_gradients(&normals, &solved, k),
+        None => gradients(&normals, &solved),
+    };
     let integ = integrability(&p, &q);
     let counts = StatusCounts::from_grid(&status);
     let albedo_above_one = (0..w * h)
@@ -157,9 +173,9 @@ pub fn reconstruct(
     let normals_s = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
-    let depth = match config.integrator {
-        Some(integrator) if solved.count() > 0 => {
-            Some(integrate(&p, &q, &solved, integrator, progress)?)
+    let integration = match &config.integration {
+        Some(options) if solved.count() > 0 => {
+            Some(integrate_normals(&normals, &solved, options, progress)?)
         }
         _ => None,
     };
@@ -216,7 +232,7 @@ pub fn reconstruct(
         solved,
         curl: integ.curl,
         integrability: integ.summary,
-        depth,
+        integration,
         counts,
         albedo_above_one,
         timings: Timings {
@@ -290,6 +306,23 @@ pub struct ResidualSummary {
     pub median: f64,
 }
 
+/// How depth was integrated and how faithful it is to the normals.
+#[derive(Debug, Clone, Serialize)]
+pub struct IntegrationSummary {
+    /// The method's name.
+    pub method: &'static str,
+    /// Perspective (with intrinsics) or orthographic.
+    pub perspective: bool,
+    /// How the linear system was solved, for the masked methods.
+    pub solve: Option<crate::integrate::SolveInfo>,
+    /// Reweighting iterations (bilateral).
+    pub iterations: usize,
+    /// Mean of the per-pixel integration residual (see [`Integration::residual`]).
+    pub mean_residual: f64,
+    /// Median of the per-pixel integration residual.
+    pub median_residual: f64,
+}
+
 /// The `report.json` written beside the outputs.
 #[derive(Debug, Clone, Serialize)]
 pub struct Report {
@@ -311,6 +344,8 @@ pub struct Report {
     pub timings_s: Timings,
     /// Warnings raised.
     pub warnings: Vec<String>,
+    /// Normal integration: method, solver and how well the depth fits the normals.
+    pub integration: Option<IntegrationSummary>,
     /// Files written (names within the output folder).
     pub outputs: Vec<String>,
     /// Errors against ground truth, when known (e.g. for the demo scene).
@@ -356,7 +391,8 @@ pub fn write_outputs(
         ),
         (
             "photostereo:units",
-            "depth in pixel units (orthographic), larger is nearer".to_string(),
+            "Z: height towards the camera in pixel units (orthographic), larger is nearer"
+                .to_string(),
         ),
         ("photostereo:lights", capture.lights.len().to_string()),
     ];
@@ -385,8 +421,35 @@ pub fn write_outputs(
         _ => return Err(Error::param("albedo", "1 or 3 channels expected")),
     }
     let nan_map = Grid::new(w, h, f32::NAN);
-    let depth = recon.depth.as_ref().unwrap_or(&nan_map);
-    out.stage_exr("depth.exr", w, h, &[("Z", depth.data())], &attrs)?;
+    let depth = recon.depth().unwrap_or(&nan_map);
+    let mut depth_channels: Vec<(&str, &[f32])> = vec![("Z", depth.data())];
+    if let Some(i) = &recon.integration {
+        depth_channels.push(("residual", i.residual.data()));
+        if let Some((wu, wv)) = &i.weights {
+            depth_channels.push(("wu", wu.data()));
+            depth_channels.push(("wv", wv.data()));
+        }
+    }
+    let mut depth_attrs = attrs.to_vec();
+    if let Some(options) = &config.integration {
+        depth_attrs.push(("photostereo:integration", options.method.name().to_string()));
+        depth_attrs[2].1 = match &options.camera {
+            None => "Z: height towards the camera in pixel units (orthographic), larger is nearer"
+                .into(),
+            Some(k) => format!(
+                "Z: depth along the optical axis, up to scale (pinhole fx={} fy={} cx={} cy={}), larger is farther",
+                k.fx, k.fy, k.cx, k.cy
+            ),
+        };
+    }
+    out.stage_exr("depth.exr", w, h, &depth_channels, &depth_attrs)?;
+    if config.mesh
+        && let Some(d) = recon.depth()
+    {
+        let camera = config.integration.as_ref().and_then(|o| o.camera);
+        let mesh = crate::mesh::Mesh::from_depth(d, &recon.normals, camera.as_ref())?;
+        out.stage_bytes("mesh.ply", &mesh.to_ply())?;
+    }
     let samples: Vec<f32> = recon
         .samples
         .data()
@@ -443,7 +506,37 @@ pub fn write_outputs(
         }
     };
     recon.timings.write = t.elapsed().as_secs_f64();
-    let outputs: Vec<String> = OUTPUT_FILES.iter().map(|s| s.to_string()).collect();
+    let mut outputs: Vec<String> = OUTPUT_FILES.iter().map(|s| s.to_string()).collect();
+    if config.mesh && recon.depth().is_some() {
+        outputs.push("mesh.ply".into());
+    }
+    let integration = recon
+        .integration
+        .as_ref()
+        .zip(config.integration.as_ref())
+        .map(|(i, o)| {
+            let mut r: Vec<f64> = i
+                .residual
+                .data()
+                .iter()
+                .filter(|v| v.is_finite())
+                .map(|v| f64::from(*v))
+                .collect();
+            r.sort_by(f64::total_cmp);
+            let (mean, median) = if r.is_empty() {
+                (f64::NAN, f64::NAN)
+            } else {
+                (r.iter().sum::<f64>() / r.len() as f64, r[r.len() / 2])
+            };
+            IntegrationSummary {
+                method: o.method.name(),
+                perspective: o.camera.is_some(),
+                solve: i.solve,
+                iterations: i.iterations,
+                mean_residual: mean,
+                median_residual: median,
+            }
+        });
     let report = Report {
         version: env!("CARGO_PKG_VERSION"),
         inputs: InputSummary::of(capture),
@@ -454,6 +547,7 @@ pub fn write_outputs(
         integrability: recon.integrability,
         timings_s: recon.timings,
         warnings: recon.warnings.clone(),
+        integration,
         outputs,
         evaluation,
     };

@@ -69,7 +69,7 @@ fn diligent_default_method_beats_the_baseline() {
         let dir = require_shared!(format!("diligent/{obj}PNG"));
         let capture = Capture::from_diligent(&dir, &LoadOptions::default(), &Silent).unwrap();
         let config = Config {
-            integrator: None,
+            integration: None,
             ..Config::default()
         };
         let recon = reconstruct(&capture, &config, &Silent).unwrap();

@@ -50,14 +50,17 @@ fn noise_free_sphere_is_recovered_by_both_integrators() {
                     method,
                     ..SolveOptions::default()
                 },
-                integrator: Some(integrator),
+                integration: Some(photostereo::integrate::IntegrationOptions {
+                    method: integrator,
+                    ..Default::default()
+                }),
                 ..Config::default()
             };
             let recon = reconstruct(&synth.capture, &config, &Silent).unwrap();
             let t = &synth.truth;
             let n = angular_errors(&recon.normals, &t.normals, &t.mask).unwrap();
             let (alb, _) = albedo_relative_error(&recon.albedo[0], &t.albedo, &t.mask).unwrap();
-            let d = depth_errors(recon.depth.as_ref().unwrap(), &t.depth, &t.mask).unwrap();
+            let d = depth_errors(recon.depth().unwrap(), &t.depth, &t.mask).unwrap();
             println!(
                 "{method:?} {integrator:?}: mean {:.4}° over {} px ({} unsolved), albedo {:.5}, depth RMSE {:.4} = {:.4}% of range",
                 n.mean_deg,
@@ -87,7 +90,7 @@ fn plain_least_squares_is_biased_by_attached_shadows() {
     let synth = synthesize(scene, twelve_lights(), &RenderOptions::default()).unwrap();
     let config = Config {
         solve: SolveOptions::least_squares(),
-        integrator: None,
+        integration: None,
         ..Config::default()
     };
     let recon = reconstruct(&synth.capture, &config, &Silent).unwrap();
@@ -117,7 +120,7 @@ fn noise_matches_the_least_squares_prediction() {
     let synth = synthesize(scene, lights.clone(), &options).unwrap();
     let config = Config {
         solve: SolveOptions::least_squares(),
-        integrator: None,
+        integration: None,
         ..Config::default()
     };
     let recon = reconstruct(&synth.capture, &config, &Silent).unwrap();
@@ -154,13 +157,16 @@ fn default_scene_with_cast_shadows_is_recovered() {
     let cast: usize = synth.rendering.cast.iter().map(|m| m.count()).sum();
     assert!(cast > 10_000, "only {cast} cast-shadow samples");
     let config = Config {
-        integrator: Some(Integrator::Poisson),
+        integration: Some(photostereo::integrate::IntegrationOptions {
+            method: Integrator::Poisson,
+            ..Default::default()
+        }),
         ..Config::default()
     };
     let recon = reconstruct(&synth.capture, &config, &Silent).unwrap();
     let n = angular_errors(&recon.normals, &synth.truth.normals, &synth.truth.mask).unwrap();
     let d = depth_errors(
-        recon.depth.as_ref().unwrap(),
+        recon.depth().unwrap(),
         &synth.truth.depth,
         &synth.truth.mask,
     )
@@ -213,7 +219,7 @@ fn bumps_and_creases_on_a_ground_plane() {
     let recon = reconstruct(&synth.capture, &Config::default(), &Silent).unwrap();
     let n = angular_errors(&recon.normals, &synth.truth.normals, &synth.truth.mask).unwrap();
     let d = depth_errors(
-        recon.depth.as_ref().unwrap(),
+        recon.depth().unwrap(),
         &synth.truth.depth,
         &synth.truth.mask,
     )

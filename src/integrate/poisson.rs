@@ -20,19 +20,19 @@ pub fn integrate_poisson(p: &ScalarMap, q: &ScalarMap, domain: &Mask) -> ScalarM
     let edge = |v: f64| if v.is_nan() { 0.0 } else { v };
     // b_i = Σ incoming differences − Σ outgoing differences.
     let mut b = vec![0f64; w * h];
-    for y in 0..h {
-        for x in 0..w {
+    b.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, v) in row.iter_mut().enumerate() {
             let i = y * w + x;
-            let mut v = -edge(right[i]) - edge(down[i]);
+            let mut s = -edge(right[i]) - edge(down[i]);
             if x > 0 {
-                v += edge(right[i - 1]);
+                s += edge(right[i - 1]);
             }
             if y > 0 {
-                v += edge(down[i - w]);
+                s += edge(down[i - w]);
             }
-            b[i] = v;
+            *v = s;
         }
-    }
+    });
     let z = solve_neumann_laplacian(b, w, h);
     finish_depth(z, domain)
 }
@@ -40,76 +40,99 @@ pub fn integrate_poisson(p: &ScalarMap, q: &ScalarMap, domain: &Mask) -> ScalarM
 /// Solves L z = b for the w×h grid Laplacian with Neumann boundary (the mean of z is set to 0;
 /// the mean of b is ignored, as L is singular along constants).
 pub fn solve_neumann_laplacian(mut b: Vec<f64>, w: usize, h: usize) -> Vec<f64> {
-    let mut planner = DctPlanner::new();
-    let (row2, row3) = (planner.plan_dct2(w), planner.plan_dct3(w));
-    let (col2, col3) = (planner.plan_dct2(h), planner.plan_dct3(h));
-    let rows = |data: &mut [f64],
-                len: usize,
-                f: &(dyn Fn(&mut [f64], &mut [f64]) + Sync),
-                scratch: usize| {
-        data.par_chunks_mut(len)
-            .for_each_init(|| vec![0f64; scratch], |s, row| f(row, s));
-    };
-    // Forward: DCT-II along rows, then along columns (via a transpose).
-    rows(
-        &mut b,
-        w,
-        &|r, s| row2.process_dct2_with_scratch(r, s),
-        row2.get_scratch_len(),
-    );
-    let mut t = transpose(&b, w, h);
-    rows(
-        &mut t,
-        h,
-        &|r, s| col2.process_dct2_with_scratch(r, s),
-        col2.get_scratch_len(),
-    );
-    // Divide by the eigenvalues; t is indexed [u (column freq)][v (row freq)].
-    let lx: Vec<f64> = (0..w)
-        .map(|u| 2.0 - 2.0 * (std::f64::consts::PI * u as f64 / w as f64).cos())
-        .collect();
-    let ly: Vec<f64> = (0..h)
-        .map(|v| 2.0 - 2.0 * (std::f64::consts::PI * v as f64 / h as f64).cos())
-        .collect();
-    t.par_chunks_mut(h).enumerate().for_each(|(u, col)| {
-        for (v, c) in col.iter_mut().enumerate() {
-            let l = lx[u] + ly[v];
-            *c = if l > 0.0 { *c / l } else { 0.0 };
-        }
-    });
-    // Inverse: DCT-III along columns then rows, scaled by (2/W)(2/H).
-    rows(
-        &mut t,
-        h,
-        &|r, s| col3.process_dct3_with_scratch(r, s),
-        col3.get_scratch_len(),
-    );
-    let mut z = transpose(&t, h, w);
-    rows(
-        &mut z,
-        w,
-        &|r, s| row3.process_dct3_with_scratch(r, s),
-        row3.get_scratch_len(),
-    );
-    let scale = 4.0 / (w as f64 * h as f64);
-    z.par_iter_mut().for_each(|v| *v *= scale);
-    z
+    NeumannSolver::new(w, h).solve(&mut b);
+    b
 }
 
-/// Transposes a row-major `w`×`h` array into a row-major `h`×`w` one.
-fn transpose(a: &[f64], w: usize, h: usize) -> Vec<f64> {
-    let mut t = vec![0f64; w * h];
-    const TILE: usize = 32;
-    for y0 in (0..h).step_by(TILE) {
-        for x0 in (0..w).step_by(TILE) {
-            for y in y0..(y0 + TILE).min(h) {
-                for x in x0..(x0 + TILE).min(w) {
-                    t[x * h + y] = a[y * w + x];
-                }
-            }
+type Dct = std::sync::Arc<dyn rustdct::TransformType2And3<f64>>;
+
+/// The planned DCT solver of the w×h Neumann grid Laplacian, reusable across solves (it is the
+/// preconditioner of the masked conjugate-gradient solver).
+pub struct NeumannSolver {
+    w: usize,
+    h: usize,
+    row: Dct,
+    col: Dct,
+    /// Eigenvalues λ_u + λ_v, indexed [u (column frequency)][v (row frequency)].
+    lambda: Vec<f64>,
+}
+
+impl NeumannSolver {
+    /// Plans the transforms for a `w`×`h` grid.
+    pub fn new(w: usize, h: usize) -> Self {
+        let mut planner = DctPlanner::new();
+        let (row, col) = (planner.plan_dct2(w), planner.plan_dct2(h));
+        let ev = |n: usize| -> Vec<f64> {
+            (0..n)
+                .map(|k| 2.0 - 2.0 * (std::f64::consts::PI * k as f64 / n as f64).cos())
+                .collect()
+        };
+        let (lu, lv) = (ev(w), ev(h));
+        let mut lambda = Vec::with_capacity(w * h);
+        for a in &lu {
+            lambda.extend(lv.iter().map(|b| a + b));
+        }
+        NeumannSolver {
+            w,
+            h,
+            row,
+            col,
+            lambda,
         }
     }
-    t
+
+    /// Replaces `b` (row-major, w×h) by the zero-mean solution z of L z = b.
+    pub fn solve(&self, b: &mut [f64]) {
+        let (w, h) = (self.w, self.h);
+        let each = |data: &mut [f64], len: usize, t: &Dct, forward: bool| {
+            data.par_chunks_mut(len).for_each_init(
+                || vec![0f64; t.get_scratch_len()],
+                |s, row| {
+                    if forward {
+                        t.process_dct2_with_scratch(row, s)
+                    } else {
+                        t.process_dct3_with_scratch(row, s)
+                    }
+                },
+            );
+        };
+        // Forward: DCT-II along rows, then along columns (via a transpose).
+        each(b, w, &self.row, true);
+        let mut t = vec![0f64; w * h];
+        transpose_into(b, &mut t, w, h);
+        each(&mut t, h, &self.col, true);
+        // Divide by the eigenvalues, with the inverse transforms' scale (2/W)(2/H) folded in.
+        let scale = 4.0 / (w as f64 * h as f64);
+        t.par_iter_mut()
+            .zip(self.lambda.par_iter())
+            .for_each(|(c, l)| {
+                *c = if *l > 0.0 { *c * scale / l } else { 0.0 };
+            });
+        // Inverse: DCT-III along columns then rows.
+        each(&mut t, h, &self.col, false);
+        transpose_into(&t, b, h, w);
+        each(b, w, &self.row, false);
+    }
+}
+
+/// Writes the transpose of the row-major `w`×`h` array `a` into `t` (row-major `h`×`w`), in
+/// parallel over tiles of output rows.
+fn transpose_into(a: &[f64], t: &mut [f64], w: usize, h: usize) {
+    const TILE: usize = 32;
+    t.par_chunks_mut(TILE * h)
+        .enumerate()
+        .for_each(|(bx, out)| {
+            let x0 = bx * TILE;
+            let x1 = (x0 + TILE).min(w);
+            for y0 in (0..h).step_by(TILE) {
+                for y in y0..(y0 + TILE).min(h) {
+                    let row = &a[y * w..y * w + w];
+                    for x in x0..x1 {
+                        out[(x - x0) * h + y] = row[x];
+                    }
+                }
+            }
+        });
 }
 
 #[cfg(test)]

@@ -49,7 +49,7 @@ summary["mean_angular_error_deg"] = float(np.degrees(np.arccos(cos)).mean())
 check(summary["mean_angular_error_deg"] < 1.0, f"normals disagree with ground truth: {summary}")
 
 depth, _ = channels(f"{out}/depth.exr")
-check(list(depth) == ["Z"] and depth["Z"].shape == (h, w), f"depth.exr channels {list(depth)}")
+check(sorted(depth) == ["Z", "residual"] and depth["Z"].shape == (h, w), f"depth.exr channels {list(depth)}")
 check((np.isfinite(depth["Z"]) == valid).all(), "depth NaN mask differs from the normal map's")
 dgt, _ = channels(f"{out}/scene/gt/depth_gt.exr")
 d, t = depth["Z"][valid], dgt["Z"][valid]

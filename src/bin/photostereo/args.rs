@@ -2,8 +2,9 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
+use photostereo::camera::Intrinsics;
 use photostereo::input::{ColorMode, LoadOptions, Transfer};
-use photostereo::integrate::Integrator;
+use photostereo::integrate::{BilateralParams, IntegrationOptions, Integrator, LinearSolver};
 use photostereo::pipeline::Config;
 use photostereo::solve::{DEFAULT_MAX_CONDITION, DEFAULT_SHADOW_THRESHOLD, Method, SolveOptions};
 use std::path::PathBuf;
@@ -44,8 +45,11 @@ pub enum Command {
     Demo(DemoArgs),
     /// Angular error of a normal map against ground truth, as JSON.
     Eval(EvalArgs),
-    /// Time the pipeline end to end on a DiLiGenT folder, beside the numpy peer, as JSON.
-    Bench(BenchArgs),
+    /// Integrate a normal map into depth (EXR), optionally with a mesh (PLY).
+    Integrate(IntegrateArgs),
+    /// Benchmarks, beside the numpy peer where it applies, as JSON.
+    #[command(subcommand)]
+    Bench(BenchCommand),
 }
 
 /// Reconstruction of user images.
@@ -79,9 +83,17 @@ pub struct MethodArgs {
     /// or `ls` (plain least squares over all samples, the reference).
     #[arg(long, value_enum, default_value_t = MethodArg::Threshold)]
     pub method: MethodArg,
-    /// Normal integration: `poisson` (DCT, fast), `path` (mask-aware, averaged paths), `none`.
-    #[arg(long, value_enum, default_value_t = IntegrateArg::Poisson)]
+    /// Normal integration: `masked-ls` (least squares on the mask only), `poisson` (DCT, fast,
+    /// flat background), `path` (mask-aware paths), `fc` (Frankot–Chellappa FFT, periodic),
+    /// `bilateral` (discontinuity preserving), or `none`.
+    #[arg(long, value_enum, default_value_t = IntegrateArg::MaskedLs)]
     pub integrate: IntegrateArg,
+    /// Integration details (camera, solver, bilateral parameters).
+    #[command(flatten)]
+    pub integration: IntegrationArgs,
+    /// Also write the depth map as a triangle mesh, `mesh.ply`.
+    #[arg(long)]
+    pub mesh: bool,
     /// threshold/weighted: drop samples at or below this fraction of the pixel's brightest one.
     #[arg(long, default_value_t = DEFAULT_SHADOW_THRESHOLD, value_name = "FRACTION")]
     pub shadow_threshold: f32,
@@ -129,18 +141,94 @@ pub struct DemoArgs {
 /// `eval` options.
 #[derive(Debug, Args)]
 pub struct EvalArgs {
-    /// Estimated normal map (EXR with R, G, B = n_x, n_y, n_z).
-    #[arg(long, value_name = "FILE")]
-    pub normals: PathBuf,
+    /// Estimated normal map (EXR with R, G, B = n_x, n_y, n_z, or an encoded PNG).
+    #[arg(long, value_name = "FILE", requires = "gt")]
+    pub normals: Option<PathBuf>,
     /// Ground-truth normal map, same layout.
-    #[arg(long, value_name = "FILE")]
-    pub gt: PathBuf,
+    #[arg(long, value_name = "FILE", requires = "normals")]
+    pub gt: Option<PathBuf>,
+    /// Estimated depth map (EXR, channel Z).
+    #[arg(long, value_name = "FILE", requires = "depth_gt")]
+    pub depth: Option<PathBuf>,
+    /// Ground-truth depth map (EXR, channel Z).
+    #[arg(long, value_name = "FILE", requires = "depth")]
+    pub depth_gt: Option<PathBuf>,
+    /// How depth is aligned before comparing: `offset` (orthographic: subtract means) or
+    /// `median-scale` (perspective: scale by median(gt/estimate)).
+    #[arg(long, value_enum, default_value_t = DepthAlign::Offset)]
+    pub align: DepthAlign,
     /// Pixels to compare (> 0); default: where both maps are defined.
     #[arg(long, value_name = "FILE")]
     pub mask: Option<PathBuf>,
 }
 
-/// `bench` options.
+/// `--align` values.
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum DepthAlign {
+    /// Remove the mean offset.
+    Offset,
+    /// Scale by the median ratio.
+    MedianScale,
+}
+
+/// `integrate` options.
+#[derive(Debug, Args)]
+pub struct IntegrateArgs {
+    /// Normal map: EXR (R, G, B = n_x, n_y, n_z) or 8/16-bit PNG encoded n = 2v − 1.
+    #[arg(long, value_name = "FILE")]
+    pub normals: PathBuf,
+    /// Pixels to integrate (> 0); default: where the normals are defined.
+    #[arg(long, value_name = "FILE")]
+    pub mask: Option<PathBuf>,
+    /// Integration method.
+    #[arg(long, value_enum, default_value_t = IntegrateArg::MaskedLs)]
+    pub method: IntegrateArg,
+    /// Integration details.
+    #[command(flatten)]
+    pub integration: IntegrationArgs,
+    /// Output depth map (EXR: channel Z, plus `residual`, and `wu`, `wv` for bilateral).
+    #[arg(long, short, value_name = "FILE")]
+    pub output: PathBuf,
+    /// Also write a triangle mesh of the depth map (binary PLY with normals).
+    #[arg(long, value_name = "FILE")]
+    pub ply: Option<PathBuf>,
+}
+
+/// `bench` subcommands.
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// End-to-end time on a DiLiGenT-layout folder against `numpy_ps.py diligent`.
+    Diligent(BenchArgs),
+    /// Time and accuracy of every integrator against image size, and DCT Poisson against
+    /// `numpy_ps.py poisson N`.
+    Integration(IntegrationBenchArgs),
+}
+
+/// `bench integration` options.
+#[derive(Debug, Args)]
+pub struct IntegrationBenchArgs {
+    /// Image sizes (square).
+    #[arg(long, value_delimiter = ',', default_values_t = [256usize, 512, 1024, 2048])]
+    pub sizes: Vec<usize>,
+    /// Methods to time (default: all).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub methods: Vec<IntegrateArg>,
+    /// Repetitions at sizes up to 512² (one run above); medians are reported.
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    /// The numpy peer script.
+    #[arg(
+        long,
+        value_name = "SCRIPT",
+        default_value = "../shared/peers/numpy_ps.py"
+    )]
+    pub peer: PathBuf,
+    /// Python interpreter for the peer.
+    #[arg(long, default_value = "python3")]
+    pub python: String,
+}
+
+/// `bench diligent` options.
 #[derive(Debug, Args)]
 pub struct BenchArgs {
     /// DiLiGenT-layout folder to time.
@@ -182,8 +270,98 @@ pub enum IntegrateArg {
     Poisson,
     /// Path integration.
     Path,
+    /// Frankot–Chellappa.
+    Fc,
+    /// Masked least squares.
+    MaskedLs,
+    /// Bilateral normal integration.
+    Bilateral,
     /// No depth.
     None,
+}
+
+impl IntegrateArg {
+    /// The library method, or `None` for no depth.
+    pub fn method(self) -> Option<Integrator> {
+        match self {
+            IntegrateArg::Poisson => Some(Integrator::Poisson),
+            IntegrateArg::Path => Some(Integrator::Path),
+            IntegrateArg::Fc => Some(Integrator::FrankotChellappa),
+            IntegrateArg::MaskedLs => Some(Integrator::MaskedLs),
+            IntegrateArg::Bilateral => Some(Integrator::Bilateral),
+            IntegrateArg::None => None,
+        }
+    }
+}
+
+/// `--solver` values.
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum SolverArg {
+    /// Direct up to 100 000 unknowns, conjugate gradients beyond.
+    Auto,
+    /// Sparse Cholesky.
+    Direct,
+    /// Preconditioned conjugate gradients.
+    Cg,
+}
+
+/// Options of normal integration shared by the main command, `demo` and `integrate`.
+#[derive(Debug, Args, Clone)]
+pub struct IntegrationArgs {
+    /// Pinhole intrinsics K (3×3 text file, pixels) for perspective integration; depth is then
+    /// the distance along the optical axis, up to scale.
+    #[arg(long, value_name = "K.txt")]
+    pub camera: Option<PathBuf>,
+    /// Linear solver of `masked-ls` (auto: direct up to 100 000 pixels) and `bilateral` (auto: the
+    /// published inexact conjugate gradients; direct: exact solves, a different fixed point).
+    #[arg(long, value_enum, default_value_t = SolverArg::Auto)]
+    pub solver: SolverArg,
+    /// Bilateral: sigmoid sharpness k (larger keeps more discontinuities).
+    #[arg(long, default_value_t = BilateralParams::default().k, value_name = "K")]
+    pub bilateral_k: f64,
+    /// Bilateral: iteration limit.
+    #[arg(long, default_value_t = BilateralParams::default().max_iter, value_name = "N")]
+    pub bilateral_iterations: usize,
+    /// Bilateral: stop when the energy changes by less than this, relatively.
+    #[arg(long, default_value_t = BilateralParams::default().tol, value_name = "TOL")]
+    pub bilateral_tol: f64,
+}
+
+impl IntegrationArgs {
+    /// Library options for `method`.
+    pub fn options(&self, method: Integrator) -> Result<IntegrationOptions> {
+        if !(self.bilateral_k.is_finite() && self.bilateral_k > 0.0) {
+            bail!(
+                "--bilateral-k {}: must be a positive number",
+                self.bilateral_k
+            );
+        }
+        if self.bilateral_iterations == 0 {
+            bail!("--bilateral-iterations must be at least 1");
+        }
+        if !(self.bilateral_tol >= 0.0 && self.bilateral_tol.is_finite()) {
+            bail!("--bilateral-tol {}: must be ≥ 0", self.bilateral_tol);
+        }
+        let camera = match &self.camera {
+            Some(path) => Some(Intrinsics::from_file(path)?),
+            None => None,
+        };
+        Ok(IntegrationOptions {
+            method,
+            camera,
+            solver: match self.solver {
+                SolverArg::Auto => LinearSolver::Auto,
+                SolverArg::Direct => LinearSolver::Direct,
+                SolverArg::Cg => LinearSolver::ConjugateGradient,
+            },
+            bilateral: BilateralParams {
+                k: self.bilateral_k,
+                max_iter: self.bilateral_iterations,
+                tol: self.bilateral_tol,
+                ..BilateralParams::default()
+            },
+        })
+    }
 }
 
 /// `--color` values.
@@ -211,12 +389,12 @@ impl MethodArgs {
         solve.validate()?;
         Ok(Config {
             solve,
-            integrator: match self.integrate {
-                IntegrateArg::Poisson => Some(Integrator::Poisson),
-                IntegrateArg::Path => Some(Integrator::Path),
-                IntegrateArg::None => None,
+            integration: match self.integrate.method() {
+                Some(m) => Some(self.integration.options(m)?),
+                None => None,
             },
             albedo_normalised: self.albedo_normalised,
+            mesh: self.mesh,
         })
     }
 }

@@ -5,12 +5,18 @@
 //! photostereo's stages are also timed in-process, with the time to stream the loaded stack
 //! through memory once as the yardstick for the solve.
 
-use crate::args::BenchArgs;
+use crate::args::{BenchArgs, IntegrateArg, IntegrationBenchArgs};
 use anyhow::{Context, Result};
 use photostereo::dataset::Capture;
+use photostereo::grid::Grid;
 use photostereo::input::LoadOptions;
+use photostereo::integrate::{
+    IntegrationOptions, Integrator, LinearSolver, integrate_gradients, integrate_normals,
+};
+use photostereo::metrics::depth_errors;
 use photostereo::pipeline::{reconstruct, write_outputs};
 use photostereo::progress::Silent;
+use photostereo::scene::{Albedo, Scene};
 use rayon::prelude::*;
 use serde_json::json;
 use std::process::Command;
@@ -73,13 +79,13 @@ pub fn run(a: BenchArgs) -> Result<()> {
         "repeat": repeat,
         "threads": rayon::current_num_threads(),
         "method": config.solve.method.name(),
-        "integrator": config.integrator.map_or("none", |i| i.name()),
+        "integrator": config.integration.map_or("none", |o| o.method.name()),
         "photostereo": ours,
     });
     // Whole-process timings, ours and the peer's, interleaved.
     let exe = std::env::current_exe().context("locating the photostereo executable")?;
     let method = config.solve.method.name();
-    let integrate = config.integrator.map_or("none", |i| i.name());
+    let integrate = config.integration.map_or("none", |o| o.method.name());
     let peer = a.peer.is_file();
     let (mut ours_wall, mut peer_wall, mut peer_internal) = (vec![], vec![], vec![]);
     for _ in 0..repeat {
@@ -133,4 +139,125 @@ pub fn run(a: BenchArgs) -> Result<()> {
     }
     say!("{}", serde_json::to_string_pretty(&out)?);
     Ok(())
+}
+
+/// Time and accuracy of each integrator on a sphere (radius 0.45 N on an N×N image, disk mask)
+/// per size, and DCT Poisson beside `numpy_ps.py poisson N` on the peer's own field (MATLAB's
+/// peaks on the full N×N grid).
+pub fn integration(a: IntegrationBenchArgs) -> Result<()> {
+    let methods: Vec<Integrator> = if a.methods.is_empty() {
+        Integrator::ALL.to_vec()
+    } else {
+        a.methods
+            .iter()
+            .filter_map(|m| IntegrateArg::method(*m))
+            .collect()
+    };
+    let mut rows = Vec::new();
+    let mut table = String::from(
+        "| method | pixels | time (s) | depth RMSE / range |\n| --- | --- | --- | --- |\n",
+    );
+    for &n in &a.sizes {
+        let hf = Scene::sphere(n, 0.45 * n as f64, Albedo::Constant(0.5)).height_field();
+        let reps = if n <= 512 { a.repeat.max(1) } else { 1 };
+        for &m in &methods {
+            let options = IntegrationOptions {
+                method: m,
+                ..IntegrationOptions::default()
+            };
+            let mut times = Vec::new();
+            let mut err = f64::NAN;
+            let mut solve = None;
+            for _ in 0..reps {
+                let t = Instant::now();
+                let r = integrate_normals(
+                    &hf.normals,
+                    &hf.mask,
+                    &options,
+                    &photostereo::progress::Silent,
+                )?;
+                times.push(t.elapsed().as_secs_f64());
+                err = depth_errors(&r.depth, &hf.depth, &hf.mask)?.rmse_over_range;
+                solve = r.solve;
+            }
+            let t = median(times);
+            table += &format!(
+                "| {} | {n}² ({} in mask) | {t:.3} | {:.2}% |\n",
+                m.name(),
+                hf.mask.count(),
+                100.0 * err
+            );
+            rows.push(
+                json!({"method": m.name(), "size": n, "pixels": hf.mask.count(), "time_s": t,
+                "rmse_over_range": err, "solve": solve}),
+            );
+        }
+    }
+    // DCT Poisson against the peer on its own test field.
+    let mut peer_rows = Vec::new();
+    if a.peer.is_file() {
+        for &n in &a.sizes {
+            let (p, q) = peaks_gradients(n);
+            let mask = Grid::new(n, n, true);
+            let mut ours = Vec::new();
+            for _ in 0..a.repeat.max(1) {
+                let t = Instant::now();
+                integrate_gradients(&p, &q, &mask, Integrator::Poisson, LinearSolver::Auto)?;
+                ours.push(t.elapsed().as_secs_f64());
+            }
+            let mut theirs = Vec::new();
+            for _ in 0..a.repeat.max(1) {
+                let o = Command::new(&a.python)
+                    .arg(&a.peer)
+                    .arg("poisson")
+                    .arg(n.to_string())
+                    .output()?;
+                anyhow::ensure!(
+                    o.status.success(),
+                    "peer failed: {}",
+                    String::from_utf8_lossy(&o.stderr)
+                );
+                let v: serde_json::Value = serde_json::from_slice(&o.stdout)?;
+                theirs.push(v["solve_s"].as_f64().unwrap_or(f64::NAN));
+            }
+            let (o, t) = (median(ours), median(theirs));
+            peer_rows.push(json!({"size": n, "photostereo_poisson_s": o, "numpy_dct_poisson_s": t, "speedup": t / o}));
+        }
+    }
+    let out = json!({"threads": rayon::current_num_threads(), "integrators": rows, "poisson_vs_numpy": peer_rows});
+    say!("{}", serde_json::to_string_pretty(&out)?);
+    say!("{table}");
+    Ok(())
+}
+
+/// The peer's test field: forward differences of MATLAB's peaks on [−3, 3]², converted to our
+/// gradient convention (x right, y up).
+fn peaks_gradients(n: usize) -> (photostereo::grid::ScalarMap, photostereo::grid::ScalarMap) {
+    let f = |x: f64, y: f64| {
+        3.0 * (1.0 - x).powi(2) * (-x * x - (y + 1.0).powi(2)).exp()
+            - 10.0 * (x / 5.0 - x.powi(3) - y.powi(5)) * (-x * x - y * y).exp()
+            - (-(x + 1.0).powi(2) - y * y).exp() / 3.0
+    };
+    let z = |c: usize, r: usize| {
+        f(
+            c as f64 / n as f64 * 6.0 - 3.0,
+            r as f64 / n as f64 * 6.0 - 3.0,
+        )
+    };
+    let p = Grid::from_fn(n, n, |c, r| {
+        if c + 1 < n {
+            (z(c + 1, r) - z(c, r)) as f32
+        } else {
+            0.0
+        }
+    });
+    // The peer's rows run downwards; our q is ∂z/∂y with y up.
+    let q = Grid::from_fn(n, n, |c, r| {
+        if r + 1 < n {
+            -(z(c, r + 1) - z(c, r)) as f32
+        } else {
+            0.0
+        }
+    });
+    (p, q)
 }

@@ -19,13 +19,17 @@ mod bar;
 mod bench;
 
 use anyhow::{Context, Result};
-use args::{Cli, Command, DemoArgs, EvalArgs, RunConfig, Source};
+use args::{Cli, Command, DemoArgs, DepthAlign, EvalArgs, IntegrateArgs, RunConfig, Source};
 use clap::Parser;
 use photostereo::dataset::Capture;
 use photostereo::demo;
 use photostereo::grid::Grid;
+use photostereo::grid::Mask;
 use photostereo::input::read_normal_map;
-use photostereo::metrics::angular_errors;
+use photostereo::integrate::integrate_normals;
+use photostereo::mesh::Mesh;
+use photostereo::metrics::{angular_errors, depth_errors, scaled_depth_errors};
+use photostereo::output::OutputDir;
 use photostereo::pipeline::{Config, Reconstruction, Report, reconstruct, write_outputs};
 use photostereo::progress::{Progress, Silent};
 use std::path::Path;
@@ -51,7 +55,9 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Some(Command::Demo(a)) => run_demo(a, progress),
         Some(Command::Eval(a)) => run_eval(a),
-        Some(Command::Bench(a)) => bench::run(a),
+        Some(Command::Integrate(a)) => run_integrate(a, progress),
+        Some(Command::Bench(args::BenchCommand::Diligent(a))) => bench::run(a),
+        Some(Command::Bench(args::BenchCommand::Integration(a))) => bench::integration(a),
         None => run_main(cli.run.validate()?, progress),
     }
 }
@@ -141,14 +147,161 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
 }
 
 fn run_eval(a: EvalArgs) -> Result<()> {
-    let est = read_normal_map(&a.normals)?;
-    let gt = read_normal_map(&a.gt)?;
-    let mask = match &a.mask {
-        Some(m) => photostereo::input::read_mask(m)?,
-        None => Grid::new(gt.width(), gt.height(), true),
+    let mask_for = |w: usize, h: usize| -> Result<Mask> {
+        Ok(match &a.mask {
+            Some(m) => photostereo::input::read_mask(m)?,
+            None => Grid::new(w, h, true),
+        })
     };
-    let stats = angular_errors(&est, &gt, &mask)?;
-    say!("{}", serde_json::to_string_pretty(&stats)?);
+    let normals = match (&a.normals, &a.gt) {
+        (Some(n), Some(g)) => {
+            let (est, gt) = (read_normal_map(n)?, read_normal_map(g)?);
+            Some(serde_json::to_value(angular_errors(
+                &est,
+                &gt,
+                &mask_for(gt.width(), gt.height())?,
+            )?)?)
+        }
+        _ => None,
+    };
+    let depth = match (&a.depth, &a.depth_gt) {
+        (Some(d), Some(g)) => {
+            let (est, gt) = (read_depth(d)?, read_depth(g)?);
+            let mask = mask_for(gt.width(), gt.height())?;
+            Some(match a.align {
+                DepthAlign::Offset => serde_json::to_value(depth_errors(&est, &gt, &mask)?)?,
+                DepthAlign::MedianScale => {
+                    serde_json::to_value(scaled_depth_errors(&est, &gt, &mask)?)?
+                }
+            })
+        }
+        _ => None,
+    };
+    let out = match (normals, depth) {
+        (Some(n), None) => n,
+        (None, Some(d)) => d,
+        (Some(n), Some(d)) => serde_json::json!({ "normals": n, "depth": d }),
+        (None, None) => anyhow::bail!(
+            "nothing to evaluate: give --normals and --gt, and/or --depth and --depth-gt"
+        ),
+    };
+    say!("{}", serde_json::to_string_pretty(&out)?);
+    Ok(())
+}
+
+/// A single-channel depth map (EXR channel Z or any single channel).
+fn read_depth(path: &Path) -> Result<photostereo::grid::ScalarMap> {
+    let img = photostereo::input::read_image(path)?;
+    anyhow::ensure!(
+        img.channels == 1,
+        "{}: a depth map needs one channel (Z), found {}",
+        path.display(),
+        img.channels
+    );
+    Ok(Grid::from_vec(img.width, img.height, img.data)?)
+}
+
+fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
+    let normals = read_normal_map(&a.normals)?;
+    let (w, h) = (normals.width(), normals.height());
+    let mask = match &a.mask {
+        Some(m) => {
+            let m = photostereo::input::read_mask(m)?;
+            anyhow::ensure!(
+                m.width() == w && m.height() == h,
+                "mask {}x{} differs from the normal map's {w}x{h}",
+                m.width(),
+                m.height()
+            );
+            m
+        }
+        // Where the normal map holds a unit-ish vector (encoded maps use black for "none").
+        None => normals.map(|n| n.iter().all(|v| v.is_finite()) && n.norm() > 0.5),
+    };
+    let method = a
+        .method
+        .method()
+        .context("--method none: nothing to integrate")?;
+    let options = a.integration.options(method)?;
+    let t = Instant::now();
+    let r = integrate_normals(&normals, &mask, &options, progress)?;
+    let secs = t.elapsed().as_secs_f64();
+    let mut channels: Vec<(&str, &[f32])> =
+        vec![("Z", r.depth.data()), ("residual", r.residual.data())];
+    if let Some((wu, wv)) = &r.weights {
+        channels.push(("wu", wu.data()));
+        channels.push(("wv", wv.data()));
+    }
+    let units = match &options.camera {
+        None => "Z: height towards the camera in pixel units (orthographic), larger is nearer"
+            .to_string(),
+        Some(_) => "Z: depth along the optical axis, up to scale, larger is farther".to_string(),
+    };
+    let attrs = [
+        ("photostereo:integration", method.name().to_string()),
+        ("photostereo:units", units),
+    ];
+    let write_one =
+        |path: &Path, f: &dyn Fn(&mut OutputDir, &str) -> photostereo::Result<()>| -> Result<()> {
+            let dir = match path.parent() {
+                Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+                _ => std::path::PathBuf::from("."),
+            };
+            let name = path
+                .file_name()
+                .with_context(|| format!("{}: not a file name", path.display()))?
+                .to_string_lossy()
+                .into_owned();
+            let mut out = OutputDir::create(&dir)?;
+            f(&mut out, &name)?;
+            out.commit()?;
+            Ok(())
+        };
+    write_one(&a.output, &|out, name| {
+        out.stage_exr(name, w, h, &channels, &attrs)
+    })?;
+    if let Some(ply) = &a.ply {
+        let mesh = Mesh::from_depth(&r.depth, &normals, options.camera.as_ref())?;
+        write_one(ply, &|out, name| out.stage_bytes(name, &mesh.to_ply()))?;
+    }
+    let finite: Vec<f64> = r
+        .residual
+        .data()
+        .iter()
+        .filter(|v| v.is_finite())
+        .map(|v| f64::from(*v))
+        .collect();
+    let mean_res = finite.iter().sum::<f64>() / finite.len().max(1) as f64;
+    say!(
+        "{}: {} pixels, {} in {:.3} s{}; mean integration residual {:.3e}",
+        method.name(),
+        mask.count(),
+        if options.camera.is_some() {
+            "perspective"
+        } else {
+            "orthographic"
+        },
+        secs,
+        match (&r.solve, r.iterations) {
+            (Some(s), it) if it > 0 => format!(
+                " ({} reweighting iterations, {} solver)",
+                it,
+                if s.direct { "direct" } else { "cg" }
+            ),
+            (Some(s), _) if s.direct => " (direct solver)".to_string(),
+            (Some(s), _) => format!(" (cg, {} iterations)", s.iterations),
+            _ => String::new(),
+        },
+        mean_res
+    );
+    say!(
+        "  wrote {}{}",
+        a.output.display(),
+        a.ply
+            .as_ref()
+            .map(|p| format!(" and {}", p.display()))
+            .unwrap_or_default()
+    );
     Ok(())
 }
 
@@ -161,7 +314,7 @@ fn print_summary(recon: &Reconstruction, report: &Report, config: &Config, dir: 
         i.width,
         i.height,
         config.solve.method.name(),
-        config.integrator.map_or("none", |m| m.name())
+        config.integration.map_or("none", |o| o.method.name())
     );
     say!(
         "  pixels: {} in mask, {} solved, {} too few samples, {} ill-conditioned, {} dark",

@@ -1,0 +1,454 @@
+//! Normal integration: exactness on fields with known integrals, the survey vase with noise, the
+//! DiLiGenT depth benchmark with its camera, discontinuities, and the `integrate` command.
+
+mod common;
+
+use nalgebra::Vector3;
+use photostereo::camera::Intrinsics;
+use photostereo::grid::{Grid, Mask, NormalMap, ScalarMap};
+use photostereo::input::{read_image, read_mask, read_normal_map};
+use photostereo::integrate::{
+    IntegrationOptions, Integrator, LinearSolver, integrate_gradients, integrate_normals,
+};
+use photostereo::metrics::{depth_errors, scaled_depth_errors};
+use photostereo::progress::Silent;
+use rand::SeedableRng;
+use rand_distr::{Distribution, Normal};
+use std::process::Command;
+
+fn options(method: Integrator) -> IntegrationOptions {
+    IntegrationOptions {
+        method,
+        ..IntegrationOptions::default()
+    }
+}
+
+/// Gradients and normals of the height field z = f(x, y) (x right, y up, pixel units).
+fn field(
+    w: usize,
+    h: usize,
+    f: impl Fn(f64, f64) -> (f64, f64, f64),
+) -> (ScalarMap, ScalarMap, ScalarMap, NormalMap) {
+    let xy = |c: usize, r: usize| {
+        (
+            c as f64 - (w as f64 - 1.0) / 2.0,
+            (h as f64 - 1.0) / 2.0 - r as f64,
+        )
+    };
+    let z = Grid::from_fn(w, h, |c, r| f(xy(c, r).0, xy(c, r).1).0 as f32);
+    let p = Grid::from_fn(w, h, |c, r| f(xy(c, r).0, xy(c, r).1).1 as f32);
+    let q = Grid::from_fn(w, h, |c, r| f(xy(c, r).0, xy(c, r).1).2 as f32);
+    let n = Grid::from_fn(w, h, |c, r| {
+        let (_, zx, zy) = f(xy(c, r).0, xy(c, r).1);
+        Vector3::new(-zx, -zy, 1.0).normalize().cast::<f32>()
+    });
+    (z, p, q, n)
+}
+
+/// Least squares on the mask is exact for quadratics (the trapezoid rule is exact for linear
+/// gradients), on a mask with two parts and a hole, with both solvers; the full-rectangle methods
+/// are not, because they treat the background as flat.
+#[test]
+fn masked_least_squares_is_exact_on_quadratics_and_irregular_masks() {
+    let (w, h) = (120, 90);
+    let quad = |x: f64, y: f64| {
+        (
+            0.01 * x * x - 0.02 * x * y + 0.005 * y * y + 0.3 * x,
+            0.02 * x - 0.02 * y + 0.3,
+            -0.02 * x + 0.01 * y,
+        )
+    };
+    let (z, p, q, _) = field(w, h, quad);
+    let mask: Mask = Grid::from_fn(w, h, |c, r| {
+        let (dx, dy) = (c as f64 - 35.0, r as f64 - 45.0);
+        let disk = dx * dx + dy * dy < 900.0 && dx * dx + dy * dy > 25.0;
+        disk || (c > 75 && c < 115 && r > 10 && r < 80)
+    });
+    for solver in [LinearSolver::Direct, LinearSolver::ConjugateGradient] {
+        let (est, info) = integrate_gradients(&p, &q, &mask, Integrator::MaskedLs, solver).unwrap();
+        let info = info.unwrap();
+        // Per connected part, depth is known up to an offset: compare each part separately.
+        for part in [
+            Grid::from_fn(w, h, |c, r| *mask.at(c, r) && c < 70),
+            Grid::from_fn(w, h, |c, r| *mask.at(c, r) && c > 70),
+        ] {
+            let e = depth_errors(&est, &z, &part).unwrap();
+            assert!(
+                e.rmse < 1e-4,
+                "{solver:?} ({} CG iterations): RMSE {}",
+                info.iterations,
+                e.rmse
+            );
+        }
+    }
+    let (poisson, _) =
+        integrate_gradients(&p, &q, &mask, Integrator::Poisson, LinearSolver::Auto).unwrap();
+    assert!(depth_errors(&poisson, &z, &mask).unwrap().rmse > 0.1);
+}
+
+/// Frankot–Chellappa recovers a periodic surface (up to discretisation) on the full image.
+#[test]
+fn frankot_chellappa_on_a_periodic_surface() {
+    let (w, h) = (128, 96);
+    let (kx, ky) = (
+        2.0 * std::f64::consts::PI * 3.0 / w as f64,
+        2.0 * std::f64::consts::PI * 2.0 / h as f64,
+    );
+    let (z, p, q, _) = field(w, h, |x, y| {
+        (
+            4.0 * (kx * x).sin() * (ky * y).cos(),
+            4.0 * kx * (kx * x).cos() * (ky * y).cos(),
+            -4.0 * ky * (kx * x).sin() * (ky * y).sin(),
+        )
+    });
+    let mask = Grid::new(w, h, true);
+    let (est, _) = integrate_gradients(
+        &p,
+        &q,
+        &mask,
+        Integrator::FrankotChellappa,
+        LinearSolver::Auto,
+    )
+    .unwrap();
+    let e = depth_errors(&est, &z, &mask).unwrap();
+    assert!(e.rmse_over_range < 1e-3, "{e:?}");
+}
+
+/// The survey vase (Quéau, Durou & Aujol 2018): masked least squares reaches RMSE 0.094 on the
+/// exact gradients; with Gaussian noise of 0.5% of the largest gradient (σ = 0.05) the RMSE
+/// varies with the draw (0.092–0.121 over 12 draws, mean 0.105: the noise integrates into
+/// large-scale tilts), so the test averages 8 draws. The systematic part sits at the silhouette,
+/// where the file's gradients are clipped at ±10. The rectangle methods, which assume a flat
+/// background around the mask, are an order of magnitude off: this is why the mask matters.
+#[test]
+fn vase_with_noise() {
+    let path = require_shared!("integration/vase/vase.exr");
+    let exr = |name: &str| -> ScalarMap {
+        // read_image picks one channel; read each by writing nothing: use the exr crate directly.
+        read_channel(&path, name)
+    };
+    let (zg, pv, qv, mv) = (exr("Z"), exr("p"), exr("q"), exr("mask"));
+    let mask = mv.map(|v| *v > 0.5);
+    // The file's p = ∂Z/∂row, q = ∂Z/∂column; ours: p = ∂z/∂x (columns), q = ∂z/∂y (up).
+    let max = pv
+        .data()
+        .iter()
+        .chain(qv.data())
+        .filter(|v| v.is_finite())
+        .fold(0f32, |m, v| m.max(v.abs()));
+    let sigma = 0.005 * max;
+    let noise = Normal::new(0.0f32, sigma).unwrap();
+    let noisy = |seed: u64| {
+        let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(seed);
+        (
+            qv.map(|v| v + noise.sample(&mut rng)),
+            pv.map(|v| -v + noise.sample(&mut rng)),
+        )
+    };
+    let (exact, _) = integrate_gradients(
+        &qv,
+        &pv.map(|v| -v),
+        &mask,
+        Integrator::MaskedLs,
+        LinearSolver::Auto,
+    )
+    .unwrap();
+    let exact = depth_errors(&exact, &zg, &mask).unwrap().rmse;
+    println!("vase, exact gradients: masked-ls RMSE {exact:.4}");
+    assert!(
+        exact <= 0.1,
+        "masked least squares on exact gradients: RMSE {exact}"
+    );
+    let mut rmse = Vec::new();
+    for method in [
+        Integrator::MaskedLs,
+        Integrator::Poisson,
+        Integrator::FrankotChellappa,
+        Integrator::Path,
+    ] {
+        let draws: Vec<f64> = (0..8)
+            .map(|seed| {
+                let (p, q) = noisy(seed);
+                let (z, _) =
+                    integrate_gradients(&p, &q, &mask, method, LinearSolver::Auto).unwrap();
+                depth_errors(&z, &zg, &mask).unwrap().rmse
+            })
+            .collect();
+        let mean = draws.iter().sum::<f64>() / draws.len() as f64;
+        println!(
+            "vase, σ = {sigma:.3}: {} RMSE mean {mean:.4} over 8 draws {draws:.3?}",
+            method.name()
+        );
+        rmse.push(mean);
+    }
+    // Measured mean 0.110 (the 0.1 of the survey's figure is reached on some draws only).
+    assert!(
+        rmse[0] <= 0.115,
+        "masked least squares mean RMSE {}",
+        rmse[0]
+    );
+    assert!(
+        rmse[1] > 10.0 * rmse[0] && rmse[2] > 10.0 * rmse[0],
+        "{rmse:?}"
+    );
+}
+
+fn read_channel(path: &std::path::Path, name: &str) -> ScalarMap {
+    use exr::prelude::*;
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_file(path)
+        .unwrap();
+    let layer = &image.layer_data;
+    let ch = layer
+        .channel_data
+        .list
+        .iter()
+        .find(|c| c.name.to_string() == name)
+        .unwrap();
+    Grid::from_vec(
+        layer.size.width(),
+        layer.size.height(),
+        ch.sample_data.values_as_f32().collect(),
+    )
+    .unwrap()
+}
+
+/// DiLiGenT depth (Cao et al.'s benchmark): perspective integration of the ground-truth normals
+/// with K, scaled by median(gt/estimate), mean absolute error in mm. Published figures of
+/// bilateral normal integration: cat 0.074, bear 0.334.
+#[test]
+fn diligent_depth_with_the_camera() {
+    for (obj, published) in [("cat", 0.074), ("bear", 0.334)] {
+        let dir = require_shared!(format!("integration/{obj}"));
+        let normals = read_normal_map(&dir.join("normal_map.png")).unwrap();
+        let mask = read_mask(&dir.join("mask.png")).unwrap();
+        let gt = read_image(&dir.join("depth_gt.exr")).unwrap();
+        let gt = Grid::from_vec(gt.width, gt.height, gt.data).unwrap();
+        let camera = Intrinsics::from_file(&dir.join("K.txt")).unwrap();
+        let mut made = Vec::new();
+        for method in [Integrator::Bilateral, Integrator::MaskedLs] {
+            let o = IntegrationOptions {
+                method,
+                camera: Some(camera),
+                ..IntegrationOptions::default()
+            };
+            let r = integrate_normals(&normals, &mask, &o, &Silent).unwrap();
+            let e = scaled_depth_errors(&r.depth, &gt, &mask).unwrap();
+            println!(
+                "{obj}: {} MADE {:.4} mm (published bilateral {published})",
+                method.name(),
+                e.mean_abs
+            );
+            made.push(e.mean_abs);
+        }
+        match obj {
+            // Bilateral reproduces the published 0.074 (measured 0.0743); masked least squares,
+            // which smooths over the cat's occlusion edges, is 20× worse.
+            "cat" => {
+                assert!(made[0] <= 0.0745, "cat bilateral {}", made[0]);
+                assert!(made[1] > 10.0 * made[0]);
+            }
+            // Bear is smooth but for its chin: masked least squares (0.133) beats the published
+            // bilateral figure; bilateral measures 0.392 here (it detaches the head at the chin).
+            _ => {
+                assert!(
+                    made[1] <= published,
+                    "bear masked least squares {}",
+                    made[1]
+                );
+                assert!(made[0] <= 0.40, "bear bilateral {}", made[0]);
+            }
+        }
+    }
+}
+
+/// Perspective integration recovers a smooth surface's metric depth up to scale: depth computed
+/// from normals matches the true depth map to 1e-4 relative after the median scale fit.
+#[test]
+fn perspective_integration_recovers_depth_up_to_scale() {
+    let (w, h) = (160, 120);
+    let k = Intrinsics {
+        fx: 400.0,
+        fy: 410.0,
+        cx: 83.0,
+        cy: 57.5,
+    };
+    // A paraboloid bump in front of a tilted plane, in camera coordinates (z towards the viewer).
+    let depth = |u: f64, v: f64| -> f64 {
+        let (a, b) = ((u - k.cx) / k.fx, (v - k.cy) / k.fy);
+        100.0 + 20.0 * a - 10.0 * b - 30.0 * (-(a * a + b * b) * 8.0).exp()
+    };
+    let point = |u: f64, v: f64| Vector3::from(k.unproject(u, v, depth(u, v)));
+    let normals: NormalMap = Grid::from_fn(w, h, |c, r| {
+        let (u, v) = (c as f64, r as f64);
+        let eps = 1e-4;
+        let du = (point(u + eps, v) - point(u - eps, v)) / (2.0 * eps);
+        let dv = (point(u, v + eps) - point(u, v - eps)) / (2.0 * eps);
+        // Outward normal, towards the camera (positive z).
+        let n = dv.cross(&du).normalize();
+        (if n.z < 0.0 { -n } else { n }).cast::<f32>()
+    });
+    let truth = Grid::from_fn(w, h, |c, r| depth(c as f64, r as f64) as f32);
+    let mask = Grid::new(w, h, true);
+    for method in [Integrator::MaskedLs, Integrator::Bilateral] {
+        let o = IntegrationOptions {
+            method,
+            camera: Some(k),
+            solver: LinearSolver::Direct,
+            ..IntegrationOptions::default()
+        };
+        let r = integrate_normals(&normals, &mask, &o, &Silent).unwrap();
+        let e = scaled_depth_errors(&r.depth, &truth, &mask).unwrap();
+        println!(
+            "perspective {}: MADE {:.2e} (depth ≈ 100)",
+            method.name(),
+            e.mean_abs
+        );
+        assert!(e.mean_abs < 1e-2, "{}: {e:?}", method.name());
+    }
+    // Orthographic integration of the same normals is not metric: worse by orders of magnitude.
+    let r = integrate_normals(&normals, &mask, &options(Integrator::MaskedLs), &Silent).unwrap();
+    let ortho = depth_errors(&r.depth.map(|v| -v), &truth, &mask).unwrap();
+    assert!(ortho.mean_abs > 0.1, "{ortho:?}");
+}
+
+/// A ball floating over a ground plane, seen from above: its silhouette is an occlusion boundary
+/// where the depth jumps by 25 px and the ball's normals graze. Depth across a jump is unknown
+/// from normals, so each side is compared after removing its own offset: bilateral integration
+/// keeps both shapes; continuous integrators bend the ball's rim and the ground around it to
+/// bridge the jump.
+#[test]
+fn bilateral_preserves_a_depth_discontinuity() {
+    let (w, h) = (96, 96);
+    let (r, lift) = (28.0, 25.0);
+    let on_ball = |x: f64, y: f64| x * x + y * y < r * r;
+    let (z, _, _, normals) = field(w, h, |x, y| {
+        if on_ball(x, y) {
+            let s = (r * r - x * x - y * y).sqrt().max(1e-3);
+            (lift + s, -x / s, -y / s)
+        } else {
+            (0.0, 0.0, 0.0)
+        }
+    });
+    let mask = Grid::new(w, h, true);
+    let ball: Mask = Grid::from_fn(w, h, |c, rr| {
+        let (x, y) = (c as f64 - 47.5, 47.5 - rr as f64);
+        on_ball(x, y)
+    });
+    let ground = ball.map(|b| !b);
+    let mut errs = Vec::new();
+    for method in [
+        Integrator::Bilateral,
+        Integrator::MaskedLs,
+        Integrator::Poisson,
+    ] {
+        let res = integrate_normals(&normals, &mask, &options(method), &Silent).unwrap();
+        let (eb, eg) = (
+            depth_errors(&res.depth, &z, &ball).unwrap().rmse,
+            depth_errors(&res.depth, &z, &ground).unwrap().rmse,
+        );
+        println!(
+            "floating ball: {} RMSE ball {eb:.3}, ground {eg:.3}",
+            method.name()
+        );
+        errs.push((eb, eg));
+        if let Some((wu, _)) = &res.weights {
+            // At the ball's left silhouette (columns 17–22 of the middle row) the weights mark
+            // the jump, against 0.5 on the flat ground far from it. (The grazing rim pixel itself
+            // is ambiguous: it may join either side.)
+            let near = (17..23).map(|c| *wu.at(c, 48)).fold(1f32, f32::min);
+            assert!(
+                near < 0.25 && (wu.at(3, 48) - 0.5).abs() < 0.01,
+                "weights {near}, {}",
+                wu.at(3, 48)
+            );
+        }
+    }
+    // Measured: bilateral ball 0.27 (its grazing rim pixels may join the ground), ground 0.007;
+    // continuous methods ball 0.44, ground 0.31 (bent up towards the ball).
+    let (ball_b, ground_b) = errs[0];
+    assert!(ground_b < 0.05 && ball_b < 0.35, "bilateral {errs:?}");
+    for (ball, ground) in &errs[1..] {
+        assert!(*ground > 5.0 * ground_b && *ball > ball_b, "{errs:?}");
+    }
+}
+
+/// `photostereo integrate` end to end on an encoded PNG normal map with a camera, writing depth
+/// (Z, residual) and a PLY mesh that parses.
+#[test]
+fn integrate_command_writes_depth_and_mesh() {
+    let dir = require_shared!("integration/cat");
+    let tmp = tempfile::tempdir().unwrap();
+    let (depth, ply) = (
+        tmp.path().join("d/depth.exr"),
+        tmp.path().join("m/mesh.ply"),
+    );
+    let o = Command::new(common::bin())
+        .args(["integrate", "--method", "bilateral", "-q", "--normals"])
+        .arg(dir.join("normal_map.png"))
+        .arg("--mask")
+        .arg(dir.join("mask.png"))
+        .arg("--camera")
+        .arg(dir.join("K.txt"))
+        .arg("-o")
+        .arg(&depth)
+        .arg("--ply")
+        .arg(&ply)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let e = Command::new(common::bin())
+        .args(["eval", "--align", "median-scale", "--depth"])
+        .arg(&depth)
+        .arg("--depth-gt")
+        .arg(dir.join("depth_gt.exr"))
+        .arg("--mask")
+        .arg(dir.join("mask.png"))
+        .output()
+        .unwrap();
+    let v: serde_json::Value = serde_json::from_slice(&e.stdout).unwrap();
+    assert!(v["mean_abs"].as_f64().unwrap() < 0.08, "{v}");
+    let bytes = std::fs::read(&ply).unwrap();
+    let header = String::from_utf8_lossy(
+        &bytes[..bytes
+            .windows(11)
+            .position(|w| w == b"end_header\n")
+            .unwrap()],
+    )
+    .into_owned();
+    let count = |what: &str| -> usize {
+        header
+            .lines()
+            .find(|l| l.starts_with(&format!("element {what}")))
+            .unwrap()
+            .split(' ')
+            .nth(2)
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    let mask = read_mask(&dir.join("mask.png")).unwrap();
+    assert_eq!(count("vertex"), mask.count());
+    assert!(count("face") > mask.count() * 3 / 2);
+    // A Python mesh library reads it where one is installed.
+    let probe = Command::new("python3")
+        .args(["-c", "import trimesh"])
+        .output();
+    if probe.is_ok_and(|o| o.status.success()) {
+        let r = Command::new("python3")
+            .args(["-c", "import sys, trimesh; m = trimesh.load(sys.argv[1]); print(len(m.vertices), len(m.faces))"])
+            .arg(&ply)
+            .output()
+            .unwrap();
+        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+        let out = String::from_utf8_lossy(&r.stdout);
+        assert!(out.starts_with(&mask.count().to_string()), "{out}");
+    } else {
+        eprintln!("SKIPPED the trimesh check: python3 with trimesh is not available");
+    }
+}
