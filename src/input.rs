@@ -329,6 +329,47 @@ fn decode_exr(path: &Path) -> Result<RawDecoded> {
     })
 }
 
+/// Reads the channel `name` of an EXR file (float or half) as a map — for multi-channel data
+/// files such as depth plus gradients.
+///
+/// # Errors
+/// [`Error::Io`] or [`Error::Decode`] naming the file; [`Error::UnsupportedImage`] listing the
+/// channels when `name` is not one of them.
+pub fn read_exr_channel(path: &Path, name: &str) -> Result<crate::grid::ScalarMap> {
+    use exr::prelude::*;
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_file(path)
+        .map_err(|e| match e {
+            exr::error::Error::Io(io) => crate::Error::io(path, io),
+            other => crate::Error::Decode {
+                path: path.to_path_buf(),
+                reason: other.to_string(),
+            },
+        })?;
+    let layer = &image.layer_data;
+    let list = &layer.channel_data.list;
+    let Some(ch) = list.iter().find(|c| c.name.to_string() == name) else {
+        let names: Vec<String> = list.iter().map(|c| c.name.to_string()).collect();
+        return Err(crate::Error::UnsupportedImage {
+            path: path.to_path_buf(),
+            reason: format!("no channel {name:?}; channels are {names:?}"),
+        });
+    };
+    if ch.sampling != Vec2(1, 1) {
+        return Err(crate::Error::UnsupportedImage {
+            path: path.to_path_buf(),
+            reason: format!("channel {name} is subsampled"),
+        });
+    }
+    let (w, h) = (layer.size.width(), layer.size.height());
+    Grid::from_vec(w, h, ch.sample_data.values_as_f32().take(w * h).collect())
+}
+
 /// Decodes an image file (EXR, PNG or TIFF) to interleaved floats: integers scaled to [0, 1],
 /// no transfer function applied, alpha dropped.
 ///

@@ -92,6 +92,40 @@ pub fn angular_errors(est: &NormalMap, gt: &NormalMap, mask: &Mask) -> Result<An
     })
 }
 
+/// Mean and median of a map's finite values.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct MapSummary {
+    /// Mean.
+    pub mean: f64,
+    /// Median (upper middle value for an even count).
+    pub median: f64,
+    /// Finite values counted.
+    pub pixels: usize,
+}
+
+/// Mean and median of the finite values of `map` (NaN for both when there are none).
+pub fn summarize(map: &ScalarMap) -> MapSummary {
+    let mut v: Vec<f64> = map
+        .data()
+        .iter()
+        .filter(|v| v.is_finite())
+        .map(|v| f64::from(*v))
+        .collect();
+    if v.is_empty() {
+        return MapSummary {
+            mean: f64::NAN,
+            median: f64::NAN,
+            pixels: 0,
+        };
+    }
+    v.sort_by(f64::total_cmp);
+    MapSummary {
+        mean: v.iter().sum::<f64>() / v.len() as f64,
+        median: v[v.len() / 2],
+        pixels: v.len(),
+    }
+}
+
 /// Percentile `f` ∈ [0, 1] of sorted values (nearest rank).
 fn percentile(sorted: &[f64], f: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * f).round() as usize]

@@ -489,21 +489,10 @@ pub fn write_outputs(
         out.stage_png8("albedo.png", w, h, 3, &rgb)?;
     }
     out.stage_png8("depth.png", w, h, 1, &depth_preview(depth))?;
-    let mut res: Vec<f64> = recon
-        .residual
-        .data()
-        .iter()
-        .filter(|v| v.is_finite())
-        .map(|v| f64::from(*v))
-        .collect();
-    res.sort_by(f64::total_cmp);
-    let residual = if res.is_empty() {
-        ResidualSummary::default()
-    } else {
-        ResidualSummary {
-            mean: res.iter().sum::<f64>() / res.len() as f64,
-            median: res[res.len() / 2],
-        }
+    let res = crate::metrics::summarize(&recon.residual);
+    let residual = ResidualSummary {
+        mean: res.mean,
+        median: res.median,
     };
     recon.timings.write = t.elapsed().as_secs_f64();
     let mut outputs: Vec<String> = OUTPUT_FILES.iter().map(|s| s.to_string()).collect();
@@ -515,26 +504,14 @@ pub fn write_outputs(
         .as_ref()
         .zip(config.integration.as_ref())
         .map(|(i, o)| {
-            let mut r: Vec<f64> = i
-                .residual
-                .data()
-                .iter()
-                .filter(|v| v.is_finite())
-                .map(|v| f64::from(*v))
-                .collect();
-            r.sort_by(f64::total_cmp);
-            let (mean, median) = if r.is_empty() {
-                (f64::NAN, f64::NAN)
-            } else {
-                (r.iter().sum::<f64>() / r.len() as f64, r[r.len() / 2])
-            };
+            let r = crate::metrics::summarize(&i.residual);
             IntegrationSummary {
                 method: o.method.name(),
                 perspective: o.camera.is_some(),
                 solve: i.solve,
                 iterations: i.iterations,
-                mean_residual: mean,
-                median_residual: median,
+                mean_residual: r.mean,
+                median_residual: r.median,
             }
         });
     let report = Report {

@@ -123,10 +123,8 @@ fn frankot_chellappa_on_a_periodic_surface() {
 #[test]
 fn vase_with_noise() {
     let path = require_shared!("integration/vase/vase.exr");
-    let exr = |name: &str| -> ScalarMap {
-        // read_image picks one channel; read each by writing nothing: use the exr crate directly.
-        read_channel(&path, name)
-    };
+    let exr =
+        |name: &str| -> ScalarMap { photostereo::input::read_exr_channel(&path, name).unwrap() };
     let (zg, pv, qv, mv) = (exr("Z"), exr("p"), exr("q"), exr("mask"));
     let mask = mv.map(|v| *v > 0.5);
     // The file's p = ∂Z/∂row, q = ∂Z/∂column; ours: p = ∂z/∂x (columns), q = ∂z/∂y (up).
@@ -191,31 +189,6 @@ fn vase_with_noise() {
         rmse[1] > 10.0 * rmse[0] && rmse[2] > 10.0 * rmse[0],
         "{rmse:?}"
     );
-}
-
-fn read_channel(path: &std::path::Path, name: &str) -> ScalarMap {
-    use exr::prelude::*;
-    let image = read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .first_valid_layer()
-        .all_attributes()
-        .from_file(path)
-        .unwrap();
-    let layer = &image.layer_data;
-    let ch = layer
-        .channel_data
-        .list
-        .iter()
-        .find(|c| c.name.to_string() == name)
-        .unwrap();
-    Grid::from_vec(
-        layer.size.width(),
-        layer.size.height(),
-        ch.sample_data.values_as_f32().collect(),
-    )
-    .unwrap()
 }
 
 /// DiLiGenT depth (Cao et al.'s benchmark): perspective integration of the ground-truth normals

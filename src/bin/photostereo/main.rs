@@ -264,14 +264,7 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
         let mesh = Mesh::from_depth(&r.depth, &normals, options.camera.as_ref())?;
         write_one(ply, &|out, name| out.stage_bytes(name, &mesh.to_ply()))?;
     }
-    let finite: Vec<f64> = r
-        .residual
-        .data()
-        .iter()
-        .filter(|v| v.is_finite())
-        .map(|v| f64::from(*v))
-        .collect();
-    let mean_res = finite.iter().sum::<f64>() / finite.len().max(1) as f64;
+    let mean_res = photostereo::metrics::summarize(&r.residual).mean;
     say!(
         "{}: {} pixels, {} in {:.3} s{}; mean integration residual {:.3e}",
         method.name(),
