@@ -320,10 +320,19 @@ fn in_cast_shadow(
 /// shadow masks as ground truth.
 ///
 /// # Errors
-/// [`Error::InvalidParameter`] for invalid options (see [`RenderOptions::validate`]) or an
-/// unphysical material ([`crate::reflectance::Material::validate`]).
+/// [`Error::InvalidParameter`] for invalid options (see [`RenderOptions::validate`]), an
+/// unphysical material ([`crate::reflectance::Material::validate`]) or an empty image.
 pub fn render(scene: &Scene, lights: &Lights, options: &RenderOptions) -> Result<Rendering> {
     options.validate()?;
+    if scene.width == 0 || scene.height == 0 {
+        return Err(Error::param(
+            "size",
+            format!(
+                "{}x{}: the image must have pixels",
+                scene.width, scene.height
+            ),
+        ));
+    }
     for o in &scene.objects {
         o.material.validate()?;
     }

@@ -203,12 +203,25 @@ impl Rule {
 /// Solves one pixel from its samples `values[k]` under `lights` (values divided by intensity;
 /// NaN for missing samples; `saturated[k]` marks clipped ones). This is the plain, unblocked
 /// form of [`solve`], which gives the same result.
+///
+/// # Errors
+/// [`Error::LightsMismatch`] when `values`, `saturated` and `lights` differ in length.
 pub fn solve_pixel(
     values: &[f32],
     saturated: &[bool],
     lights: &Lights,
     options: &SolveOptions,
-) -> PixelSolution {
+) -> Result<PixelSolution> {
+    if values.len() != lights.len() || saturated.len() != lights.len() {
+        return Err(Error::LightsMismatch {
+            reason: format!(
+                "{} samples and {} saturation flags for {} lights",
+                values.len(),
+                saturated.len(),
+                lights.len()
+            ),
+        });
+    }
     let rule = Rule::new(options);
     let max = values
         .iter()
@@ -247,13 +260,13 @@ pub fn solve_pixel(
     } else {
         f64::NAN
     };
-    PixelSolution {
+    Ok(PixelSolution {
         g,
         residual,
         samples: n,
         condition,
         status,
-    }
+    })
 }
 
 /// Decides a pixel's outcome: too few samples, ill-conditioned (by the condition number of its
@@ -839,7 +852,7 @@ mod tests {
                 }
                 let vals: Vec<f32> = images.iter().map(|im| im[p]).collect();
                 let sats: Vec<bool> = sat.iter().map(|s| s[p]).collect();
-                let r = solve_pixel(&vals, &sats, &lights, &opts);
+                let r = solve_pixel(&vals, &sats, &lights, &opts).unwrap();
                 assert_eq!(sol.status.data()[p], r.status, "pixel {p}");
                 assert_eq!(sol.samples.data()[p] as usize, r.samples);
                 if r.status == PixelStatus::Solved {
@@ -858,7 +871,7 @@ mod tests {
         let lights = Lights::ring(6, 30.0, 0.0).unwrap();
         // Only two lit samples.
         let vals = [0.5, 0.4, 0.0, 0.0, 0.0, 0.0];
-        let r = solve_pixel(&vals, &[false; 6], &lights, &SolveOptions::default());
+        let r = solve_pixel(&vals, &[false; 6], &lights, &SolveOptions::default()).unwrap();
         assert_eq!(r.status, PixelStatus::TooFewSamples);
         assert!(r.g.x.is_nan());
         // Coplanar lights (all in the x–z plane).
@@ -874,7 +887,10 @@ mod tests {
             &[false; 4],
             &flat,
             &SolveOptions::default(),
-        );
+        )
+        .unwrap();
         assert_eq!(r.status, PixelStatus::IllConditioned);
+        // Mismatched lengths are an error, not a panic.
+        assert!(solve_pixel(&[0.5; 3], &[false; 4], &flat, &SolveOptions::default()).is_err());
     }
 }
