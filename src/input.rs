@@ -261,9 +261,13 @@ fn decode_png(path: &Path) -> Result<RawDecoded> {
     })
 }
 
-fn decode_exr(path: &Path) -> Result<RawDecoded> {
+/// The first valid layer of an EXR file with all its channels.
+fn read_exr_layer(
+    path: &Path,
+) -> Result<exr::image::Image<exr::image::Layer<exr::image::AnyChannels<exr::image::FlatSamples>>>>
+{
     use exr::prelude::*;
-    let image = read()
+    read()
         .no_deep_data()
         .largest_resolution_level()
         .all_channels()
@@ -276,7 +280,12 @@ fn decode_exr(path: &Path) -> Result<RawDecoded> {
                 path: path.to_path_buf(),
                 reason: other.to_string(),
             },
-        })?;
+        })
+}
+
+fn decode_exr(path: &Path) -> Result<RawDecoded> {
+    use exr::prelude::*;
+    let image = read_exr_layer(path)?;
     let layer = &image.layer_data;
     let (width, height) = (layer.size.width(), layer.size.height());
     let list = &layer.channel_data.list;
@@ -337,20 +346,7 @@ fn decode_exr(path: &Path) -> Result<RawDecoded> {
 /// channels when `name` is not one of them.
 pub fn read_exr_channel(path: &Path, name: &str) -> Result<crate::grid::ScalarMap> {
     use exr::prelude::*;
-    let image = read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .first_valid_layer()
-        .all_attributes()
-        .from_file(path)
-        .map_err(|e| match e {
-            exr::error::Error::Io(io) => crate::Error::io(path, io),
-            other => crate::Error::Decode {
-                path: path.to_path_buf(),
-                reason: other.to_string(),
-            },
-        })?;
+    let image = read_exr_layer(path)?;
     let layer = &image.layer_data;
     let list = &layer.channel_data.list;
     let Some(ch) = list.iter().find(|c| c.name.to_string() == name) else {
