@@ -56,13 +56,7 @@ pub fn angular_error_map(est: &NormalMap, gt: &NormalMap, mask: &Mask) -> Result
 /// # Errors
 /// [`Error::DimensionMismatch`] when sizes differ; [`Error::Mask`] when no pixel can be compared.
 pub fn angular_errors(est: &NormalMap, gt: &NormalMap, mask: &Mask) -> Result<AngularErrorStats> {
-    let map = angular_error_map(est, gt, mask)?;
-    let mut e: Vec<f64> = map
-        .data()
-        .iter()
-        .filter(|v| v.is_finite())
-        .map(|v| f64::from(*v))
-        .collect();
+    let e = finite_sorted(&angular_error_map(est, gt, mask)?);
     let missing = (0..mask.len())
         .filter(|&i| {
             mask.data()[i]
@@ -76,7 +70,6 @@ pub fn angular_errors(est: &NormalMap, gt: &NormalMap, mask: &Mask) -> Result<An
             reason: "no pixel has both an estimated and a true normal inside the mask".into(),
         });
     }
-    e.sort_by(f64::total_cmp);
     let n = e.len() as f64;
     let frac = |t: f64| e.iter().filter(|v| **v < t).count() as f64 / n;
     Ok(AngularErrorStats {
@@ -103,14 +96,21 @@ pub struct MapSummary {
     pub pixels: usize,
 }
 
-/// Mean and median of the finite values of `map` (NaN for both when there are none).
-pub fn summarize(map: &ScalarMap) -> MapSummary {
+/// The finite values of `map`, ascending.
+pub(crate) fn finite_sorted(map: &ScalarMap) -> Vec<f64> {
     let mut v: Vec<f64> = map
         .data()
         .iter()
         .filter(|v| v.is_finite())
         .map(|v| f64::from(*v))
         .collect();
+    v.sort_by(f64::total_cmp);
+    v
+}
+
+/// Mean and median of the finite values of `map` (NaN for both when there are none).
+pub fn summarize(map: &ScalarMap) -> MapSummary {
+    let v = finite_sorted(map);
     if v.is_empty() {
         return MapSummary {
             mean: f64::NAN,
@@ -118,7 +118,6 @@ pub fn summarize(map: &ScalarMap) -> MapSummary {
             pixels: 0,
         };
     }
-    v.sort_by(f64::total_cmp);
     MapSummary {
         mean: v.iter().sum::<f64>() / v.len() as f64,
         median: v[v.len() / 2],

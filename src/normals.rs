@@ -130,16 +130,10 @@ pub fn integrability(p: &ScalarMap, q: &ScalarMap) -> Integrability {
         let dq_dx = diff(qd, i, left, right);
         dp_dy - dq_dx
     });
-    let mut abs: Vec<f64> = curl
-        .data()
-        .iter()
-        .filter(|c| c.is_finite())
-        .map(|c| f64::from(c.abs()))
-        .collect();
+    let abs = crate::metrics::finite_sorted(&curl.map(|c| c.abs()));
     let summary = if abs.is_empty() {
         IntegrabilitySummary::default()
     } else {
-        abs.sort_by(f64::total_cmp);
         let pct = |f: f64| abs[((abs.len() - 1) as f64 * f).round() as usize];
         IntegrabilitySummary {
             mean_abs_curl: abs.iter().sum::<f64>() / abs.len() as f64,
