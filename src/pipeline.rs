@@ -91,6 +91,10 @@ pub struct Reconstruction {
     pub counts: StatusCounts,
     /// Pixels with albedo above 1 (any channel).
     pub albedo_above_one: usize,
+    /// Pixels fitted by a robust estimator (any channel).
+    pub robust: Mask,
+    /// How much model the data needed: robust pixels, intensity corrections, noise.
+    pub model: ModelSummary,
     /// Stage timings.
     pub timings: Timings,
     /// Things the user should know (saturation, flagged pixels, …).
@@ -103,6 +107,27 @@ impl Reconstruction {
         self.integration.as_ref().map(|i| &i.depth)
     }
 }
+
+/// How much model the data needed, for the report.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct ModelSummary {
+    /// The estimator.
+    pub method: &'static str,
+    /// Solved pixels fitted by a robust estimator (for `auto`: those whose residuals failed
+    /// the Lambertian fit test).
+    pub robust_pixels: usize,
+    /// `robust_pixels` as a fraction of the solved pixels.
+    pub robust_fraction: f64,
+    /// Per channel, the per-image intensity gains applied (all 1 unless recalibrated).
+    pub gains: Vec<Vec<f32>>,
+    /// Whether the intensity gains were estimated from the data.
+    pub recalibrated: bool,
+    /// Per channel, the per-image noise σ the fit test assumed (`auto` only).
+    pub noise: Vec<Vec<f32>>,
+}
+
+/// Gains further than this from 1 are reported as a likely error in the intensity file.
+pub const GAIN_WARNING: f32 = 0.1;
 
 /// Runs solve, normals, integrability and (optionally) integration on a capture.
 ///
@@ -167,6 +192,18 @@ pub fn reconstruct(
     };
     let integ = integrability(&p, &q);
     let counts = StatusCounts::from_grid(&status);
+    let robust = Grid::from_fn(w, h, |x, y| {
+        *solved.at(x, y) && solutions.iter().any(|s| *s.robust.at(x, y))
+    });
+    let recalibrated = config.solve.recalibrates(capture.stack.count());
+    let model = ModelSummary {
+        method: config.solve.method.name(),
+        robust_pixels: robust.count(),
+        robust_fraction: robust.count() as f64 / solved.count().max(1) as f64,
+        gains: solutions.iter().map(|s| s.gains.gains.clone()).collect(),
+        recalibrated,
+        noise: solutions.iter().map(|s| s.noise.clone()).collect(),
+    };
     let albedo_above_one = (0..w * h)
         .filter(|&i| albedo.iter().any(|a| a.data()[i] > 1.0))
         .count();
@@ -217,6 +254,37 @@ pub fn reconstruct(
             counts.masked, counts.too_few_samples, counts.ill_conditioned, counts.dark
         ));
     }
+    if recalibrated {
+        let mut off: Vec<(usize, f32)> = Vec::new();
+        for s in &solutions {
+            for k in s.gains.outliers(GAIN_WARNING) {
+                let g = s.gains.gains[k];
+                match off.iter_mut().find(|(i, _)| *i == k) {
+                    Some(e) if (g - 1.0).abs() > (e.1 - 1.0).abs() => e.1 = g,
+                    Some(_) => {}
+                    None => off.push((k, g)),
+                }
+            }
+        }
+        off.sort_by_key(|e| e.0);
+        if !off.is_empty() {
+            let worst = off.iter().map(|e| e.1).fold(1.0f32, |a, g| {
+                if (g - 1.0).abs() > (a - 1.0).abs() {
+                    g
+                } else {
+                    a
+                }
+            });
+            let list: Vec<String> = off.iter().take(12).map(|e| (e.0 + 1).to_string()).collect();
+            warnings.push(format!(
+                "the images' brightness disagrees with the light intensities for {} image(s) (numbered from 1: {}{}); corrected from the data by factors up to {:.2} — check the intensity file (--no-recalibrate keeps it as given)",
+                off.len(),
+                list.join(", "),
+                if off.len() > 12 { ", …" } else { "" },
+                worst
+            ));
+        }
+    }
     if config.albedo_normalised && albedo_above_one > 0 {
         warnings.push(format!(
             "{albedo_above_one} pixels have albedo > 1 although intensities were declared normalised: check the light intensities or exposure"
@@ -235,6 +303,8 @@ pub fn reconstruct(
         integration,
         counts,
         albedo_above_one,
+        robust,
+        model,
         timings: Timings {
             load: 0.0,
             solve: solve_s,
@@ -334,6 +404,8 @@ pub struct Report {
     pub config: Config,
     /// Pixel outcome counts.
     pub pixels: StatusCounts,
+    /// How much model the data needed (robust pixels, intensity gains, noise).
+    pub model: ModelSummary,
     /// Pixels with albedo > 1.
     pub albedo_above_one: usize,
     /// Model residual over solved pixels.
@@ -465,6 +537,17 @@ pub fn write_outputs(
         .collect();
     let in_mask = recon.status.map(|s| *s != PixelStatus::Outside);
     let condition = nan_outside(&recon.condition, &in_mask);
+    let robust: Vec<f32> = (0..w * h)
+        .map(|i| {
+            if !in_mask.data()[i] {
+                f32::NAN
+            } else if recon.robust.data()[i] {
+                1.0
+            } else {
+                0.0
+            }
+        })
+        .collect();
     out.stage_exr(
         "residual.exr",
         w,
@@ -473,6 +556,7 @@ pub fn write_outputs(
             ("residual", recon.residual.data()),
             ("samples", &samples),
             ("condition", condition.data()),
+            ("robust", &robust),
         ],
         &attrs,
     )?;
@@ -519,6 +603,7 @@ pub fn write_outputs(
         inputs: InputSummary::of(capture),
         config: *config,
         pixels: recon.counts,
+        model: recon.model.clone(),
         albedo_above_one: recon.albedo_above_one,
         residual,
         integrability: recon.integrability,

@@ -695,6 +695,40 @@ impl Scene {
         }
     }
 
+    /// A sphere of radius 0.28·`size` rising from a ground plane beside a pyramid, all of
+    /// `material` and albedo 0.7: attached shadows, cast shadows (the sphere's on the ground, the
+    /// pyramid's on the sphere) and highlights in one view — the scene of the estimator
+    /// comparison against specularity.
+    pub fn sphere_on_ground(size: usize, material: Material) -> Self {
+        let s = size as f64;
+        let albedo = Albedo::Constant(0.7);
+        let obj = |shape| Object::new(shape, albedo).with_material(material);
+        Scene {
+            width: size,
+            height: size,
+            objects: vec![
+                obj(Primitive::Plane {
+                    z0: 0.0,
+                    slope_x: 0.0,
+                    slope_y: 0.0,
+                }),
+                obj(Primitive::Sphere {
+                    cx: -0.08 * s,
+                    cy: -0.08 * s,
+                    radius: 0.28 * s,
+                    base: 0.0,
+                }),
+                obj(Primitive::Pyramid {
+                    cx: 0.3 * s,
+                    cy: 0.3 * s,
+                    half: 0.12 * s,
+                    height: 0.3 * s,
+                    base: 0.0,
+                }),
+            ],
+        }
+    }
+
     /// The built-in default scene: a textured hemisphere, a Gaussian bump, a pyramid and a
     /// shallow dome on a checkered ground plane (320×240), all Lambertian. Objects cast shadows
     /// on the ground.

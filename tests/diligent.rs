@@ -57,10 +57,13 @@ fn diligent_bear_least_squares_baseline() {
     assert!((e - 8.39).abs() <= 0.05, "bear mean angular error {e}°");
 }
 
-/// The default estimator (threshold rejection of shadows and saturation) beats the baseline on
-/// both objects with one setting.
+/// The default estimator (`auto`) with one setting for both objects: mean angular error at most
+/// 5.5° (the least-squares baseline is 8.41° / 8.39°), every pixel solved, and on bear the
+/// intensity recalibration finds the images whose listed intensities are wrong (images 1–19 are
+/// 12–31% brighter than `light_intensities.txt` says; the literature drops bear's first 20
+/// images for this reason) while leaving the other 77 within 10%.
 #[test]
-fn diligent_default_method_beats_the_baseline() {
+fn diligent_default_method_meets_the_robust_target() {
     use photostereo::dataset::Capture;
     use photostereo::input::{LoadOptions, read_normal_map};
     use photostereo::pipeline::{Config, reconstruct};
@@ -76,11 +79,69 @@ fn diligent_default_method_beats_the_baseline() {
         let gt = read_normal_map(&dir.join("normal_gt.exr")).unwrap();
         let s = photostereo::metrics::angular_errors(&recon.normals, &gt, &capture.mask).unwrap();
         println!(
-            "{obj}: default method {:.3}° ({} px, {} unsolved)",
-            s.mean_deg, s.pixels, s.missing
+            "{obj}: auto {:.3}° mean, {:.3}° median, {:.1}% robust ({} px, {} unsolved)",
+            s.mean_deg,
+            s.median_deg,
+            100.0 * recon.model.robust_fraction,
+            s.pixels,
+            s.missing
         );
-        assert!(s.mean_deg < 7.5, "{obj}: {}°", s.mean_deg);
-        assert!(s.missing * 1000 < s.pixels, "{obj}: {} unsolved", s.missing);
+        // Measured: cat 5.31°, bear 4.27°.
+        assert!(s.mean_deg <= 5.5, "{obj}: {}°", s.mean_deg);
+        assert_eq!(s.missing, 0, "{obj}: unsolved pixels");
+        let gains = &recon.model.gains[0];
+        let off: Vec<usize> = (0..gains.len())
+            .filter(|&k| (gains[k] - 1.0).abs() > 0.1)
+            .collect();
+        println!("{obj}: images with gains off by > 10%: {off:?}");
+        if obj == "bear" {
+            // Measured: 18 of the 19 beyond 10% (image 17 is 12% too bright in the data and
+            // gets 0.91), all 19 below 0.95, none of the other 77 beyond 10%.
+            assert!(off.iter().all(|&k| k < 19) && off.len() >= 17, "{gains:?}");
+            assert!(gains[..19].iter().all(|g| *g < 0.95), "{gains:?}");
+        } else {
+            assert!(off.is_empty(), "{gains:?}");
+        }
+    }
+}
+
+/// Every estimator beats the least-squares baseline on both objects, and the rejecting ones
+/// beat it by at least a degree.
+#[test]
+fn diligent_every_estimator_beats_the_baseline() {
+    use photostereo::dataset::Capture;
+    use photostereo::input::{LoadOptions, read_normal_map};
+    use photostereo::pipeline::{Config, reconstruct};
+    use photostereo::progress::Silent;
+    use photostereo::solve::{Method, SolveOptions};
+    for obj in ["cat", "bear"] {
+        let dir = require_shared!(format!("diligent/{obj}PNG"));
+        let capture = Capture::from_diligent(&dir, &LoadOptions::default(), &Silent).unwrap();
+        let gt = read_normal_map(&dir.join("normal_gt.exr")).unwrap();
+        for method in [
+            Method::Threshold,
+            Method::Trimmed,
+            Method::Huber,
+            Method::Tukey,
+            Method::L1,
+            Method::Specular,
+        ] {
+            let config = Config {
+                solve: SolveOptions::with_method(method),
+                integration: None,
+                ..Config::default()
+            };
+            let recon = reconstruct(&capture, &config, &Silent).unwrap();
+            let s =
+                photostereo::metrics::angular_errors(&recon.normals, &gt, &capture.mask).unwrap();
+            println!("{obj} {}: {:.3}°", method.name(), s.mean_deg);
+            assert!(
+                s.mean_deg < 8.39 - 0.7,
+                "{obj} {}: {}°",
+                method.name(),
+                s.mean_deg
+            );
+        }
     }
 }
 

@@ -62,13 +62,15 @@ check(list(albedo) == ["Y"], f"albedo.exr channels {list(albedo)}")
 check((np.isfinite(albedo["Y"]) == valid).all(), "albedo NaN mask differs")
 
 res, _ = channels(f"{out}/residual.exr")
-check(sorted(res) == ["condition", "residual", "samples"], f"residual.exr channels {sorted(res)}")
+check(sorted(res) == ["condition", "residual", "robust", "samples"], f"residual.exr channels {sorted(res)}")
 check((res["samples"][valid] >= 3).all(), "solved pixels with fewer than 3 samples")
+check(np.isin(res["robust"][valid], [0.0, 1.0]).all(), "robust flag is not 0/1 on solved pixels")
 
 curl, _ = channels(f"{out}/curl.exr")
 check(list(curl) == ["curl"], f"curl.exr channels {list(curl)}")
 
 report = json.load(open(f"{out}/report.json"))
 check(report["pixels"]["solved"] == int(valid.sum()), "report pixel count differs from the NaN mask")
+check(report["model"]["robust_pixels"] == int((res["robust"][valid] == 1.0).sum()), "report robust count differs from the robust channel")
 summary["pixels"] = int(valid.sum())
 print(json.dumps(summary))

@@ -6,6 +6,7 @@ use photostereo::camera::Intrinsics;
 use photostereo::input::{ColorMode, LoadOptions, Transfer};
 use photostereo::integrate::{BilateralParams, IntegrationOptions, Integrator, LinearSolver};
 use photostereo::pipeline::Config;
+use photostereo::robust::{DEFAULT_SPECULAR_CONE_DEG, DEFAULT_TRIM_HIGH, DEFAULT_TRIM_LOW};
 use photostereo::solve::{DEFAULT_MAX_CONDITION, DEFAULT_SHADOW_THRESHOLD, Method, SolveOptions};
 use std::path::PathBuf;
 
@@ -78,10 +79,13 @@ pub struct RunArgs {
 /// Solver options shared by the main command and the demo.
 #[derive(Debug, Args, Clone)]
 pub struct MethodArgs {
-    /// Estimator: `threshold` (least squares over samples that pass shadow and saturation
-    /// rejection), `weighted` (the same, rows weighted by intensity: diag(I)·I = diag(I)·L·g),
-    /// or `ls` (plain least squares over all samples, the reference).
-    #[arg(long, value_enum, default_value_t = MethodArg::Threshold)]
+    /// Estimator. `auto` (default): least squares with shadow rejection where Lambert's law
+    /// fits (χ² test against the image noise), specular rejection where it does not, light
+    /// intensities corrected from the data. Linear: `ls` (all samples, the reference),
+    /// `threshold` (shadow and saturation rejection), `weighted` (diag(I) rows). Robust:
+    /// `trim` (rank trimming), `huber`, `tukey`, `l1` (IRLS), `specular` (half-vector
+    /// rejection + Tukey).
+    #[arg(long, value_enum, default_value_t = MethodArg::Auto)]
     pub method: MethodArg,
     /// Normal integration: `masked-ls` (least squares on the mask only), `poisson` (DCT, fast,
     /// flat background), `path` (mask-aware paths), `fc` (Frankot–Chellappa FFT, periodic),
@@ -94,9 +98,27 @@ pub struct MethodArgs {
     /// Also write the depth map as a triangle mesh, `mesh.ply`.
     #[arg(long)]
     pub mesh: bool,
-    /// threshold/weighted: drop samples at or below this fraction of the pixel's brightest one.
+    /// All but `ls`: drop samples at or below this fraction of the pixel's brightest one.
     #[arg(long, default_value_t = DEFAULT_SHADOW_THRESHOLD, value_name = "FRACTION")]
     pub shadow_threshold: f32,
+    /// trim: fractions of each pixel's samples dropped from the dark and the bright end.
+    #[arg(long, num_args = 2, value_names = ["LOW", "HIGH"],
+          default_values_t = [DEFAULT_TRIM_LOW, DEFAULT_TRIM_HIGH])]
+    pub trim: Vec<f32>,
+    /// specular/auto: half-angle (degrees) of the cone around the normal in which a sample's
+    /// half vector marks it specular.
+    #[arg(long, default_value_t = DEFAULT_SPECULAR_CONE_DEG, value_name = "DEG")]
+    pub specular_cone: f64,
+    /// Estimate per-image light-intensity corrections from the data (default: with `auto`).
+    #[arg(long, overrides_with = "no_recalibrate")]
+    pub recalibrate: bool,
+    /// Never correct the light intensities.
+    #[arg(long)]
+    pub no_recalibrate: bool,
+    /// auto: noise standard deviation of the samples (after division by intensity), when known;
+    /// by default it is estimated from each image.
+    #[arg(long, value_name = "SIGMA")]
+    pub noise_sigma: Option<f32>,
     /// Flag pixels whose usable lights have a condition number above this.
     #[arg(long, default_value_t = DEFAULT_MAX_CONDITION, value_name = "COND")]
     pub max_condition: f64,
@@ -160,6 +182,14 @@ pub struct EvalArgs {
     /// Pixels to compare (> 0); default: where both maps are defined.
     #[arg(long, value_name = "FILE")]
     pub mask: Option<PathBuf>,
+    /// DiLiGenT-layout folders: reconstruct each with every one of `--methods` and compare
+    /// with its `normal_gt.exr` inside its `mask.png` (mean, median, fraction under 5°, 10°,
+    /// 20°, timings).
+    #[arg(long, value_name = "DIR", num_args = 1.., conflicts_with_all = ["normals", "depth"])]
+    pub diligent: Vec<PathBuf>,
+    /// With `--diligent`: the estimators to evaluate.
+    #[arg(long, value_enum, value_delimiter = ',', default_values_t = [MethodArg::Auto])]
+    pub methods: Vec<MethodArg>,
 }
 
 /// `--align` values.
@@ -202,6 +232,32 @@ pub enum BenchCommand {
     /// Time and accuracy of every integrator against image size, and DCT Poisson against
     /// `numpy_ps.py poisson N`.
     Integration(IntegrationBenchArgs),
+    /// Normal error of every estimator against specular strength on rendered Blinn–Phong and
+    /// Torrance–Sparrow scenes with cast shadows.
+    Specularity(SpecularityBenchArgs),
+}
+
+/// `bench specularity` options.
+#[derive(Debug, Args)]
+pub struct SpecularityBenchArgs {
+    /// Image size (square).
+    #[arg(long, default_value_t = 128)]
+    pub size: usize,
+    /// Number of lights (Fibonacci spiral up to 60° from the view direction).
+    #[arg(long, default_value_t = 32)]
+    pub lights: usize,
+    /// Specular reflectances k_s to sweep.
+    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.05, 0.1, 0.2, 0.4, 0.8])]
+    pub ks: Vec<f64>,
+    /// Gaussian image noise σ (images peak near 1).
+    #[arg(long, default_value_t = 0.005)]
+    pub noise: f32,
+    /// Estimators to compare (default: all).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub methods: Vec<MethodArg>,
+    /// Also print a Markdown table (to standard error).
+    #[arg(long)]
+    pub markdown: bool,
 }
 
 /// `bench integration` options.
@@ -253,14 +309,43 @@ pub struct BenchArgs {
 }
 
 /// `--method` values.
-#[derive(Debug, Clone, Copy, ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum MethodArg {
+    /// Lambertian where it fits, specular rejection where not (default).
+    Auto,
     /// Plain least squares.
     Ls,
     /// Least squares with shadow and saturation rejection.
     Threshold,
     /// Intensity-weighted least squares with rejection.
     Weighted,
+    /// Rank trimming of the darkest and brightest samples.
+    Trim,
+    /// IRLS, Huber loss.
+    Huber,
+    /// IRLS, Tukey biweight.
+    Tukey,
+    /// IRLS, L1 loss.
+    L1,
+    /// Half-vector specular rejection + Tukey IRLS.
+    Specular,
+}
+
+impl MethodArg {
+    /// The library method.
+    pub fn method(self) -> Method {
+        match self {
+            MethodArg::Auto => Method::Auto,
+            MethodArg::Ls => Method::LeastSquares,
+            MethodArg::Threshold => Method::Threshold,
+            MethodArg::Weighted => Method::ShadowWeighted,
+            MethodArg::Trim => Method::Trimmed,
+            MethodArg::Huber => Method::Huber,
+            MethodArg::Tukey => Method::Tukey,
+            MethodArg::L1 => Method::L1,
+            MethodArg::Specular => Method::Specular,
+        }
+    }
 }
 
 /// `--integrate` values.
@@ -377,14 +462,21 @@ impl MethodArgs {
     /// The library configuration these flags describe.
     pub fn config(&self) -> Result<Config> {
         let solve = SolveOptions {
-            method: match self.method {
-                MethodArg::Ls => Method::LeastSquares,
-                MethodArg::Threshold => Method::Threshold,
-                MethodArg::Weighted => Method::ShadowWeighted,
-            },
+            method: self.method.method(),
             shadow_threshold: self.shadow_threshold,
-            reject_saturated: true,
             max_condition: self.max_condition,
+            trim_low: self.trim.first().copied().unwrap_or(DEFAULT_TRIM_LOW),
+            trim_high: self.trim.get(1).copied().unwrap_or(DEFAULT_TRIM_HIGH),
+            specular_cone_deg: self.specular_cone,
+            recalibrate: if self.no_recalibrate {
+                Some(false)
+            } else if self.recalibrate {
+                Some(true)
+            } else {
+                None
+            },
+            noise_sigma: self.noise_sigma,
+            ..SolveOptions::default()
         };
         solve.validate()?;
         Ok(Config {

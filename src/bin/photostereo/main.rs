@@ -58,6 +58,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Integrate(a)) => run_integrate(a, progress),
         Some(Command::Bench(args::BenchCommand::Diligent(a))) => bench::run(a),
         Some(Command::Bench(args::BenchCommand::Integration(a))) => bench::integration(a),
+        Some(Command::Bench(args::BenchCommand::Specularity(a))) => bench::specularity(a),
         None => run_main(cli.run.validate()?, progress),
     }
 }
@@ -147,6 +148,9 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
 }
 
 fn run_eval(a: EvalArgs) -> Result<()> {
+    if !a.diligent.is_empty() {
+        return eval_diligent(&a);
+    }
     let mask_for = |w: usize, h: usize| -> Result<Mask> {
         Ok(match &a.mask {
             Some(m) => photostereo::input::read_mask(m)?,
@@ -186,6 +190,57 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         ),
     };
     say!("{}", serde_json::to_string_pretty(&out)?);
+    Ok(())
+}
+
+/// `eval --diligent`: reconstruct DiLiGenT-layout folders with each method, compare with the
+/// ground truth, print JSON.
+fn eval_diligent(a: &EvalArgs) -> Result<()> {
+    use photostereo::input::LoadOptions;
+    use photostereo::solve::SolveOptions;
+    let mut rows = Vec::new();
+    for dir in &a.diligent {
+        let t = std::time::Instant::now();
+        let capture = Capture::from_diligent(dir, &LoadOptions::default(), &Silent)?;
+        let load_s = t.elapsed().as_secs_f64();
+        let gt_path = dir.join("normal_gt.exr");
+        let gt = read_normal_map(&gt_path)
+            .with_context(|| format!("{}: the ground truth for --diligent", gt_path.display()))?;
+        for m in &a.methods {
+            let config = Config {
+                solve: SolveOptions::with_method(m.method()),
+                integration: None,
+                ..Config::default()
+            };
+            let recon = reconstruct(&capture, &config, &Silent)?;
+            let e = angular_errors(&recon.normals, &gt, &capture.mask)?;
+            let moved = recon
+                .model
+                .gains
+                .iter()
+                .flatten()
+                .filter(|g| (**g - 1.0).abs() > photostereo::pipeline::GAIN_WARNING)
+                .count();
+            rows.push(serde_json::json!({
+                "dataset": dir,
+                "method": m.method().name(),
+                "mean_deg": e.mean_deg,
+                "median_deg": e.median_deg,
+                "below_5deg": e.below_5deg,
+                "below_10deg": e.below_10deg,
+                "below_20deg": e.below_20deg,
+                "pixels": e.pixels,
+                "unsolved": e.missing,
+                "robust_fraction": recon.model.robust_fraction,
+                "intensities_corrected_over_10pct": moved,
+                "timings_s": { "load": load_s, "solve": recon.timings.solve },
+            }));
+        }
+    }
+    say!(
+        "{}",
+        serde_json::to_string_pretty(&serde_json::json!({ "results": rows }))?
+    );
     Ok(())
 }
 
@@ -317,6 +372,18 @@ fn print_summary(recon: &Reconstruction, report: &Report, config: &Config, dir: 
         c.ill_conditioned,
         c.dark
     );
+    let m = &recon.model;
+    if m.robust_pixels > 0 || m.recalibrated {
+        say!(
+            "  model: {:.1}% of solved pixels needed the robust fit{}",
+            100.0 * m.robust_fraction,
+            if m.recalibrated {
+                "; light intensities corrected from the data (gains in report.json)"
+            } else {
+                ""
+            }
+        );
+    }
     say!(
         "  integrability: mean |curl| {:.4}, median {:.4}, 95th pct {:.4} (per pixel)",
         recon.integrability.mean_abs_curl,

@@ -1,0 +1,692 @@
+//! Robust per-pixel estimators of g = ρN for samples that break the Lambertian model: cast
+//! shadows, specular highlights, interreflections, miscalibrated lights.
+//!
+//! Every estimator starts from the samples that pass shadow and saturation rejection (the
+//! [`crate::solve::Method::Threshold`] set) and then decides, sample by sample, how much each
+//! one counts:
+//! - **Rank trimming**: drop the darkest and brightest fractions of a pixel's samples and fit
+//!   the rest by least squares (the order-statistics filter used since Coleman & Jain 1982,
+//!   "Obtaining 3-dimensional shape of textured and specular surfaces using four-source
+//!   photometry").
+//! - **IRLS** with a Huber, Tukey-biweight or L1 loss: iteratively reweighted least squares
+//!   with weights w = ψ(u)/u of the residual u = r/s, the scale s re-estimated each iteration
+//!   as 1.4826·median|r| (Holland & Welsch 1977, "Robust regression using iteratively
+//!   reweighted least-squares"). The L1 loss is the convex relaxation of the sparse-error model
+//!   of Ikehata et al. 2012 ("Robust photometric stereo using sparse regression").
+//! - **Specular rejection by half-vector geometry**: a sample whose half vector
+//!   h = (l + v)/|l + v| lies within a cone of the current normal (n·h ≥ cos θ_cone) is in the
+//!   specular lobe of any glossy isotropic BRDF and is dropped, as are grazing samples
+//!   (n·l < [`DEFAULT_MIN_LIT_COSINE`]) where real diffuse reflection departs from Lambert's
+//!   cosine. The rest are fitted with Tukey IRLS, and the selection is redone with each new
+//!   normal. This is the low-frequency-region idea of Shi et al. 2014 ("Bi-polynomial
+//!   modeling of low-frequency reflectances", TPAMI 36(6)), with Lambert's law as the model
+//!   of that region.
+//!
+//! Where a robust selection leaves fewer than [`MIN_ROBUST_SAMPLES`] samples, the estimator
+//! falls back to the threshold set rather than guessing from too little.
+
+// The per-sample loops index several parallel arrays (directions, values, flags, weights) by
+// the image number; iterator chains over four zips would hide that.
+#![allow(clippy::needless_range_loop)]
+
+use crate::linalg::{condition_from_gram, solve_spd};
+use crate::solve::{MIN_SAMPLES, PixelSolution, PixelStatus};
+use nalgebra::{Matrix3, Vector3};
+use serde::Serialize;
+
+/// Tukey biweight tuning constant: 95% efficiency at the normal distribution.
+pub const TUKEY_C: f64 = 4.685;
+/// Huber tuning constant: 95% efficiency at the normal distribution.
+pub const HUBER_K: f64 = 1.345;
+/// Converts a median absolute deviation to a standard deviation (normal distribution).
+pub const MAD_TO_SIGMA: f64 = 1.4826;
+/// Most IRLS iterations per pixel.
+pub const MAX_IRLS_ITERATIONS: usize = 20;
+/// Relative change of g below which IRLS stops.
+const IRLS_TOLERANCE: f64 = 1e-6;
+/// L1 weights are 1/max(|u|, this): bounds the weight of samples that fit exactly.
+const L1_FLOOR: f64 = 1e-3;
+/// Default half-angle of the specular cone around the normal, in degrees: samples with
+/// angle(n, h) below it are treated as specular.
+pub const DEFAULT_SPECULAR_CONE_DEG: f64 = 30.0;
+/// Default smallest n·l of a sample the specular-rejecting estimator keeps.
+pub const DEFAULT_MIN_LIT_COSINE: f64 = 0.1;
+/// Fewest samples a robust selection must keep; below this the threshold set is used.
+pub const MIN_ROBUST_SAMPLES: usize = 6;
+/// Default fraction of a pixel's samples that rank trimming drops from the dark end.
+pub const DEFAULT_TRIM_LOW: f32 = 0.2;
+/// Default fraction of a pixel's samples that rank trimming drops from the bright end.
+pub const DEFAULT_TRIM_HIGH: f32 = 0.1;
+/// Selection-and-refit rounds of the specular-rejecting estimator.
+const SPECULAR_ROUNDS: usize = 10;
+/// The specular cone is narrowed in this many steps (to none) until the kept samples are
+/// numerous and spread enough.
+const CONE_STEPS: usize = 3;
+/// Largest condition number of the kept light directions for a specular cone to be accepted:
+/// a wider cone that leaves only clustered lights trades a highlight bias for noise gain.
+pub const SELECTION_MAX_CONDITION: f64 = 20.0;
+
+/// The loss of an IRLS estimator.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Loss {
+    /// Quadratic within [`HUBER_K`]·s, linear beyond: bounded influence, convex.
+    Huber,
+    /// Tukey's biweight: samples beyond [`TUKEY_C`]·s get zero weight (redescending).
+    Tukey,
+    /// Least absolute deviations.
+    L1,
+}
+
+impl Loss {
+    /// IRLS weight ψ(u)/u of a standardised residual u.
+    pub fn weight(self, u: f64) -> f64 {
+        let a = u.abs();
+        match self {
+            Loss::Huber => {
+                if a <= HUBER_K {
+                    1.0
+                } else {
+                    HUBER_K / a
+                }
+            }
+            Loss::Tukey => {
+                if a < TUKEY_C {
+                    let t = 1.0 - (u / TUKEY_C).powi(2);
+                    t * t
+                } else {
+                    0.0
+                }
+            }
+            Loss::L1 => 1.0 / a.max(L1_FLOOR),
+        }
+    }
+}
+
+/// A robust estimator and its parameters.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum Estimator {
+    /// Least squares over the threshold set (every finite sample when `reject` is false),
+    /// rows weighted by the sample itself when `intensity_weight` is set.
+    Plain {
+        reject: bool,
+        intensity_weight: bool,
+    },
+    /// Drop the `low` darkest and `high` brightest fractions of the valid samples.
+    Trimmed { low: f32, high: f32 },
+    /// Iteratively reweighted least squares over the threshold set.
+    Irls(Loss),
+    /// Half-vector specular rejection plus grazing rejection, then Tukey IRLS.
+    Specular { cos_cone: f64, min_cos_lit: f64 },
+}
+
+/// Per-pixel robust fitting with reusable buffers. Values passed in are multiplied by the
+/// per-image `gains` first (intensity corrections; all ones when uncalibrated).
+pub(crate) struct PixelFitter<'a> {
+    dirs: &'a [Vector3<f64>],
+    halves: Vec<Vector3<f64>>,
+    gains: &'a [f32],
+    shadow_threshold: f32,
+    reject_saturated: bool,
+    max_condition: f64,
+    v: Vec<f64>,
+    base: Vec<bool>,
+    keep: Vec<bool>,
+    w: Vec<f64>,
+    abs_r: Vec<f64>,
+    order: Vec<usize>,
+}
+
+impl<'a> PixelFitter<'a> {
+    /// A fitter for light directions `dirs` (orthographic view v = (0, 0, 1)).
+    pub(crate) fn new(
+        dirs: &'a [Vector3<f64>],
+        gains: &'a [f32],
+        shadow_threshold: f32,
+        reject_saturated: bool,
+        max_condition: f64,
+    ) -> Self {
+        let view = Vector3::z();
+        let halves = dirs
+            .iter()
+            .map(|l| {
+                let h = l + view;
+                let n = h.norm();
+                if n > 1e-12 { h / n } else { view }
+            })
+            .collect();
+        let k = dirs.len();
+        PixelFitter {
+            dirs,
+            halves,
+            gains,
+            shadow_threshold,
+            reject_saturated,
+            max_condition,
+            v: vec![0.0; k],
+            base: vec![false; k],
+            keep: vec![false; k],
+            w: vec![0.0; k],
+            abs_r: Vec::with_capacity(k),
+            order: Vec::with_capacity(k),
+        }
+    }
+
+    /// The weights of the last fit (0 for unused samples).
+    pub(crate) fn weights(&self) -> &[f64] {
+        &self.w
+    }
+
+    /// Loads a pixel's samples and marks the threshold set (finite, unsaturated, above the
+    /// shadow threshold relative to the brightest finite sample), or every finite sample when
+    /// `reject` is false. Returns its size.
+    fn load(&mut self, values: &[f32], saturated: &[bool], reject: bool) -> usize {
+        let mut max = f64::NEG_INFINITY;
+        for (k, &v) in values.iter().enumerate() {
+            let x = f64::from(v) * f64::from(self.gains[k]);
+            self.v[k] = x;
+            if x.is_finite() && x > max {
+                max = x;
+            }
+        }
+        let t = (f64::from(self.shadow_threshold) * max).max(0.0);
+        let mut n = 0;
+        for (k, &s) in saturated.iter().enumerate() {
+            let x = self.v[k];
+            let ok = x.is_finite() && (!reject || (x > t && !(self.reject_saturated && s)));
+            self.base[k] = ok;
+            n += usize::from(ok);
+        }
+        n
+    }
+
+    /// Σ r_k²/(σ_k·gain_k)² over the samples the last fit used: the χ² statistic of its
+    /// residuals under per-image noise `sigma` (of the samples before gains).
+    pub(crate) fn chi2(&self, g: &Vector3<f64>, sigma: &[f32]) -> f64 {
+        let mut sum = 0.0;
+        for (k, l) in self.dirs.iter().enumerate() {
+            if self.w[k] > 0.0 {
+                let s = f64::from(sigma[k]) * f64::from(self.gains[k]);
+                sum += ((self.v[k] - g.dot(l)) / s).powi(2);
+            }
+        }
+        sum
+    }
+
+    /// Weighted least squares with the current weights: g, unweighted Gram of the used
+    /// samples, and their count.
+    fn wls(&self) -> (Option<Vector3<f64>>, Matrix3<f64>, usize) {
+        let mut a = Matrix3::zeros();
+        let mut gram = Matrix3::zeros();
+        let mut b = Vector3::zeros();
+        let mut n = 0;
+        for (k, l) in self.dirs.iter().enumerate() {
+            let w = self.w[k];
+            if w <= 0.0 {
+                continue;
+            }
+            let llt = l * l.transpose();
+            a += llt * w;
+            gram += llt;
+            b += l * (w * self.v[k]);
+            n += 1;
+        }
+        let g = if n >= MIN_SAMPLES {
+            solve_spd(a, b)
+        } else {
+            None
+        };
+        (g, gram, n)
+    }
+
+    /// Sets weights to the threshold set (1 inside, 0 outside).
+    fn weights_from_base(&mut self) {
+        for (w, &b) in self.w.iter_mut().zip(&self.base) {
+            *w = if b { 1.0 } else { 0.0 };
+        }
+    }
+
+    /// Robust scale 1.4826·median|r| over the samples marked in `select`.
+    fn scale(&mut self, g: &Vector3<f64>, select: &[bool]) -> f64 {
+        self.abs_r.clear();
+        for (k, l) in self.dirs.iter().enumerate() {
+            if select[k] {
+                self.abs_r.push((self.v[k] - g.dot(l)).abs());
+            }
+        }
+        if self.abs_r.is_empty() {
+            return 0.0;
+        }
+        let mid = self.abs_r.len() / 2;
+        let (_, m, _) = self.abs_r.select_nth_unstable_by(mid, f64::total_cmp);
+        MAD_TO_SIGMA * *m
+    }
+
+    /// Fits one pixel with `estimator`.
+    pub(crate) fn fit(
+        &mut self,
+        values: &[f32],
+        saturated: &[bool],
+        estimator: Estimator,
+    ) -> PixelSolution {
+        let reject = !matches!(estimator, Estimator::Plain { reject: false, .. });
+        let n_base = self.load(values, saturated, reject);
+        match estimator {
+            Estimator::Plain {
+                intensity_weight, ..
+            } => {
+                for k in 0..self.v.len() {
+                    self.w[k] = match (self.base[k], intensity_weight) {
+                        (false, _) => 0.0,
+                        (true, false) => 1.0,
+                        (true, true) => self.v[k] * self.v[k],
+                    };
+                }
+                let (g, gram, used) = self.wls();
+                let mut p = self.finish_with(g, gram, used);
+                p.robust = false;
+                p
+            }
+            Estimator::Trimmed { low, high } => self.trimmed(saturated, low, high),
+            Estimator::Irls(loss) => {
+                if n_base < MIN_SAMPLES {
+                    return self.finish(None);
+                }
+                self.irls(loss)
+            }
+            Estimator::Specular {
+                cos_cone,
+                min_cos_lit,
+            } => {
+                if n_base < MIN_SAMPLES {
+                    return self.finish(None);
+                }
+                self.specular(cos_cone, min_cos_lit)
+            }
+        }
+    }
+
+    fn trimmed(&mut self, saturated: &[bool], low: f32, high: f32) -> PixelSolution {
+        self.order.clear();
+        for k in 0..self.v.len() {
+            if self.v[k].is_finite() && !(self.reject_saturated && saturated[k]) {
+                self.order.push(k);
+            }
+        }
+        let v = &self.v;
+        self.order.sort_by(|&a, &b| v[a].total_cmp(&v[b]));
+        let n = self.order.len();
+        let drop_low = (f64::from(low) * n as f64).floor() as usize;
+        let drop_high = (f64::from(high) * n as f64).floor() as usize;
+        self.w.fill(0.0);
+        if drop_low + drop_high < n {
+            for &k in &self.order[drop_low..n - drop_high] {
+                self.w[k] = 1.0;
+            }
+        }
+        let (g, gram, used) = self.wls();
+        self.finish_with(g, gram, used)
+    }
+
+    fn irls(&mut self, loss: Loss) -> PixelSolution {
+        let g = self.irls_estimate(loss);
+        let (_, gram, used) = self.wls();
+        self.finish_with(g, gram, used)
+    }
+
+    /// Least squares over the darker half of the threshold set, when it has at least
+    /// [`MIN_ROBUST_SAMPLES`] samples with condition number ≤ [`SELECTION_MAX_CONDITION`].
+    fn dark_half_estimate(&mut self) -> Option<Vector3<f64>> {
+        self.order.clear();
+        self.order
+            .extend((0..self.v.len()).filter(|&k| self.base[k]));
+        let v = &self.v;
+        self.order.sort_by(|&a, &b| v[a].total_cmp(&v[b]));
+        let half = self.order.len().div_ceil(2);
+        if half < MIN_ROBUST_SAMPLES {
+            return None;
+        }
+        self.w.fill(0.0);
+        for &k in &self.order[..half] {
+            self.w[k] = 1.0;
+        }
+        let (g, gram, _) = self.wls();
+        if condition_from_gram(&gram) > SELECTION_MAX_CONDITION {
+            return None;
+        }
+        g
+    }
+
+    /// IRLS over the threshold set; leaves the final weights in `self.w`.
+    fn irls_estimate(&mut self, loss: Loss) -> Option<Vector3<f64>> {
+        self.weights_from_base();
+        let (first, _, _) = self.wls();
+        let mut current = first?;
+        for _ in 0..MAX_IRLS_ITERATIONS {
+            let base = std::mem::take(&mut self.base);
+            let s = self.scale(&current, &base);
+            self.base = base;
+            if s.is_nan() || s <= 1e-12 * current.norm() {
+                break;
+            }
+            let previous = self.w.clone();
+            for k in 0..self.v.len() {
+                self.w[k] = if self.base[k] {
+                    loss.weight((self.v[k] - current.dot(&self.dirs[k])) / s)
+                } else {
+                    0.0
+                };
+            }
+            let (next, _, _) = self.wls();
+            let Some(next) = next else {
+                // Too few samples kept weight: return to the last solvable weights.
+                self.w = previous;
+                break;
+            };
+            let change = (next - current).norm();
+            current = next;
+            if change <= IRLS_TOLERANCE * current.norm() {
+                break;
+            }
+        }
+        Some(current)
+    }
+
+    fn specular(&mut self, cos_cone: f64, min_cos_lit: f64) -> PixelSolution {
+        // Start from the darker half of the samples (highlights only ever add light), or the
+        // L1 fit when that half is too small or clustered: least squares would lean towards a
+        // highlight, and a cone around a leaning normal keeps the highlight and drops the
+        // samples that disagree with it.
+        let first = self
+            .dark_half_estimate()
+            .or_else(|| self.irls_estimate(Loss::L1));
+        let (_, first_gram, first_used) = self.wls();
+        let Some(mut current) = first else {
+            return self.finish_with(None, first_gram, first_used);
+        };
+        let (mut gram, mut used) = (first_gram, first_used);
+        let mut keep = std::mem::take(&mut self.keep);
+        for round in 0..SPECULAR_ROUNDS {
+            let n = current / current.norm();
+            // The widest cone (full, 2/3, 1/3, none) that leaves enough well-spread samples.
+            for step in 0..=CONE_STEPS {
+                let frac = (CONE_STEPS - step) as f64 / CONE_STEPS as f64;
+                let cos_c = (cos_cone.acos() * frac).cos();
+                let mut count = 0;
+                let mut g = Matrix3::zeros();
+                for k in 0..self.v.len() {
+                    let l = &self.dirs[k];
+                    keep[k] = self.base[k]
+                        && n.dot(l) > min_cos_lit
+                        && (step == CONE_STEPS || n.dot(&self.halves[k]) < cos_c);
+                    if keep[k] {
+                        count += 1;
+                        g += l * l.transpose();
+                    }
+                }
+                if count >= MIN_ROBUST_SAMPLES && condition_from_gram(&g) <= SELECTION_MAX_CONDITION
+                {
+                    break;
+                }
+                if step == CONE_STEPS {
+                    keep.copy_from_slice(&self.base);
+                }
+            }
+            if round == 0 {
+                for k in 0..self.v.len() {
+                    self.w[k] = if keep[k] { 1.0 } else { 0.0 };
+                }
+            } else {
+                let s = self.scale(&current, &keep);
+                for k in 0..self.v.len() {
+                    self.w[k] = if !keep[k] {
+                        0.0
+                    } else if s > 1e-12 * current.norm() {
+                        Loss::Tukey.weight((self.v[k] - current.dot(&self.dirs[k])) / s)
+                    } else {
+                        1.0
+                    };
+                }
+            }
+            let (next, next_gram, next_used) = self.wls();
+            let Some(next) = next else { break };
+            let change = (next - current).norm();
+            current = next;
+            (gram, used) = (next_gram, next_used);
+            if round > 0 && change <= IRLS_TOLERANCE * current.norm() {
+                break;
+            }
+        }
+        self.keep = keep;
+        self.finish_with(Some(current), gram, used)
+    }
+
+    fn finish(&mut self, g: Option<Vector3<f64>>) -> PixelSolution {
+        self.weights_from_base();
+        let (_, gram, used) = self.wls();
+        self.finish_with(g, gram, used)
+    }
+
+    /// Decides the outcome and measures the RMS residual over used samples.
+    fn finish_with(
+        &self,
+        g: Option<Vector3<f64>>,
+        gram: Matrix3<f64>,
+        used: usize,
+    ) -> PixelSolution {
+        let nan = Vector3::repeat(f64::NAN);
+        let unsolved = |status, condition| PixelSolution {
+            g: nan,
+            residual: f64::NAN,
+            samples: used,
+            condition,
+            status,
+            robust: true,
+        };
+        if used < MIN_SAMPLES {
+            return unsolved(PixelStatus::TooFewSamples, f64::INFINITY);
+        }
+        let condition = condition_from_gram(&gram);
+        if condition.is_nan() || condition > self.max_condition {
+            return unsolved(PixelStatus::IllConditioned, condition);
+        }
+        let Some(g) = g else {
+            return unsolved(PixelStatus::IllConditioned, condition);
+        };
+        if !g.iter().all(|v| v.is_finite()) || g.norm() <= 1e-12 {
+            return unsolved(PixelStatus::Dark, condition);
+        }
+        let mut ss = 0.0;
+        for (k, l) in self.dirs.iter().enumerate() {
+            if self.w[k] > 0.0 {
+                ss += (self.v[k] - g.dot(l)).powi(2);
+            }
+        }
+        PixelSolution {
+            g,
+            residual: (ss / used as f64).sqrt(),
+            samples: used,
+            condition,
+            status: PixelStatus::Solved,
+            robust: true,
+        }
+    }
+}
+
+/// Upper quantile of the χ² distribution with `dof` degrees of freedom at standard-normal
+/// deviate `z` (e.g. 3.09 for a 0.1% tail), by the Wilson–Hilferty cube-root approximation
+/// (Wilson & Hilferty 1931), accurate to a few per cent for dof ≥ 1 at these tails.
+pub fn chi2_upper_quantile(dof: f64, z: f64) -> f64 {
+    let a = 2.0 / (9.0 * dof);
+    dof * (1.0 - a + z * a.sqrt()).powi(3)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::lights::Lights;
+    use rand::{RngExt, SeedableRng};
+
+    fn setup() -> (Vec<Vector3<f64>>, Vec<f32>) {
+        let lights = Lights::fibonacci(40, 60.0).unwrap();
+        (lights.directions().to_vec(), vec![1.0; 40])
+    }
+
+    fn angle(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+        (a.dot(b) / (a.norm() * b.norm()))
+            .clamp(-1.0, 1.0)
+            .acos()
+            .to_degrees()
+    }
+
+    /// Each estimator recovers g exactly from clean Lambertian samples with attached shadows.
+    #[test]
+    fn exact_on_lambertian_samples() {
+        let (dirs, gains) = setup();
+        let g = Vector3::new(0.2, -0.3, 0.6);
+        let vals: Vec<f32> = dirs.iter().map(|l| g.dot(l).max(0.0) as f32).collect();
+        let sat = vec![false; dirs.len()];
+        let mut f = PixelFitter::new(&dirs, &gains, 0.05, true, 100.0);
+        for est in [
+            Estimator::Irls(Loss::Huber),
+            Estimator::Irls(Loss::Tukey),
+            Estimator::Irls(Loss::L1),
+            Estimator::Specular {
+                cos_cone: 30f64.to_radians().cos(),
+                min_cos_lit: 0.1,
+            },
+        ] {
+            let p = f.fit(&vals, &sat, est);
+            assert_eq!(p.status, PixelStatus::Solved, "{est:?}");
+            assert!((p.g - g).norm() < 1e-5 * g.norm(), "{est:?}: {:?}", p.g);
+        }
+    }
+
+    /// Sparse gross outliers (a fifth of the lit samples, 2–4× too bright or black) bias
+    /// least squares by degrees; the redescending and L1 estimators stay within 0.5°.
+    #[test]
+    fn robust_to_sparse_outliers() {
+        let (dirs, gains) = setup();
+        let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(3);
+        let sat = vec![false; dirs.len()];
+        let mut f = PixelFitter::new(&dirs, &gains, 0.05, true, 100.0);
+        let mut worst_plain: f64 = 0.0;
+        let mut worst = [0.0f64; 3];
+        for _ in 0..50 {
+            let n = Vector3::new(
+                rng.random_range(-0.5..0.5),
+                rng.random_range(-0.5..0.5),
+                1.0,
+            )
+            .normalize();
+            let g = n * 0.7;
+            let vals: Vec<f32> = dirs
+                .iter()
+                .map(|l| {
+                    let v = g.dot(l).max(0.0);
+                    let u: f64 = rng.random_range(0.0..1.0);
+                    let v = if v > 0.0 && u < 0.1 {
+                        v * rng.random_range(2.0..4.0)
+                    } else if v > 0.0 && u < 0.2 {
+                        0.0
+                    } else {
+                        v + rng.random_range(-0.002..0.002)
+                    };
+                    v as f32
+                })
+                .collect();
+            let plain = f.fit(
+                &vals,
+                &sat,
+                Estimator::Trimmed {
+                    low: 0.0,
+                    high: 0.0,
+                },
+            );
+            worst_plain = worst_plain.max(angle(&plain.g, &g));
+            for (i, loss) in [Loss::Huber, Loss::Tukey, Loss::L1].into_iter().enumerate() {
+                let p = f.fit(&vals, &sat, Estimator::Irls(loss));
+                worst[i] = worst[i].max(angle(&p.g, &g));
+            }
+        }
+        assert!(
+            worst_plain > 3.0,
+            "outliers should hurt least squares: {worst_plain}"
+        );
+        assert!(worst[1] < 0.5, "tukey {:?}", worst);
+        assert!(worst[2] < 0.5, "l1 {:?}", worst);
+        // Huber bounds the influence but does not remove it.
+        assert!(worst[0] < worst_plain / 2.0, "huber {:?}", worst);
+    }
+
+    /// A Blinn–Phong lobe on top of the Lambertian term: the half-vector rejection removes it.
+    #[test]
+    fn specular_lobe_rejected() {
+        let (dirs, gains) = setup();
+        let sat = vec![false; dirs.len()];
+        let n = Vector3::new(0.3, 0.2, 1.0).normalize();
+        let view = Vector3::z();
+        let vals: Vec<f32> = dirs
+            .iter()
+            .map(|l| {
+                let c = n.dot(l).max(0.0);
+                let h = (l + view).normalize();
+                (0.5 * c + 0.8 * n.dot(&h).max(0.0).powi(60) * c) as f32
+            })
+            .collect();
+        let mut f = PixelFitter::new(&dirs, &gains, 0.05, true, 100.0);
+        let plain = f.fit(
+            &vals,
+            &sat,
+            Estimator::Trimmed {
+                low: 0.0,
+                high: 0.0,
+            },
+        );
+        let spec = f.fit(
+            &vals,
+            &sat,
+            Estimator::Specular {
+                cos_cone: 30f64.to_radians().cos(),
+                min_cos_lit: 0.1,
+            },
+        );
+        assert!(angle(&plain.g, &n) > 2.0, "{}", angle(&plain.g, &n));
+        // What is left is the lobe's tail beyond the cone (0.05° measured).
+        assert!(angle(&spec.g, &n) < 0.1, "{}", angle(&spec.g, &n));
+        assert!((spec.g.norm() - 0.5).abs() < 1e-3);
+    }
+
+    #[test]
+    fn rank_trimming_drops_extremes() {
+        let (dirs, gains) = setup();
+        let sat = vec![false; dirs.len()];
+        let g = Vector3::new(0.0, 0.0, 0.5);
+        let mut vals: Vec<f32> = dirs.iter().map(|l| g.dot(l).max(0.0) as f32).collect();
+        // The brightest sample becomes a highlight; trimming 10% from the top removes it.
+        let top = (0..vals.len())
+            .max_by(|&a, &b| vals[a].total_cmp(&vals[b]))
+            .unwrap();
+        vals[top] *= 5.0;
+        let mut f = PixelFitter::new(&dirs, &gains, 0.05, true, 100.0);
+        let p = f.fit(
+            &vals,
+            &sat,
+            Estimator::Trimmed {
+                low: 0.2,
+                high: 0.1,
+            },
+        );
+        assert!((p.g - g).norm() < 1e-5, "{:?}", p.g);
+        assert_eq!(p.samples, 40 - 8 - 4);
+    }
+
+    #[test]
+    fn chi2_quantile_matches_tables() {
+        // χ²_{0.999}: dof 1 → 10.83, 10 → 29.59, 93 → 140.89 (tables).
+        let z = 3.0902;
+        assert!((chi2_upper_quantile(10.0, z) - 29.59).abs() < 0.3);
+        assert!((chi2_upper_quantile(93.0, z) - 140.89).abs() < 1.0);
+        assert!((chi2_upper_quantile(1.0, z) - 10.83).abs() < 0.6);
+    }
+}
