@@ -422,16 +422,25 @@ pub(crate) fn fit_gathered(
     sigma: &[f32],
     options: &SolveOptions,
 ) -> (PixelSolution, Vec<bool>) {
-    let mut f = PixelFitter::new(
+    let mut f = fitter(dirs, gains, options);
+    let p = fit_with(&mut f, values, saturated, sigma, options);
+    let used = f.weights().iter().map(|&w| w > 0.0).collect();
+    (p, used)
+}
+
+/// A per-pixel fitter with the rejection parameters of `options`.
+fn fitter<'a>(
+    dirs: &'a [Vector3<f64>],
+    gains: &'a [f32],
+    options: &SolveOptions,
+) -> PixelFitter<'a> {
+    PixelFitter::new(
         dirs,
         gains,
         options.shadow_threshold,
         options.reject_saturated,
         options.max_condition,
-    );
-    let p = fit_with(&mut f, values, saturated, sigma, options);
-    let used = f.weights().iter().map(|&w| w > 0.0).collect();
-    (p, used)
+    )
 }
 
 /// [`fit_gathered`] with a caller-owned fitter.
@@ -639,6 +648,16 @@ impl Scratch {
         self.count.resize(len, 0);
         self.g.clear();
         self.g.resize(len, [f32::NAN; 3]);
+    }
+}
+
+impl Scratch {
+    /// Gathered samples and saturation flags of block pixel `i` (of `k` images).
+    fn pixel(&self, i: usize, k: usize) -> (&[f32], &[bool]) {
+        (
+            &self.values[i * k..(i + 1) * k],
+            &self.saturated[i * k..(i + 1) * k],
+        )
     }
 }
 
@@ -985,37 +1004,19 @@ fn solve_any_block(
             return out;
         }
         gather_block(stack, channel, spans, s);
-        let mut f = PixelFitter::new(
-            &per.dirs64,
-            &per.gains,
-            options.shadow_threshold,
-            options.reject_saturated,
-            options.max_condition,
-        );
+        let mut f = fitter(&per.dirs64, &per.gains, options);
         for i in escalated {
-            let (v, sat) = (
-                &s.values[i * k..(i + 1) * k],
-                &s.saturated[i * k..(i + 1) * k],
-            );
+            let (v, sat) = s.pixel(i, k);
             out[i] = escalate(&mut f, v, sat, out[i], options);
         }
         return out;
     }
     gather_block(stack, channel, spans, s);
-    let mut f = PixelFitter::new(
-        &per.dirs64,
-        &per.gains,
-        options.shadow_threshold,
-        options.reject_saturated,
-        options.max_condition,
-    );
+    let mut f = fitter(&per.dirs64, &per.gains, options);
     let len = s.values.len() / k.max(1);
     (0..len)
         .map(|i| {
-            let (v, sat) = (
-                &s.values[i * k..(i + 1) * k],
-                &s.saturated[i * k..(i + 1) * k],
-            );
+            let (v, sat) = s.pixel(i, k);
             fit_with(&mut f, v, sat, &per.sigma, options)
         })
         .collect()
