@@ -18,6 +18,7 @@ use crate::error::{Error, Result};
 use crate::grid::Mask;
 use crate::input::ImageStack;
 use crate::lights::Lights;
+use crate::metrics::median_by;
 use crate::solve::{PixelStatus, SolveOptions, fit_gathered};
 use nalgebra::Vector3;
 use rayon::prelude::*;
@@ -84,31 +85,9 @@ pub fn estimate_gains(
     options: &SolveOptions,
 ) -> Result<GainEstimate> {
     options.validate()?;
-    if channel >= stack.channels() {
-        return Err(Error::param(
-            "channel",
-            format!("{channel} ≥ the stack's {} channels", stack.channels()),
-        ));
-    }
-    crate::grid::Grid::new(stack.width(), stack.height(), ())
-        .check_same_size(mask, "mask vs images")?;
-    let sigma = crate::solve::test_sigmas(stack, channel, mask, options);
-    estimate_gains_with(stack, channel, lights, mask, options, &sigma)
-}
-
-/// [`estimate_gains`] with the per-image noise of the fit test given.
-pub(crate) fn estimate_gains_with(
-    stack: &ImageStack,
-    channel: usize,
-    lights: &Lights,
-    mask: &Mask,
-    options: &SolveOptions,
-    sigma: &[f32],
-) -> Result<GainEstimate> {
-    let k = stack.count();
-    if lights.len() != k {
+    if lights.len() != stack.count() {
         return Err(Error::LightsMismatch {
-            reason: format!("{} lights for {k} images", lights.len()),
+            reason: format!("{} lights for {} images", lights.len(), stack.count()),
         });
     }
     if channel >= stack.channels() {
@@ -119,8 +98,25 @@ pub(crate) fn estimate_gains_with(
     }
     crate::grid::Grid::new(stack.width(), stack.height(), ())
         .check_same_size(mask, "mask vs images")?;
+    let sigma = crate::solve::test_sigmas(stack, channel, mask, options);
+    Ok(estimate_gains_with(
+        stack, channel, lights, mask, options, &sigma,
+    ))
+}
+
+/// [`estimate_gains`] with the per-image noise of the fit test given, for inputs already
+/// checked by the caller.
+pub(crate) fn estimate_gains_with(
+    stack: &ImageStack,
+    channel: usize,
+    lights: &Lights,
+    mask: &Mask,
+    options: &SolveOptions,
+    sigma: &[f32],
+) -> GainEstimate {
+    let k = stack.count();
     if k < MIN_LIGHTS {
-        return Ok(GainEstimate::unit(k));
+        return GainEstimate::unit(k);
     }
     let masked: Vec<usize> = (0..mask.len()).filter(|&i| mask.data()[i]).collect();
     let stride = masked.len().div_ceil(SAMPLE_PIXELS).max(1);
@@ -170,17 +166,14 @@ pub(crate) fn estimate_gains_with(
                 if r.len() < MIN_RATIOS {
                     f64::NAN
                 } else {
-                    let mid = r.len() / 2;
-                    *r.select_nth_unstable_by(mid, f64::total_cmp).1
+                    median_by(r, f64::total_cmp).unwrap_or(f64::NAN)
                 }
             })
             .collect();
         let mut known: Vec<f64> = factors.iter().copied().filter(|f| f.is_finite()).collect();
-        if known.is_empty() {
+        let Some(median) = median_by(&mut known, f64::total_cmp) else {
             break;
-        }
-        let mid = known.len() / 2;
-        let median = *known.select_nth_unstable_by(mid, f64::total_cmp).1;
+        };
         let mut largest: f64 = 0.0;
         for (g, f) in gains.iter_mut().zip(&mut factors) {
             let e = if f.is_finite() && *f > 0.0 {
@@ -197,18 +190,16 @@ pub(crate) fn estimate_gains_with(
         }
     }
     // Report gains with median 1.
-    let mut sorted = gains.clone();
-    sorted.sort_by(f32::total_cmp);
-    let median = sorted[sorted.len() / 2];
+    let median = median_by(&mut gains.clone(), f32::total_cmp).unwrap_or(1.0);
     if median > 0.0 {
         for g in &mut gains {
             *g /= median;
         }
     }
-    Ok(GainEstimate {
+    GainEstimate {
         gains,
         rounds,
         converged,
         pixels: n,
-    })
+    }
 }

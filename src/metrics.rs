@@ -96,6 +96,19 @@ pub struct MapSummary {
     pub pixels: usize,
 }
 
+/// The upper median of `values` (the element at index len/2 in `cmp` order), reordering them;
+/// `None` when empty.
+pub(crate) fn median_by<T: Copy>(
+    values: &mut [T],
+    cmp: impl FnMut(&T, &T) -> std::cmp::Ordering,
+) -> Option<T> {
+    if values.is_empty() {
+        return None;
+    }
+    let mid = values.len() / 2;
+    Some(*values.select_nth_unstable_by(mid, cmp).1)
+}
+
 /// The finite values of `map`, ascending.
 pub(crate) fn finite_sorted(map: &ScalarMap) -> Vec<f64> {
     let mut v: Vec<f64> = map

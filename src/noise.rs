@@ -9,6 +9,7 @@
 
 use crate::grid::Mask;
 use crate::input::ImageStack;
+use crate::metrics::median_by;
 use crate::robust::MAD_TO_SIGMA;
 use rayon::prelude::*;
 
@@ -59,20 +60,14 @@ pub fn image_noise(plane: &[f32], width: usize, mask: &Mask) -> NoiseLevel {
             levels.push(plane[i]);
         }
     }
-    let level = if levels.is_empty() {
-        f32::NAN
-    } else {
-        let mid = levels.len() / 2;
-        *levels.select_nth_unstable_by(mid, f32::total_cmp).1
-    };
+    let level = median_by(&mut levels, f32::total_cmp).unwrap_or(f32::NAN);
     if responses.len() < MIN_RESPONSES {
         return NoiseLevel {
             sigma: f32::NAN,
             level,
         };
     }
-    let mid = responses.len() / 2;
-    let median = *responses.select_nth_unstable_by(mid, f64::total_cmp).1;
+    let median = median_by(&mut responses, f64::total_cmp).unwrap_or(f64::NAN);
     NoiseLevel {
         sigma: (MAD_TO_SIGMA * median / OPERATOR_NORM) as f32,
         level,

@@ -133,6 +133,8 @@ pub(crate) struct PixelFitter<'a> {
     base: Vec<bool>,
     keep: Vec<bool>,
     w: Vec<f64>,
+    /// The weights of the previous IRLS iteration.
+    previous_w: Vec<f64>,
     abs_r: Vec<f64>,
     order: Vec<usize>,
 }
@@ -167,6 +169,7 @@ impl<'a> PixelFitter<'a> {
             base: vec![false; k],
             keep: vec![false; k],
             w: vec![0.0; k],
+            previous_w: vec![0.0; k],
             abs_r: Vec::with_capacity(k),
             order: Vec::with_capacity(k),
         }
@@ -254,12 +257,7 @@ impl<'a> PixelFitter<'a> {
                 self.abs_r.push((self.v[k] - g.dot(l)).abs());
             }
         }
-        if self.abs_r.is_empty() {
-            return 0.0;
-        }
-        let mid = self.abs_r.len() / 2;
-        let (_, m, _) = self.abs_r.select_nth_unstable_by(mid, f64::total_cmp);
-        MAD_TO_SIGMA * *m
+        MAD_TO_SIGMA * crate::metrics::median_by(&mut self.abs_r, f64::total_cmp).unwrap_or(0.0)
     }
 
     /// Fits one pixel with `estimator`.
@@ -369,7 +367,7 @@ impl<'a> PixelFitter<'a> {
             if s.is_nan() || s <= 1e-12 * current.norm() {
                 break;
             }
-            let previous = self.w.clone();
+            self.previous_w.copy_from_slice(&self.w);
             for k in 0..self.v.len() {
                 self.w[k] = if self.base[k] {
                     loss.weight((self.v[k] - current.dot(&self.dirs[k])) / s)
@@ -380,7 +378,7 @@ impl<'a> PixelFitter<'a> {
             let (next, _, _) = self.wls();
             let Some(next) = next else {
                 // Too few samples kept weight: return to the last solvable weights.
-                self.w = previous;
+                std::mem::swap(&mut self.w, &mut self.previous_w);
                 break;
             };
             let change = (next - current).norm();
@@ -400,11 +398,10 @@ impl<'a> PixelFitter<'a> {
         let first = self
             .dark_half_estimate()
             .or_else(|| self.irls_estimate(Loss::L1));
-        let (_, first_gram, first_used) = self.wls();
+        let (_, mut gram, mut used) = self.wls();
         let Some(mut current) = first else {
-            return self.finish_with(None, first_gram, first_used);
+            return self.finish_with(None, gram, used);
         };
-        let (mut gram, mut used) = (first_gram, first_used);
         let mut keep = std::mem::take(&mut self.keep);
         for round in 0..SPECULAR_ROUNDS {
             let n = current / current.norm();

@@ -398,12 +398,7 @@ pub fn solve_pixel(
                 .copied()
                 .filter(|v| v.is_finite() && *v > 0.0)
                 .collect();
-            let level = if pos.is_empty() {
-                1.0
-            } else {
-                let mid = pos.len() / 2;
-                *pos.select_nth_unstable_by(mid, f32::total_cmp).1
-            };
+            let level = crate::metrics::median_by(&mut pos, f32::total_cmp).unwrap_or(1.0);
             MODEL_TOLERANCE * level
         }
     };
@@ -1102,7 +1097,7 @@ pub fn solve(
         vec![f32::NAN; k]
     };
     let gains = if options.recalibrates(k) {
-        crate::intensities::estimate_gains_with(stack, channel, lights, mask, options, &sigma)?
+        crate::intensities::estimate_gains_with(stack, channel, lights, mask, options, &sigma)
     } else {
         crate::intensities::GainEstimate::unit(k)
     };
