@@ -32,6 +32,7 @@ fn bench_solve(c: &mut Criterion) {
         Method::LeastSquares,
         Method::Threshold,
         Method::ShadowWeighted,
+        Method::Auto,
     ] {
         let o = SolveOptions {
             method,

@@ -886,6 +886,33 @@ impl ImageStack {
         }
     }
 
+    /// The grey mix Σ_c w_c·I_c of a 3-channel stack with [`GREY_WEIGHTS`], keeping the
+    /// saturation flags (a pixel saturated in any channel stays saturated); a 1-channel stack
+    /// is returned as is.
+    pub fn grey_mix(&self) -> ImageStack {
+        if self.channels == 1 {
+            return self.clone();
+        }
+        let n = self.pixels();
+        let mut data = vec![0f32; self.count * n];
+        for (k, out) in data.chunks_mut(n.max(1)).enumerate().take(self.count) {
+            for (c, w) in GREY_WEIGHTS.iter().enumerate() {
+                for (o, v) in out.iter_mut().zip(self.plane(k, c)) {
+                    *o += w * v;
+                }
+            }
+        }
+        ImageStack {
+            width: self.width,
+            height: self.height,
+            count: self.count,
+            channels: 1,
+            data,
+            saturated: self.saturated.clone(),
+            info: self.info.clone(),
+        }
+    }
+
     /// What was loaded, per image.
     pub fn info(&self) -> &[ImageInfo] {
         &self.info

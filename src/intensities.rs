@@ -3,33 +3,48 @@
 //!
 //! Cho, Matsushita, Tai & Kweon (2018), "Semi-calibrated photometric stereo", TPAMI 42(1),
 //! show that the e_k are determined up to one global scale when the lights are not coplanar.
-//! This module estimates them by alternation on a regular subsample of the mask: fit g per pixel
-//! with the chosen estimator under the current gains, then set each image's correction to the
-//! median of I_k/(g·l_k) over the samples that the fit used and that are well lit
-//! (N·l_k ≥ 0.3), normalise the corrections to median 1 and repeat until the largest change is
-//! below [`TOLERANCE`]. The median makes the estimate insensitive to the pixels where the model
-//! fails (shadows, highlights), which a linear joint solve is not.
+//! This module estimates them by alternation on a regular subsample of the mask, in two
+//! nested loops:
+//! - the outer loop fits g per pixel with the chosen estimator under the current gains, which
+//!   decides each sample's weight (shadow, highlight, outlier);
+//! - the inner loop holds those weights fixed and alternates: set each image's correction to
+//!   the median of I_k/(g·l_k) over the samples that the fit used and that are well lit
+//!   (N·l_k ≥ 0.3), normalise the corrections to median 1, then refit g by weighted least
+//!   squares, until the largest correction is below [`TOLERANCE`].
+//!
+//! The estimate has converged when the first correction after a robust refit is below
+//! [`TOLERANCE`], i.e. the robust fits under the gains reproduce them. The inner loop is a
+//! 3×3 solve per pixel, so the slow linear convergence of the alternation costs little; the
+//! outer loop converges as fast as the sample selection settles (2 refits on DiLiGenT cat,
+//! 5 on bear, whose first 20 images are 10–26% dimmer than their stated intensities). The
+//! median makes the estimate insensitive to the pixels where the model fails (shadows,
+//! highlights), which a linear joint solve is not.
 //!
 //! The corrections are reported as gains (the factors the images are multiplied by), so a
 //! capture whose intensity file is right gets gains near 1, and a wrong entry shows up as a
 //! gain far from it.
 
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::grid::Mask;
 use crate::input::ImageStack;
 use crate::lights::Lights;
+use crate::linalg::solve_spd;
 use crate::metrics::median_by;
-use crate::solve::{PixelStatus, SolveOptions, fit_gathered};
-use nalgebra::Vector3;
+use crate::solve::{PixelStatus, SolveOptions, fit_with, fitter};
+use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 use serde::Serialize;
 
 /// Fewest lights for which the factors are estimated (with few lights the fit absorbs them).
 pub const MIN_LIGHTS: usize = 8;
-/// Pixels of the regular subsample used for the estimate.
-pub const SAMPLE_PIXELS: usize = 8000;
-/// Most alternation rounds.
-pub const MAX_ROUNDS: usize = 10;
+/// Pixels of the regular subsample used for the estimate. An image is typically well lit
+/// and used in half of them, so its correction is a median of about 1500 ratios: with a
+/// 5% spread of the ratios its standard error is about 0.2%, below [`TOLERANCE`].
+pub const SAMPLE_PIXELS: usize = 3000;
+/// Most gain updates in all.
+pub const MAX_ROUNDS: usize = 30;
+/// Most robust refits of the subsample.
+pub const MAX_REFITS: usize = 8;
 /// The alternation stops when no factor changes by more than this (relative).
 pub const TOLERANCE: f64 = 0.005;
 /// Smallest N·l_k of a sample whose ratio counts (dim samples carry ambient light and noise).
@@ -42,9 +57,13 @@ const MIN_RATIOS: usize = 30;
 pub struct GainEstimate {
     /// Factor each image's samples are multiplied by (median 1).
     pub gains: Vec<f32>,
-    /// Alternation rounds run.
+    /// Gain updates made.
     pub rounds: usize,
-    /// Whether the last round changed no factor by more than [`TOLERANCE`].
+    /// Robust refits of the subsample (the sample selection is redone under the current
+    /// gains; between refits the gains and g alternate with the selection held fixed).
+    pub refits: usize,
+    /// Whether the first update after the last robust refit changed no factor by more than
+    /// [`TOLERANCE`].
     pub converged: bool,
     /// Pixels in the subsample.
     pub pixels: usize,
@@ -56,6 +75,7 @@ impl GainEstimate {
         GainEstimate {
             gains: vec![1.0; count],
             rounds: 0,
+            refits: 0,
             converged: true,
             pixels: 0,
         }
@@ -84,20 +104,7 @@ pub fn estimate_gains(
     mask: &Mask,
     options: &SolveOptions,
 ) -> Result<GainEstimate> {
-    options.validate()?;
-    if lights.len() != stack.count() {
-        return Err(Error::LightsMismatch {
-            reason: format!("{} lights for {} images", lights.len(), stack.count()),
-        });
-    }
-    if channel >= stack.channels() {
-        return Err(Error::param(
-            "channel",
-            format!("{channel} ≥ the stack's {} channels", stack.channels()),
-        ));
-    }
-    crate::grid::Grid::new(stack.width(), stack.height(), ())
-        .check_same_size(mask, "mask vs images")?;
+    crate::solve::check_inputs(stack, channel, lights, mask, options)?;
     let sigma = crate::solve::test_sigmas(stack, channel, mask, options);
     Ok(estimate_gains_with(
         stack, channel, lights, mask, options, &sigma,
@@ -134,59 +141,40 @@ pub(crate) fn estimate_gains_with(
     }
     let dirs = lights.directions();
     let mut gains = vec![1.0f32; k];
+    // Per pixel: the robust fit's g (None when unsolved) and its sample weights.
+    let mut fits: Vec<Option<Vector3<f64>>> = vec![None; n];
+    let mut weights = vec![0f64; n * k];
     let mut rounds = 0;
+    let mut refits = 0;
     let mut converged = false;
-    while rounds < MAX_ROUNDS {
+    while refits < MAX_REFITS && rounds < MAX_ROUNDS {
+        refits += 1;
+        let start = gains.clone();
+        fits.par_iter_mut()
+            .zip(weights.par_chunks_mut(k))
+            .zip(values.par_chunks(k).zip(saturated.par_chunks(k)))
+            .for_each_init(
+                || fitter(&dirs, &start, options),
+                |f, ((fit, w), (v, s))| {
+                    let sol = fit_with(f, v, s, sigma, options);
+                    *fit = (sol.status == PixelStatus::Solved).then_some(sol.g);
+                    w.copy_from_slice(f.weights());
+                },
+            );
+        // Alternate gains and g with these sample weights held fixed. The first update
+        // measures how far the robust fit is from consistency with the gains.
         rounds += 1;
-        // Per-pixel fits under the current gains; each yields (g, used flags).
-        let fits: Vec<Option<(Vector3<f64>, Vec<bool>)>> = values
-            .par_chunks(k)
-            .zip(saturated.par_chunks(k))
-            .map(|(v, s)| {
-                let (sol, used) = fit_gathered(v, s, &dirs, &gains, sigma, options);
-                (sol.status == PixelStatus::Solved).then_some((sol.g, used))
-            })
-            .collect();
-        let mut ratios: Vec<Vec<f64>> = vec![Vec::new(); k];
-        for (i, fit) in fits.iter().enumerate() {
-            let Some((g, used)) = fit else { continue };
-            let rho = g.norm();
-            let normal = g / rho;
-            for img in 0..k {
-                let c = normal.dot(&dirs[img]);
-                if used[img] && c >= MIN_RATIO_COSINE {
-                    let v = f64::from(values[i * k + img]) * f64::from(gains[img]);
-                    ratios[img].push(v / (rho * c));
-                }
-            }
-        }
-        let mut factors: Vec<f64> = ratios
-            .iter_mut()
-            .map(|r| {
-                if r.len() < MIN_RATIOS {
-                    f64::NAN
-                } else {
-                    median_by(r, f64::total_cmp).unwrap_or(f64::NAN)
-                }
-            })
-            .collect();
-        let mut known: Vec<f64> = factors.iter().copied().filter(|f| f.is_finite()).collect();
-        let Some(median) = median_by(&mut known, f64::total_cmp) else {
-            break;
-        };
-        let mut largest: f64 = 0.0;
-        for (g, f) in gains.iter_mut().zip(&mut factors) {
-            let e = if f.is_finite() && *f > 0.0 {
-                *f / median
-            } else {
-                1.0
-            };
-            *g = (f64::from(*g) / e) as f32;
-            largest = largest.max((e - 1.0).abs());
-        }
-        if largest < TOLERANCE {
+        let first = update_gains(&fits, &weights, &values, &dirs, &mut gains);
+        if first < TOLERANCE {
             converged = true;
             break;
+        }
+        while rounds < MAX_ROUNDS {
+            refit_fixed(&mut fits, &weights, &values, &dirs, &gains);
+            rounds += 1;
+            if update_gains(&fits, &weights, &values, &dirs, &mut gains) < TOLERANCE {
+                break;
+            }
         }
     }
     // Report gains with median 1.
@@ -199,7 +187,88 @@ pub(crate) fn estimate_gains_with(
     GainEstimate {
         gains,
         rounds,
+        refits,
         converged,
         pixels: n,
     }
+}
+
+/// One gain update: each image's correction is the median of I_k/(g·l_k) over the samples of
+/// the fits that used it and are well lit; the corrections are normalised to median 1 and
+/// divided out of `gains`. Returns the largest relative correction.
+fn update_gains(
+    fits: &[Option<Vector3<f64>>],
+    weights: &[f64],
+    values: &[f32],
+    dirs: &[Vector3<f64>],
+    gains: &mut [f32],
+) -> f64 {
+    let k = gains.len();
+    let mut ratios: Vec<Vec<f64>> = vec![Vec::new(); k];
+    for (i, fit) in fits.iter().enumerate() {
+        let Some(g) = fit else { continue };
+        let rho = g.norm();
+        let normal = g / rho;
+        for img in 0..k {
+            let c = normal.dot(&dirs[img]);
+            if weights[i * k + img] > 0.0 && c >= MIN_RATIO_COSINE {
+                let v = f64::from(values[i * k + img]) * f64::from(gains[img]);
+                ratios[img].push(v / (rho * c));
+            }
+        }
+    }
+    let mut factors: Vec<f64> = ratios
+        .iter_mut()
+        .map(|r| {
+            if r.len() < MIN_RATIOS {
+                f64::NAN
+            } else {
+                median_by(r, f64::total_cmp).unwrap_or(f64::NAN)
+            }
+        })
+        .collect();
+    let mut known: Vec<f64> = factors.iter().copied().filter(|f| f.is_finite()).collect();
+    let Some(median) = median_by(&mut known, f64::total_cmp) else {
+        return 0.0;
+    };
+    let mut largest: f64 = 0.0;
+    for (g, f) in gains.iter_mut().zip(&mut factors) {
+        let e = if f.is_finite() && *f > 0.0 {
+            *f / median
+        } else {
+            1.0
+        };
+        *g = (f64::from(*g) / e) as f32;
+        largest = largest.max((e - 1.0).abs());
+    }
+    largest
+}
+
+/// Refits every solved pixel's g by weighted least squares under new `gains`, with the
+/// sample weights of its last robust fit.
+fn refit_fixed(
+    fits: &mut [Option<Vector3<f64>>],
+    weights: &[f64],
+    values: &[f32],
+    dirs: &[Vector3<f64>],
+    gains: &[f32],
+) {
+    let k = gains.len();
+    fits.par_iter_mut()
+        .zip(weights.par_chunks(k).zip(values.par_chunks(k)))
+        .for_each(|(fit, (w, v))| {
+            if fit.is_none() {
+                return;
+            }
+            let mut a = Matrix3::zeros();
+            let mut b = Vector3::zeros();
+            for img in 0..k {
+                if w[img] > 0.0 {
+                    let l = &dirs[img];
+                    a += l * l.transpose() * w[img];
+                    b += l * (w[img] * f64::from(v[img]) * f64::from(gains[img]));
+                }
+            }
+            *fit = solve_spd(a, b).or(*fit);
+        });
 }

@@ -5,7 +5,7 @@
 //!
 //! The pipeline, one module per stage:
 //! [`input`] (images → [`input::ImageStack`]) → [`lights`] ([`lights::Lights`]) →
-//! [`solve`] (per-pixel g = ρN) → [`normals`] (albedo, normals, gradients, integrability) →
+//! [`solve`] (per-pixel g = ρN; [`color`] for one normal from RGB) → [`normals`] (albedo, normals, gradients, integrability) →
 //! [`integrate`] (depth) → [`output`] (EXR/PNG, atomically). [`pipeline`] composes them;
 //! [`dataset`] assembles inputs from files. Beside it: [`reflectance`] holds the BRDF models,
 //! [`scene`] and [`render`] make synthetic data with ground truth, [`metrics`] measures errors,
@@ -26,6 +26,7 @@
 #![deny(missing_docs)]
 
 pub mod camera;
+pub mod color;
 pub mod dataset;
 pub mod demo;
 pub mod error;

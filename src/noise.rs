@@ -15,8 +15,11 @@ use rayon::prelude::*;
 
 /// Norm of the Immerkær operator: the standard deviation of its response to unit white noise.
 const OPERATOR_NORM: f64 = 6.0;
-/// At most this many responses are ranked per image (a regular subsample beyond).
-const MAX_RESPONSES: usize = 200_000;
+/// At most this many responses are ranked per image (a regular subsample of the interior
+/// beyond): the median of 5000 half-normal values has a relative standard error of 1.7%
+/// (1.167/√n), which moves the fit test's χ² by 3.4%, well inside its margin; more would make the
+/// estimate cost as much as a least-squares solve on matte data.
+const MAX_RESPONSES: usize = 5_000;
 /// Fewest responses for an estimate.
 const MIN_RESPONSES: usize = 50;
 
@@ -31,7 +34,13 @@ pub struct NoiseLevel {
 
 /// Estimates the noise of the row-major `width`-wide image `plane` inside `mask`.
 pub fn image_noise(plane: &[f32], width: usize, mask: &Mask) -> NoiseLevel {
-    let height = mask.height();
+    noise_at(plane, width, &interior_sample(mask))
+}
+
+/// A regular subsample of at most [`MAX_RESPONSES`] pixels of `mask` whose whole 3×3
+/// neighbourhood is in the mask.
+fn interior_sample(mask: &Mask) -> Vec<usize> {
+    let (width, height) = (mask.width(), mask.height());
     let m = mask.data();
     let interior: Vec<usize> = (1..height.saturating_sub(1))
         .flat_map(|y| (1..width.saturating_sub(1)).map(move |x| y * width + x))
@@ -43,9 +52,14 @@ pub fn image_noise(plane: &[f32], width: usize, mask: &Mask) -> NoiseLevel {
         })
         .collect();
     let stride = interior.len().div_ceil(MAX_RESPONSES).max(1);
-    let mut responses: Vec<f64> = Vec::with_capacity(interior.len() / stride + 1);
-    let mut levels: Vec<f32> = Vec::with_capacity(interior.len() / stride + 1);
-    for &i in interior.iter().step_by(stride) {
+    interior.into_iter().step_by(stride).collect()
+}
+
+/// The estimate of [`image_noise`] from the responses at the `interior` pixels.
+fn noise_at(plane: &[f32], width: usize, interior: &[usize]) -> NoiseLevel {
+    let mut responses: Vec<f64> = Vec::with_capacity(interior.len());
+    let mut levels: Vec<f32> = Vec::with_capacity(interior.len());
+    for &i in interior {
         let at = |j: usize| f64::from(plane[j]);
         let r = at(i - width - 1) - 2.0 * at(i - width) + at(i - width + 1) - 2.0 * at(i - 1)
             + 4.0 * at(i)
@@ -76,9 +90,10 @@ pub fn image_noise(plane: &[f32], width: usize, mask: &Mask) -> NoiseLevel {
 
 /// [`image_noise`] for every image of channel `channel` of `stack`, in parallel.
 pub fn stack_noise(stack: &ImageStack, channel: usize, mask: &Mask) -> Vec<NoiseLevel> {
+    let interior = interior_sample(mask);
     (0..stack.count())
         .into_par_iter()
-        .map(|k| image_noise(stack.plane(k, channel), stack.width(), mask))
+        .map(|k| noise_at(stack.plane(k, channel), stack.width(), &interior))
         .collect()
 }
 

@@ -4,6 +4,7 @@
 //! Each stage is also callable alone (see [`crate::solve`], [`crate::normals`],
 //! [`crate::integrate`], [`crate::output`]); this module only composes them.
 
+use crate::color::{ColorSolve, solve_shared_normal};
 use crate::dataset::Capture;
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
@@ -36,6 +37,8 @@ pub struct Config {
     pub albedo_normalised: bool,
     /// Also write the depth map as a triangle mesh, `mesh.ply`.
     pub mesh: bool,
+    /// How an RGB capture's channels are solved (grey captures have one channel).
+    pub color: ColorSolve,
 }
 
 impl Default for Config {
@@ -45,6 +48,7 @@ impl Default for Config {
             integration: Some(IntegrationOptions::default()),
             albedo_normalised: false,
             mesh: false,
+            color: ColorSolve::default(),
         }
     }
 }
@@ -141,18 +145,15 @@ pub fn reconstruct(
 ) -> Result<Reconstruction> {
     capture.lights.check_usable(MAX_LIGHT_CONDITION)?;
     let t = Instant::now();
-    let solutions: Vec<Solution> = (0..capture.stack.channels())
-        .map(|c| {
-            solve(
-                &capture.stack,
-                c,
-                &capture.lights,
-                &capture.mask,
-                &config.solve,
-                progress,
-            )
-        })
-        .collect::<Result<_>>()?;
+    let (stack, lights, mask) = (&capture.stack, &capture.lights, &capture.mask);
+    let solutions: Vec<Solution> =
+        if stack.channels() == 3 && config.color == ColorSolve::SharedNormal {
+            solve_shared_normal(stack, lights, mask, &config.solve, progress)?
+        } else {
+            (0..stack.channels())
+                .map(|c| solve(stack, c, lights, mask, &config.solve, progress))
+                .collect::<Result<_>>()?
+        };
     let solve_s = t.elapsed().as_secs_f64();
 
     let t = Instant::now();

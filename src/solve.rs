@@ -403,28 +403,12 @@ pub fn solve_pixel(
         }
     };
     let sigma = vec![sigma; values.len()];
-    Ok(fit_gathered(values, saturated, &dirs, &gains, &sigma, options).0)
-}
-
-/// Fits one pixel's gathered samples with the method of `options` under per-image `gains`,
-/// returning the solution and which samples it used. `sigma` is the per-image noise of the
-/// samples before gains ([`Method::Auto`] only).
-pub(crate) fn fit_gathered(
-    values: &[f32],
-    saturated: &[bool],
-    dirs: &[Vector3<f64>],
-    gains: &[f32],
-    sigma: &[f32],
-    options: &SolveOptions,
-) -> (PixelSolution, Vec<bool>) {
-    let mut f = fitter(dirs, gains, options);
-    let p = fit_with(&mut f, values, saturated, sigma, options);
-    let used = f.weights().iter().map(|&w| w > 0.0).collect();
-    (p, used)
+    let mut f = fitter(&dirs, &gains, options);
+    Ok(fit_with(&mut f, values, saturated, &sigma, options))
 }
 
 /// A per-pixel fitter with the rejection parameters of `options`.
-fn fitter<'a>(
+pub(crate) fn fitter<'a>(
     dirs: &'a [Vector3<f64>],
     gains: &'a [f32],
     options: &SolveOptions,
@@ -438,8 +422,9 @@ fn fitter<'a>(
     )
 }
 
-/// [`fit_gathered`] with a caller-owned fitter.
-fn fit_with(
+/// Fits one pixel's gathered samples with the method of `options`, using `f`'s per-image
+/// gains; `sigma` is the per-image noise of the samples before gains ([`Method::Auto`] only).
+pub(crate) fn fit_with(
     f: &mut PixelFitter,
     values: &[f32],
     saturated: &[bool],
@@ -1045,6 +1030,53 @@ pub(crate) fn test_sigmas(
         .collect()
 }
 
+/// Checks that `stack`, `lights`, `mask` and `options` fit together for a solve of channel
+/// `channel`.
+pub(crate) fn check_inputs(
+    stack: &ImageStack,
+    channel: usize,
+    lights: &Lights,
+    mask: &Mask,
+    options: &SolveOptions,
+) -> Result<()> {
+    options.validate()?;
+    if lights.len() != stack.count() {
+        return Err(Error::LightsMismatch {
+            reason: format!("{} lights for {} images", lights.len(), stack.count()),
+        });
+    }
+    if channel >= stack.channels() {
+        return Err(Error::param(
+            "channel",
+            format!("{channel} ≥ the stack's {} channels", stack.channels()),
+        ));
+    }
+    Grid::new(stack.width(), stack.height(), ()).check_same_size(mask, "mask vs images")
+}
+
+/// The per-image noise of the fit test (NaN unless [`Method::Auto`]) and the intensity gains
+/// (estimated when [`SolveOptions::recalibrates`], unit otherwise) for channel `channel`.
+pub(crate) fn noise_and_gains(
+    stack: &ImageStack,
+    channel: usize,
+    lights: &Lights,
+    mask: &Mask,
+    options: &SolveOptions,
+) -> (Vec<f32>, crate::intensities::GainEstimate) {
+    let k = stack.count();
+    let sigma = if options.method == Method::Auto {
+        test_sigmas(stack, channel, mask, options)
+    } else {
+        vec![f32::NAN; k]
+    };
+    let gains = if options.recalibrates(k) {
+        crate::intensities::estimate_gains_with(stack, channel, lights, mask, options, &sigma)
+    } else {
+        crate::intensities::GainEstimate::unit(k)
+    };
+    (sigma, gains)
+}
+
 /// Estimates g = ρN for every masked pixel of channel `channel` of `stack`.
 ///
 /// # Errors
@@ -1074,33 +1106,10 @@ pub fn solve(
     options: &SolveOptions,
     progress: &dyn Progress,
 ) -> Result<Solution> {
-    options.validate()?;
-    if lights.len() != stack.count() {
-        return Err(Error::LightsMismatch {
-            reason: format!("{} lights for {} images", lights.len(), stack.count()),
-        });
-    }
-    if channel >= stack.channels() {
-        return Err(Error::param(
-            "channel",
-            format!("{channel} ≥ the stack's {} channels", stack.channels()),
-        ));
-    }
+    check_inputs(stack, channel, lights, mask, options)?;
     let (w, h) = (stack.width(), stack.height());
-    let probe = Grid::new(w, h, ());
-    probe.check_same_size(mask, "mask vs images")?;
-    let k = stack.count();
     let dirs64 = lights.directions();
-    let sigma = if options.method == Method::Auto {
-        test_sigmas(stack, channel, mask, options)
-    } else {
-        vec![f32::NAN; k]
-    };
-    let gains = if options.recalibrates(k) {
-        crate::intensities::estimate_gains_with(stack, channel, lights, mask, options, &sigma)
-    } else {
-        crate::intensities::GainEstimate::unit(k)
-    };
+    let (sigma, gains) = noise_and_gains(stack, channel, lights, mask, options);
     let per = PerImage {
         dirs: dirs64
             .iter()

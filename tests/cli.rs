@@ -224,7 +224,7 @@ fn diligent_like(dir: &Path) -> PathBuf {
 fn diligent_layout_folder_with_colour_intensities() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = diligent_like(&tmp.path().join("objPNG"));
-    for color in ["grey", "per-channel"] {
+    for color in ["grey", "shared", "per-channel"] {
         let out = tmp.path().join(format!("out-{color}"));
         let o = run(&[
             dir.as_os_str(),

@@ -3,6 +3,7 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use photostereo::camera::Intrinsics;
+use photostereo::color::ColorSolve;
 use photostereo::input::{ColorMode, LoadOptions, Transfer};
 use photostereo::integrate::{BilateralParams, IntegrationOptions, Integrator, LinearSolver};
 use photostereo::pipeline::Config;
@@ -130,8 +131,9 @@ pub struct MethodArgs {
 /// Image reading options.
 #[derive(Debug, Args, Clone)]
 pub struct LoadArgs {
-    /// Colour handling: `grey` (divide by per-channel intensity, mix with BT.601 weights) or
-    /// `per-channel` (solve R, G and B separately; the normal is their common direction).
+    /// Colour handling: `grey` (divide by per-channel intensity, mix with BT.601 weights),
+    /// `shared` (one normal and an RGB albedo fitted jointly to the three channels) or
+    /// `per-channel` (solve R, G and B separately; the normal is the direction of their sum).
     #[arg(long, value_enum, default_value_t = ColorArg::Grey)]
     pub color: ColorArg,
     /// Treat 8-bit images as linear (by default they are decoded as sRGB).
@@ -454,6 +456,8 @@ impl IntegrationArgs {
 pub enum ColorArg {
     /// BT.601 grey mix.
     Grey,
+    /// One normal, RGB albedo, fitted jointly to R, G and B.
+    Shared,
     /// Separate R, G, B solves.
     PerChannel,
 }
@@ -487,11 +491,20 @@ impl MethodArgs {
             },
             albedo_normalised: self.albedo_normalised,
             mesh: self.mesh,
+            color: ColorSolve::default(),
         })
     }
 }
 
 impl LoadArgs {
+    /// How the channels of an RGB load are solved.
+    pub fn color_solve(&self) -> ColorSolve {
+        match self.color {
+            ColorArg::PerChannel => ColorSolve::PerChannel,
+            ColorArg::Grey | ColorArg::Shared => ColorSolve::SharedNormal,
+        }
+    }
+
     /// The library load options these flags describe.
     pub fn options(&self) -> Result<LoadOptions> {
         if let Some(s) = self.saturation
@@ -502,7 +515,7 @@ impl LoadArgs {
         Ok(LoadOptions {
             color: match self.color {
                 ColorArg::Grey => ColorMode::Grey,
-                ColorArg::PerChannel => ColorMode::PerChannel,
+                ColorArg::Shared | ColorArg::PerChannel => ColorMode::PerChannel,
             },
             transfer: if self.linear {
                 Transfer::Linear
@@ -580,7 +593,10 @@ impl RunArgs {
             mask: self.mask,
             output,
             load: self.load.options()?,
-            config: self.method.config()?,
+            config: Config {
+                color: self.load.color_solve(),
+                ..self.method.config()?
+            },
         })
     }
 }

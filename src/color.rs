@@ -1,0 +1,267 @@
+//! Colour photometric stereo with one normal per pixel, for RGB images under lights of known
+//! RGB intensity.
+//!
+//! Once each channel is divided by its light's intensity e_{k,c}, the Lambertian model reads
+//! I_{k,c} = ρ_c·max(0, N·l_k): three albedos and one normal. Per-channel solves
+//! ([`ColorSolve::PerChannel`]) fit g_c = ρ_c·N in each channel on its own, so noise gives the
+//! three estimates different directions and the normal is taken from their sum. The
+//! shared-normal solve ([`ColorSolve::SharedNormal`]) fits the channels jointly:
+//!
+//! minimise Σ_c Σ_k w_k·(I_{k,c} − ρ_c·N·l_k)² over N and ρ,
+//!
+//! that is, G = [g_R g_G g_B] = N·ρᵀ of rank one. With A = Σ_k w_k·l_k·l_kᵀ and the
+//! unconstrained per-channel solution Ĝ = A⁻¹·Σ_k w_k·l_k·I_kᵀ, the objective equals
+//! Σ_c (g_c − ĝ_c)ᵀ·A·(g_c − ĝ_c) plus a constant, so the optimum is the best rank-one
+//! approximation of Ĝ in the metric of A (Eckart & Young 1936, "The approximation of one matrix
+//! by another of lower rank", Psychometrika 1(3)). Writing A = RᵀR (Cholesky), N ∝ R⁻¹·u for u
+//! the leading eigenvector of (RĜ)(RĜ)ᵀ, and ρ_c = Nᵀ·A·ĝ_c / Nᵀ·A·N. This is the
+//! maximum-likelihood normal when the three channels carry equal noise; it weights each channel
+//! by its signal, where a fixed grey mix lets a dim channel count only by its BT.601 weight, and
+//! it returns an RGB albedo that belongs to the one normal.
+//!
+//! Which samples count, and how much (shadows, highlights, saturation), is decided once per pixel
+//! by the estimator of the [`SolveOptions`] run on the grey mix of the channels — for the default
+//! [`crate::solve::Method::Auto`], the Lambertian fit test and, where it fails, specular
+//! rejection — so the channels share the sample weights w_k as well as the normal. The grey mix
+//! also supplies the noise estimate and the per-image intensity gains.
+
+use crate::error::{Error, Result};
+use crate::grid::{Grid, Mask};
+use crate::input::ImageStack;
+use crate::lights::Lights;
+use crate::progress::Progress;
+use crate::solve::{
+    Method, PixelSolution, PixelStatus, Solution, SolveOptions, check_inputs, fit_with, fitter,
+    noise_and_gains,
+};
+use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
+use serde::Serialize;
+
+/// How the channels of an RGB capture are solved.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ColorSolve {
+    /// One normal and three albedos fitted jointly (this module).
+    #[default]
+    SharedNormal,
+    /// An independent g_c per channel; the normal is the direction of g_R + g_G + g_B
+    /// ([`crate::normals::combine_channels`]).
+    PerChannel,
+}
+
+/// Masked pixels per parallel work item.
+const CHUNK: usize = 2048;
+
+/// One pixel of the shared-normal solve.
+#[derive(Debug, Clone, Copy)]
+struct ColorPixel {
+    normal: Vector3<f64>,
+    albedo: [f64; 3],
+    /// RMS residual over the used samples of all three channels.
+    residual: f64,
+    grey: PixelSolution,
+}
+
+/// Solves a 3-channel `stack` for one normal and an RGB albedo per masked pixel (see the module
+/// documentation). The result has one [`Solution`] per channel with g_c = ρ_c·N, so
+/// [`crate::normals::combine_channels`] returns the shared normal and the per-channel albedo;
+/// residual, samples, condition, status and robust flags are the same in all three.
+///
+/// # Errors
+/// [`Error::InvalidParameter`] when the stack does not have 3 channels or the options are
+/// invalid; [`Error::LightsMismatch`] when the light count differs from the image count;
+/// [`Error::DimensionMismatch`] for a mask of another size.
+///
+/// # Example
+/// ```
+/// use photostereo::{color::solve_shared_normal, grid::Grid, input::ImageStack};
+/// use photostereo::{lights::Lights, progress::Silent, solve::SolveOptions};
+/// let lights = Lights::ring(8, 45.0, 0.0)?;
+/// // A flat patch facing the camera with RGB albedo (0.6, 0.4, 0.2): I_kc = ρ_c · l_k.z.
+/// let images = lights
+///     .directions()
+///     .iter()
+///     .map(|l| [0.6, 0.4, 0.2].iter().flat_map(|r| vec![(r * l.z) as f32; 4]).collect())
+///     .collect();
+/// let stack = ImageStack::from_images(2, 2, 3, images)?;
+/// let sol = solve_shared_normal(&stack, &lights, &Grid::new(2, 2, true), &SolveOptions::default(), &Silent)?;
+/// assert!((sol[2].g.at(0, 0).z - 0.2).abs() < 1e-5);
+/// # Ok::<(), photostereo::Error>(())
+/// ```
+pub fn solve_shared_normal(
+    stack: &ImageStack,
+    lights: &Lights,
+    mask: &Mask,
+    options: &SolveOptions,
+    progress: &dyn Progress,
+) -> Result<Vec<Solution>> {
+    if stack.channels() != 3 {
+        return Err(Error::param(
+            "stack",
+            format!(
+                "the shared-normal colour solve needs RGB images; the stack has {} channel(s)",
+                stack.channels()
+            ),
+        ));
+    }
+    check_inputs(stack, 0, lights, mask, options)?;
+    let grey = stack.grey_mix();
+    let (sigma, gains) = noise_and_gains(&grey, 0, lights, mask, options);
+    let dirs = lights.directions();
+    let k = stack.count();
+    let pixels: Vec<usize> = (0..mask.len()).filter(|&i| mask.data()[i]).collect();
+    progress.begin("solve", pixels.len().div_ceil(CHUNK) as u64);
+    let fitted: Vec<Vec<ColorPixel>> = pixels
+        .par_chunks(CHUNK)
+        .map_init(
+            || fitter(&dirs, &gains.gains, options),
+            |f, chunk| {
+                let m = chunk.len();
+                // Gather the chunk as [pixel][image] (grey, flags) and [pixel][channel][image].
+                let mut values = vec![0f32; m * k];
+                let mut saturated = vec![false; m * k];
+                let mut colour = vec![0f32; 3 * m * k];
+                for img in 0..k {
+                    let g = grey.plane(img, 0);
+                    let planes = [0, 1, 2].map(|c| stack.plane(img, c));
+                    for (i, &p) in chunk.iter().enumerate() {
+                        values[i * k + img] = g[p];
+                        saturated[i * k + img] = grey.is_saturated(img, p);
+                        for (c, plane) in planes.iter().enumerate() {
+                            colour[(i * 3 + c) * k + img] = plane[p];
+                        }
+                    }
+                }
+                let out = (0..m)
+                    .map(|i| {
+                        let samples = i * k..(i + 1) * k;
+                        let p = fit_with(
+                            f,
+                            &values[samples.clone()],
+                            &saturated[samples],
+                            &sigma,
+                            options,
+                        );
+                        shared_fit(
+                            &dirs,
+                            &gains.gains,
+                            f.weights(),
+                            &colour[i * 3 * k..(i + 1) * 3 * k],
+                            p,
+                        )
+                    })
+                    .collect();
+                progress.advance(1);
+                out
+            },
+        )
+        .collect();
+    progress.end();
+    let (w, h) = (stack.width(), stack.height());
+    let mut out: Vec<Solution> = (0..3)
+        .map(|_| Solution {
+            g: Grid::new(w, h, Vector3::repeat(f32::NAN)),
+            residual: Grid::new(w, h, f32::NAN),
+            samples: Grid::new(w, h, 0),
+            condition: Grid::new(w, h, f32::NAN),
+            status: Grid::new(w, h, PixelStatus::Outside),
+            robust: Grid::new(w, h, false),
+            gains: gains.clone(),
+            noise: if options.method == Method::Auto {
+                sigma.clone()
+            } else {
+                Vec::new()
+            },
+        })
+        .collect();
+    for (&p, px) in pixels.iter().zip(fitted.iter().flatten()) {
+        let solved = px.grey.status == PixelStatus::Solved;
+        for (c, sol) in out.iter_mut().enumerate() {
+            sol.g.data_mut()[p] = (px.normal * px.albedo[c]).map(|v| v as f32);
+            sol.residual.data_mut()[p] = px.residual as f32;
+            sol.samples.data_mut()[p] = px.grey.samples.min(u16::MAX as usize) as u16;
+            sol.condition.data_mut()[p] = px.grey.condition as f32;
+            sol.status.data_mut()[p] = px.grey.status;
+            sol.robust.data_mut()[p] = px.grey.robust && solved;
+        }
+    }
+    Ok(out)
+}
+
+/// The rank-one fit of one pixel: `colour` holds the three channels' samples ([channel][image]),
+/// `weights` the per-image weights of the grey fit `grey`, `gains` the intensity corrections.
+fn shared_fit(
+    dirs: &[Vector3<f64>],
+    gains: &[f32],
+    weights: &[f64],
+    colour: &[f32],
+    grey: PixelSolution,
+) -> ColorPixel {
+    let k = dirs.len();
+    let failed = |status| ColorPixel {
+        normal: Vector3::repeat(f64::NAN),
+        albedo: [f64::NAN; 3],
+        residual: f64::NAN,
+        grey: PixelSolution { status, ..grey },
+    };
+    if grey.status != PixelStatus::Solved {
+        return failed(grey.status);
+    }
+    let sample = |c: usize, j: usize| f64::from(colour[c * k + j]) * f64::from(gains[j]);
+    let mut a = Matrix3::zeros();
+    let mut b = Matrix3::zeros();
+    let mut used = 0;
+    for (j, l) in dirs.iter().enumerate() {
+        let w = weights[j];
+        if w <= 0.0 {
+            continue;
+        }
+        used += 1;
+        a += l * l.transpose() * w;
+        for c in 0..3 {
+            let mut col = b.column_mut(c);
+            col += l * (w * sample(c, j));
+        }
+    }
+    let Some(chol) = a.cholesky() else {
+        return failed(PixelStatus::IllConditioned);
+    };
+    let g_hat = chol.solve(&b);
+    let r = chol.l().transpose();
+    let m = r * g_hat;
+    let eigen = (m * m.transpose()).symmetric_eigen();
+    let top = eigen.eigenvalues.imax();
+    let u = eigen.eigenvectors.column(top).into_owned();
+    let Some(n) = r.solve_upper_triangular(&u) else {
+        return failed(PixelStatus::IllConditioned);
+    };
+    let mut n = n.normalize();
+    let an = a * n;
+    let nan = n.dot(&an);
+    let mut albedo = [0, 1, 2].map(|c| an.dot(&g_hat.column(c)) / nan);
+    if albedo.iter().sum::<f64>() < 0.0 {
+        n = -n;
+        albedo = albedo.map(|v| -v);
+    }
+    // A negative albedo is noise in a channel without signal.
+    let albedo = albedo.map(|v| v.max(0.0));
+    if !n.iter().all(|v| v.is_finite()) || albedo.iter().all(|&v| v <= 0.0) {
+        return failed(PixelStatus::Dark);
+    }
+    let mut ss = 0.0;
+    for (j, l) in dirs.iter().enumerate() {
+        if weights[j] > 0.0 {
+            let shading = n.dot(l);
+            for (c, rho) in albedo.iter().enumerate() {
+                ss += (sample(c, j) - rho * shading).powi(2);
+            }
+        }
+    }
+    ColorPixel {
+        normal: n,
+        albedo,
+        residual: (ss / (3 * used.max(1)) as f64).sqrt(),
+        grey,
+    }
+}

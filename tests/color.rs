@@ -1,0 +1,211 @@
+//! Colour photometric stereo: the shared-normal solve against per-channel solves and the grey
+//! mix, on rendered RGB scenes under lights of different colours.
+
+use photostereo::Error;
+use photostereo::color::{ColorSolve, solve_shared_normal};
+use photostereo::dataset::Capture;
+use photostereo::grid::Grid;
+use photostereo::input::{ColorMode, ImageStack};
+use photostereo::lights::{Light, Lights};
+use photostereo::metrics::angular_errors;
+use photostereo::pipeline::{Config, Reconstruction, reconstruct};
+use photostereo::progress::Silent;
+use photostereo::reflectance::{BlinnPhong, Material, Specular};
+use photostereo::render::{RenderOptions, Rendering, render};
+use photostereo::scene::{Albedo, Scene, SceneKind};
+use photostereo::solve::{Method, SolveOptions};
+
+/// `n` lights up to 40° from the view, each of a different colour.
+fn coloured_lights(n: usize) -> Lights {
+    let base = Lights::fibonacci(n, 40.0).unwrap();
+    let lights = base
+        .directions()
+        .iter()
+        .enumerate()
+        .map(|(k, d)| {
+            let t = k as f64 / n as f64;
+            Light {
+                intensity: [1.0, 0.5 + 0.5 * t, 1.2 - 0.7 * t],
+                ..Light::new(*d)
+            }
+        })
+        .collect();
+    Lights::new(lights).unwrap()
+}
+
+/// An RGB rendering of `scene` and the capture of its per-channel and grey stacks.
+fn rendered(scene: Scene, lights: &Lights, noise: f32, seed: u64) -> (Rendering, Capture, Capture) {
+    let options = RenderOptions {
+        color: true,
+        noise_sigma: noise,
+        seed,
+        ..RenderOptions::default()
+    };
+    let r = render(&scene, lights, &options).unwrap();
+    let mask = Some(r.truth.mask.clone());
+    let rgb = r.to_stack(lights, ColorMode::PerChannel).unwrap();
+    let grey = r.to_stack(lights, ColorMode::Grey).unwrap();
+    let rgb = Capture::from_stack(rgb, lights.clone(), mask.clone()).unwrap();
+    let grey = Capture::from_stack(grey, lights.clone(), mask).unwrap();
+    (r, rgb, grey)
+}
+
+fn run(capture: &Capture, method: Method, color: ColorSolve) -> Reconstruction {
+    let config = Config {
+        solve: SolveOptions::with_method(method),
+        integration: None,
+        color,
+        ..Config::default()
+    };
+    reconstruct(capture, &config, &Silent).unwrap()
+}
+
+fn mean_error(recon: &Reconstruction, r: &Rendering, mask: &Grid<bool>) -> f64 {
+    let e = angular_errors(&recon.normals, &r.truth.normals, mask).unwrap();
+    assert_eq!(e.missing, 0, "unsolved pixels");
+    e.mean_deg
+}
+
+/// Noise-free Lambertian data under coloured lights: the shared normal and the RGB albedo are
+/// exact (textured albedo times the material's colour), with and without the fit test.
+#[test]
+fn exact_on_noise_free_colour_lambertian() {
+    let colour = [0.9, 0.5, 0.15];
+    let material = Material {
+        diffuse_color: colour,
+        ..Material::lambertian()
+    };
+    let albedo = Albedo::Checker {
+        size: 12.0,
+        a: 0.8,
+        b: 0.4,
+    };
+    let scene = SceneKind::Sphere.build(96, albedo, material);
+    let lights = coloured_lights(12);
+    let (r, rgb, _) = rendered(scene, &lights, 0.0, 1);
+    for method in [Method::Threshold, Method::Auto] {
+        let recon = run(&rgb, method, ColorSolve::SharedNormal);
+        let e = mean_error(&recon, &r, &rgb.mask);
+        assert!(e < 0.01, "{}: {e}°", method.name());
+        assert_eq!(recon.albedo.len(), 3);
+        for (c, map) in recon.albedo.iter().enumerate() {
+            let mut worst: f64 = 0.0;
+            for (i, a) in map.data().iter().enumerate() {
+                if rgb.mask.data()[i] {
+                    let truth = f64::from(r.truth.albedo.data()[i]) * colour[c];
+                    worst = worst.max((f64::from(*a) - truth).abs() / truth);
+                }
+            }
+            assert!(
+                worst < 1e-3,
+                "{}: channel {c} albedo off by {worst}",
+                method.name()
+            );
+        }
+    }
+}
+
+/// A blue object under coloured lights with noise: the grey mix gives blue only its BT.601
+/// weight of 0.114 and the per-channel sum lets the dim red channel add its noise, while the
+/// rank-one fit weighs each channel by its signal. Over three noise draws the shared normal
+/// is the most accurate of the three. The signal-to-noise ratios predict errors 2.6× lower than
+/// the grey mix's and 1.4× lower than the per-channel sum's; measured: shared 2.34°,
+/// per-channel 2.93°, grey 5.13°.
+#[test]
+fn shared_normal_beats_grey_and_per_channel_on_a_coloured_object() {
+    let material = Material {
+        diffuse_color: [0.05, 0.2, 0.9],
+        ..Material::lambertian()
+    };
+    let lights = coloured_lights(20);
+    let (mut shared, mut per, mut grey) = (0.0, 0.0, 0.0);
+    for seed in 1..=3 {
+        let scene = SceneKind::Sphere.build(96, Albedo::Constant(0.8), material);
+        let (r, rgb, grey_capture) = rendered(scene, &lights, 0.02, seed);
+        shared += mean_error(
+            &run(&rgb, Method::Threshold, ColorSolve::SharedNormal),
+            &r,
+            &rgb.mask,
+        );
+        per += mean_error(
+            &run(&rgb, Method::Threshold, ColorSolve::PerChannel),
+            &r,
+            &rgb.mask,
+        );
+        grey += mean_error(
+            &run(&grey_capture, Method::Threshold, ColorSolve::SharedNormal),
+            &r,
+            &rgb.mask,
+        );
+    }
+    let (shared, per, grey) = (shared / 3.0, per / 3.0, grey / 3.0);
+    println!("blue object, σ 0.02: shared {shared:.3}°, per-channel {per:.3}°, grey {grey:.3}°");
+    assert!(shared < 0.6 * grey, "shared {shared} vs grey {grey}");
+    assert!(shared < 0.85 * per, "shared {shared} vs per-channel {per}");
+}
+
+/// A glossy coloured object (white Blinn–Phong highlights on a coloured diffuse layer) beside
+/// cast shadows: the sample weights of the automatic method's grey fit carry over to the colour
+/// fit, so the shared normal rejects the highlights as the grey solve does.
+#[test]
+fn shared_normal_with_the_automatic_method_rejects_highlights() {
+    let material = Material {
+        diffuse_color: [0.8, 0.5, 0.3],
+        ..Material::with_specular(Specular::BlinnPhong(BlinnPhong {
+            ks: 0.2,
+            exponent: 50.0,
+        }))
+    };
+    let lights = coloured_lights(32);
+    let (r, rgb, grey_capture) = rendered(Scene::sphere_on_ground(96, material), &lights, 0.005, 4);
+    let grey = mean_error(
+        &run(&grey_capture, Method::Auto, ColorSolve::SharedNormal),
+        &r,
+        &rgb.mask,
+    );
+    let per = mean_error(
+        &run(&rgb, Method::Auto, ColorSolve::PerChannel),
+        &r,
+        &rgb.mask,
+    );
+    let threshold = mean_error(
+        &run(&rgb, Method::Threshold, ColorSolve::SharedNormal),
+        &r,
+        &rgb.mask,
+    );
+    let auto = run(&rgb, Method::Auto, ColorSolve::SharedNormal);
+    let auto_err = mean_error(&auto, &r, &rgb.mask);
+    println!(
+        "glossy colour: shared threshold {threshold:.2}°, shared auto {auto_err:.2}° ({:.1}% robust), grey auto {grey:.2}°, per-channel auto {per:.2}°",
+        100.0 * auto.model.robust_fraction
+    );
+    // Measured: shared threshold 6.6°, shared auto 0.57° (96% robust), grey auto 0.62°,
+    // per-channel auto 1.0° (each channel's own selection, from a third of the signal).
+    assert!(threshold > 3.0, "threshold {threshold}");
+    assert!(auto_err < 0.8, "auto {auto_err}");
+    assert!(auto_err < 1.05 * grey, "shared {auto_err} vs grey {grey}");
+    assert!(
+        auto_err < 0.8 * per,
+        "shared {auto_err} vs per-channel {per}"
+    );
+    assert!(auto.model.robust_fraction > 0.3);
+}
+
+/// A grey stack is refused with an error naming the parameter.
+#[test]
+fn refuses_a_grey_stack() {
+    let lights = Lights::fibonacci(6, 30.0).unwrap();
+    let stack = ImageStack::from_images(2, 2, 1, vec![vec![0.5; 4]; 6]).unwrap();
+    let err = solve_shared_normal(
+        &stack,
+        &lights,
+        &Grid::new(2, 2, true),
+        &SolveOptions::default(),
+        &Silent,
+    )
+    .unwrap_err();
+    match err {
+        Error::InvalidParameter { name, .. } => assert_eq!(name, "stack"),
+        other => panic!("unexpected error {other}"),
+    }
+}
