@@ -34,6 +34,19 @@ pub(crate) fn condition_from_gram(gram: &Matrix3<f64>) -> f64 {
     }
 }
 
+/// Whether [`condition_from_gram`]`(gram) ≤ max_condition`, usually without the eigenvalues:
+/// for eigenvalues 0 < λ₁ ≤ λ₂ ≤ λ₃, λ₁ = det/(λ₂λ₃) ≥ det/λ₃², so λ₃/λ₁ ≤ λ₃³/det ≤ trace³/det,
+/// and trace³ ≤ max_condition²·det already settles it.
+pub(crate) fn condition_at_most(gram: &Matrix3<f64>, max_condition: f64) -> bool {
+    let limit = max_condition * max_condition;
+    let det = gram.determinant();
+    let trace = gram.trace();
+    if det > 0.0 && trace.powi(3) <= limit * det {
+        return true;
+    }
+    condition_from_gram(gram) <= max_condition
+}
+
 /// Solves the symmetric positive-definite system `a x = b` by Cholesky; `None` when `a` is
 /// not positive definite.
 pub(crate) fn solve_spd(a: Matrix3<f64>, b: Vector3<f64>) -> Option<Vector3<f64>> {
@@ -63,5 +76,16 @@ mod tests {
         assert_relative_eq!(condition_from_gram(&d), 3f64.sqrt(), epsilon = 1e-12);
         let v = Vector3::new(1.0, 2.0, 3.0);
         assert!(condition_from_gram(&(v * v.transpose())).is_infinite());
+        // The shortcut agrees with the eigenvalues on either side of the limit.
+        for (m, limit) in [(d, 10.0), (d, 1.8), (d, 1.7), (v * v.transpose(), 1e9)] {
+            assert_eq!(
+                condition_at_most(&m, limit),
+                condition_from_gram(&m) <= limit,
+                "{m} {limit}"
+            );
+        }
+        let spread = Matrix3::new(4.0, 1.0, -2.0, 1.0, 2.0, 0.5, -2.0, 0.5, 3.0);
+        let c = condition_from_gram(&spread);
+        assert!(condition_at_most(&spread, c * 1.001) && !condition_at_most(&spread, c * 0.999));
     }
 }

@@ -29,7 +29,7 @@
 // the image number; iterator chains over four zips would hide that.
 #![allow(clippy::needless_range_loop)]
 
-use crate::linalg::{condition_from_gram, solve_spd};
+use crate::linalg::{condition_at_most, condition_from_gram, solve_spd};
 use crate::solve::{MIN_SAMPLES, PixelSolution, PixelStatus};
 use nalgebra::{Matrix3, Vector3};
 use serde::Serialize;
@@ -623,7 +623,7 @@ impl Compact {
             };
         }
         let (gram, _) = self.gram(&self.w);
-        if condition_from_gram(&gram) > SELECTION_MAX_CONDITION {
+        if !condition_at_most(&gram, SELECTION_MAX_CONDITION) {
             return None;
         }
         self.wls()
@@ -667,7 +667,7 @@ impl Compact {
             }
             let (gram, count) = self.gram(&self.keep);
             if count >= MIN_ROBUST_SAMPLES as f64
-                && condition_from_gram(&gram) <= SELECTION_MAX_CONDITION
+                && condition_at_most(&gram, SELECTION_MAX_CONDITION)
             {
                 return;
             }
