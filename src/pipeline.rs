@@ -122,10 +122,16 @@ pub struct ModelSummary {
     pub robust_pixels: usize,
     /// `robust_pixels` as a fraction of the solved pixels.
     pub robust_fraction: f64,
-    /// Per channel, the per-image intensity gains applied (all 1 unless recalibrated).
+    /// Per channel, the per-image intensity gains applied (all 1 unless an estimate was
+    /// applied).
     pub gains: Vec<Vec<f32>>,
     /// Whether the intensity gains were estimated from the data.
     pub recalibrated: bool,
+    /// Per channel, whether the estimate was applied: it converged and fitted the data better
+    /// than the stated intensities ([`crate::intensities::GainEstimate::applied`]).
+    pub gains_applied: Vec<bool>,
+    /// Per channel, the estimated gains, applied or not (empty without recalibration).
+    pub estimated_gains: Vec<Vec<f32>>,
     /// Per channel, the per-image noise σ the fit test assumed (`auto` only).
     pub noise: Vec<Vec<f32>>,
 }
@@ -203,6 +209,15 @@ pub fn reconstruct(
         robust_fraction: robust.count() as f64 / solved.count().max(1) as f64,
         gains: solutions.iter().map(|s| s.gains.gains.clone()).collect(),
         recalibrated,
+        gains_applied: solutions.iter().map(|s| s.gains.applied).collect(),
+        estimated_gains: if recalibrated {
+            solutions
+                .iter()
+                .map(|s| s.gains.estimated.clone())
+                .collect()
+        } else {
+            Vec::new()
+        },
         noise: solutions.iter().map(|s| s.noise.clone()).collect(),
     };
     let albedo_above_one = (0..w * h)
@@ -284,6 +299,18 @@ pub fn reconstruct(
                 if off.len() > 12 { ", …" } else { "" },
                 worst
             ));
+        }
+    }
+    if recalibrated && solutions.iter().any(|s| !s.gains.applied) {
+        let far = solutions
+            .iter()
+            .filter(|s| !s.gains.applied)
+            .flat_map(|s| s.gains.estimated.iter())
+            .any(|g| (g - 1.0).abs() > GAIN_WARNING);
+        if far {
+            warnings.push(
+                "the light intensities estimated from the images differ from the stated ones but did not converge or fit the data better, so the stated intensities were kept (estimate in report.json → model.estimated_gains); strong highlights or interreflections can cause this".to_string(),
+            );
         }
     }
     if config.albedo_normalised && albedo_above_one > 0 {

@@ -377,10 +377,12 @@ fn print_summary(recon: &Reconstruction, report: &Report, config: &Config, dir: 
         say!(
             "  model: {:.1}% of solved pixels needed the robust fit{}",
             100.0 * m.robust_fraction,
-            if m.recalibrated {
-                "; light intensities corrected from the data (gains in report.json)"
-            } else {
-                ""
+            match (m.recalibrated, m.gains_applied.iter().all(|&a| a)) {
+                (true, true) =>
+                    "; light intensities corrected from the data (gains in report.json)",
+                (true, false) =>
+                    "; light intensities estimated from the data but kept as stated (report.json)",
+                (false, _) => "",
             }
         );
     }
