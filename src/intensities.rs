@@ -111,8 +111,8 @@ impl GainEstimate {
 /// test uses the noise estimated from the images, as [`crate::solve::solve`] does).
 ///
 /// # Errors
-/// [`Error::LightsMismatch`] when the light count differs from the image count;
-/// [`Error::DimensionMismatch`] for a mask of another size; [`Error::InvalidParameter`] for a
+/// [`crate::Error::LightsMismatch`] when the light count differs from the image count;
+/// [`crate::Error::DimensionMismatch`] for a mask of another size; [`crate::Error::InvalidParameter`] for a
 /// bad channel or options.
 pub fn estimate_gains(
     stack: &ImageStack,

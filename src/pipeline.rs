@@ -142,7 +142,7 @@ pub const GAIN_WARNING: f32 = 0.1;
 /// Runs solve, normals, integrability and (optionally) integration on a capture.
 ///
 /// # Errors
-/// The errors of [`solve`] and [`integrate`]; [`Error::DegenerateLights`] or
+/// The errors of [`solve`] and [`crate::integrate::integrate_normals`]; [`Error::DegenerateLights`] or
 /// [`Error::TooFewImages`] when the light set cannot determine normals.
 pub fn reconstruct(
     capture: &Capture,

@@ -2,7 +2,7 @@
 //!
 //! Image model: for a distant light of irradiance scale E_c (channel c) in direction l,
 //! pixel_c = E_c · π · f_c(l, v) · max(0, n·l) + ambient · ρ · d_c, with f the object's
-//! [`Material`] BRDF (diffuse colour d, specular colour s), v = (0, 0, 1) the viewing direction
+//! [`crate::reflectance::Material`] BRDF (diffuse colour d, specular colour s), v = (0, 0, 1) the viewing direction
 //! of the orthographic camera looking down −z, and ρ the albedo. A Lambertian surface therefore
 //! gives E ρ (n·l): the photometric-stereo solver sees g = ρN exactly once images are divided
 //! by E. A grey rendering is the BT.601 mix of the colour one.

@@ -27,7 +27,7 @@ pub(crate) const NONE: u32 = u32::MAX;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum LinearSolver {
-    /// Direct up to [`DIRECT_MAX_UNKNOWNS`] unknowns, conjugate gradients beyond.
+    /// Direct up to 100 000 unknowns, conjugate gradients beyond.
     #[default]
     Auto,
     /// Sparse Cholesky factorisation (exact; memory grows like n log n).
