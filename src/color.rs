@@ -26,12 +26,12 @@
 //! also supplies the noise estimate and the per-image intensity gains.
 
 use crate::error::{Error, Result};
-use crate::grid::{Grid, Mask};
+use crate::grid::Mask;
 use crate::input::ImageStack;
 use crate::lights::Lights;
 use crate::progress::Progress;
 use crate::solve::{
-    Method, PixelSolution, PixelStatus, Solution, SolveOptions, check_inputs, fit_with, fitter,
+    PixelSolution, PixelStatus, Solution, SolveOptions, check_inputs, fit_with, fitter,
     noise_and_gains,
 };
 use nalgebra::{Matrix3, Vector3};
@@ -160,30 +160,16 @@ pub fn solve_shared_normal(
     progress.end();
     let (w, h) = (stack.width(), stack.height());
     let mut out: Vec<Solution> = (0..3)
-        .map(|_| Solution {
-            g: Grid::new(w, h, Vector3::repeat(f32::NAN)),
-            residual: Grid::new(w, h, f32::NAN),
-            samples: Grid::new(w, h, 0),
-            condition: Grid::new(w, h, f32::NAN),
-            status: Grid::new(w, h, PixelStatus::Outside),
-            robust: Grid::new(w, h, false),
-            gains: gains.clone(),
-            noise: if options.method == Method::Auto {
-                sigma.clone()
-            } else {
-                Vec::new()
-            },
-        })
+        .map(|_| Solution::empty(w, h, gains.clone(), sigma.clone(), options))
         .collect();
     for (&p, px) in pixels.iter().zip(fitted.iter().flatten()) {
-        let solved = px.grey.status == PixelStatus::Solved;
         for (c, sol) in out.iter_mut().enumerate() {
-            sol.g.data_mut()[p] = (px.normal * px.albedo[c]).map(|v| v as f32);
-            sol.residual.data_mut()[p] = px.residual as f32;
-            sol.samples.data_mut()[p] = px.grey.samples.min(u16::MAX as usize) as u16;
-            sol.condition.data_mut()[p] = px.grey.condition as f32;
-            sol.status.data_mut()[p] = px.grey.status;
-            sol.robust.data_mut()[p] = px.grey.robust && solved;
+            let channel = PixelSolution {
+                g: px.normal * px.albedo[c],
+                residual: px.residual,
+                ..px.grey
+            };
+            sol.record(p, &channel);
         }
     }
     Ok(out)

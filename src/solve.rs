@@ -146,9 +146,10 @@ pub struct SolveOptions {
     pub specular_cone_deg: f64,
     /// [`Method::Specular`] and [`Method::Auto`]: samples with N·l below this are dropped.
     pub min_lit_cosine: f64,
-    /// Estimate per-image intensity corrections from the data ([`crate::intensities`]);
-    /// `None`: only for [`Method::Auto`]. Never with fewer than
-    /// [`crate::intensities::MIN_LIGHTS`] images.
+    /// Estimate per-image intensity corrections from the data ([`crate::intensities`]) and
+    /// apply them where they converge and fit better than the stated intensities; `None`:
+    /// only for [`Method::Auto`]. Never with fewer than [`crate::intensities::MIN_LIGHTS`]
+    /// images.
     pub recalibrate: Option<bool>,
     /// [`Method::Auto`]: the noise standard deviation of the (intensity-divided) samples, when
     /// known; `None` estimates it per image ([`crate::noise`]).
@@ -310,6 +311,43 @@ pub struct Solution {
     /// Per-image noise standard deviation used by the fit test ([`Method::Auto`]; empty
     /// otherwise).
     pub noise: Vec<f32>,
+}
+
+impl Solution {
+    /// A `width`×`height` solution with every pixel outside the mask, the gains applied and
+    /// the fit test's noise `sigma` (kept for [`Method::Auto`] only).
+    pub(crate) fn empty(
+        width: usize,
+        height: usize,
+        gains: crate::intensities::GainEstimate,
+        sigma: Vec<f32>,
+        options: &SolveOptions,
+    ) -> Self {
+        Solution {
+            g: Grid::new(width, height, Vector3::repeat(f32::NAN)),
+            residual: Grid::new(width, height, f32::NAN),
+            samples: Grid::new(width, height, 0),
+            condition: Grid::new(width, height, f32::NAN),
+            status: Grid::new(width, height, PixelStatus::Outside),
+            robust: Grid::new(width, height, false),
+            gains,
+            noise: if options.method == Method::Auto {
+                sigma
+            } else {
+                Vec::new()
+            },
+        }
+    }
+
+    /// Records the outcome `px` of pixel `p` (row-major index).
+    pub(crate) fn record(&mut self, p: usize, px: &PixelSolution) {
+        self.g.data_mut()[p] = px.g.map(|v| v as f32);
+        self.residual.data_mut()[p] = px.residual as f32;
+        self.samples.data_mut()[p] = px.samples.min(u16::MAX as usize) as u16;
+        self.condition.data_mut()[p] = px.condition as f32;
+        self.status.data_mut()[p] = px.status;
+        self.robust.data_mut()[p] = px.robust && px.status == PixelStatus::Solved;
+    }
 }
 
 /// Solved pixel, as returned by [`solve_pixel`].
@@ -1135,31 +1173,13 @@ pub fn solve(
         })
         .collect();
     progress.end();
-    let mut sol = Solution {
-        g: Grid::new(w, h, Vector3::repeat(f32::NAN)),
-        residual: Grid::new(w, h, f32::NAN),
-        samples: Grid::new(w, h, 0),
-        condition: Grid::new(w, h, f32::NAN),
-        status: Grid::new(w, h, PixelStatus::Outside),
-        robust: Grid::new(w, h, false),
-        gains,
-        noise: if options.method == Method::Auto {
-            sigma
-        } else {
-            Vec::new()
-        },
-    };
+    let mut sol = Solution::empty(w, h, gains, sigma, options);
     for block in results {
         let mut pixels = block.pixels.into_iter();
         for sp in &block.spans {
             for p in sp.start..sp.start + sp.len {
                 let Some(px) = pixels.next() else { break };
-                sol.g.data_mut()[p] = px.g.map(|v| v as f32);
-                sol.residual.data_mut()[p] = px.residual as f32;
-                sol.samples.data_mut()[p] = px.samples.min(u16::MAX as usize) as u16;
-                sol.condition.data_mut()[p] = px.condition as f32;
-                sol.status.data_mut()[p] = px.status;
-                sol.robust.data_mut()[p] = px.robust && px.status == PixelStatus::Solved;
+                sol.record(p, &px);
             }
         }
     }

@@ -110,7 +110,9 @@ pub struct MethodArgs {
     /// half vector marks it specular.
     #[arg(long, default_value_t = DEFAULT_SPECULAR_CONE_DEG, value_name = "DEG")]
     pub specular_cone: f64,
-    /// Estimate per-image light-intensity corrections from the data (default: with `auto`).
+    /// Estimate per-image light-intensity corrections from the data (default: with `auto`);
+    /// they are applied only when they converge and fit the images better than the stated
+    /// intensities.
     #[arg(long, overrides_with = "no_recalibrate")]
     pub recalibrate: bool,
     /// Never correct the light intensities.
