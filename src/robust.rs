@@ -138,12 +138,9 @@ pub(crate) struct PixelFitter<'a> {
     max_condition: f64,
     v: Vec<f64>,
     base: Vec<bool>,
-    /// The threshold set of the current pixel, packed for the specular estimator.
+    /// The threshold set of the current pixel, packed for the IRLS and specular estimators.
     compact: Compact,
     w: Vec<f64>,
-    /// The weights of the previous IRLS iteration.
-    previous_w: Vec<f64>,
-    abs_r: Vec<f64>,
     order: Vec<usize>,
 }
 
@@ -178,8 +175,6 @@ impl<'a> PixelFitter<'a> {
             base: vec![false; k],
             compact: Compact::default(),
             w: vec![0.0; k],
-            previous_w: vec![0.0; k],
-            abs_r: Vec::with_capacity(k),
             order: Vec::with_capacity(k),
         }
     }
@@ -267,17 +262,6 @@ impl<'a> PixelFitter<'a> {
         }
     }
 
-    /// Robust scale 1.4826·median|r| over the samples marked in `select`.
-    fn scale(&mut self, g: &Vector3<f64>, select: &[bool]) -> f64 {
-        self.abs_r.clear();
-        for (k, l) in self.dirs.iter().enumerate() {
-            if select[k] {
-                self.abs_r.push((self.v[k] - g.dot(l)).abs());
-            }
-        }
-        MAD_TO_SIGMA * crate::metrics::median_by(&mut self.abs_r, f64::total_cmp).unwrap_or(0.0)
-    }
-
     /// Fits one pixel with `estimator`.
     pub(crate) fn fit(
         &mut self,
@@ -308,7 +292,7 @@ impl<'a> PixelFitter<'a> {
                 if n_base < MIN_SAMPLES {
                     return self.finish(None);
                 }
-                self.irls(loss)
+                self.packed(|c| c.irls(loss))
             }
             Estimator::Specular {
                 cos_cone,
@@ -317,7 +301,14 @@ impl<'a> PixelFitter<'a> {
                 if n_base < MIN_SAMPLES {
                     return self.finish(None);
                 }
-                self.specular(cos_cone, min_cos_lit)
+                self.packed(|c| {
+                    // Start from the darker half of the samples (highlights only ever add
+                    // light), or the L1 fit when that half is too small or clustered: least
+                    // squares would lean towards a highlight, and a cone around a leaning
+                    // normal keeps the highlight and drops the samples that disagree with it.
+                    let first = c.dark_half().or_else(|| c.irls(Loss::L1))?;
+                    Some(c.refine(first, cos_cone, min_cos_lit))
+                })
             }
         }
     }
@@ -344,65 +335,17 @@ impl<'a> PixelFitter<'a> {
         self.finish_with(g)
     }
 
-    fn irls(&mut self, loss: Loss) -> PixelSolution {
-        let g = self.irls_estimate(loss);
-        self.finish_with(g)
-    }
-
-    /// IRLS over the threshold set; leaves the final weights in `self.w`.
-    fn irls_estimate(&mut self, loss: Loss) -> Option<Vector3<f64>> {
-        self.weights_from_base();
-        let (first, _) = self.wls();
-        let mut current = first?;
-        for _ in 0..MAX_IRLS_ITERATIONS {
-            let base = std::mem::take(&mut self.base);
-            let s = self.scale(&current, &base);
-            self.base = base;
-            if s.is_nan() || s <= 1e-12 * current.norm() {
-                break;
-            }
-            self.previous_w.copy_from_slice(&self.w);
-            for k in 0..self.v.len() {
-                self.w[k] = if self.base[k] {
-                    loss.weight((self.v[k] - current.dot(&self.dirs[k])) / s)
-                } else {
-                    0.0
-                };
-            }
-            let (next, _) = self.wls();
-            let Some(next) = next else {
-                // Too few samples kept weight: return to the last solvable weights.
-                std::mem::swap(&mut self.w, &mut self.previous_w);
-                break;
-            };
-            let change = (next - current).norm();
-            current = next;
-            if change <= IRLS_TOLERANCE * current.norm() {
-                break;
-            }
-        }
-        Some(current)
-    }
-
-    fn specular(&mut self, cos_cone: f64, min_cos_lit: f64) -> PixelSolution {
+    /// Runs `estimate` on the packed threshold set and finishes with its weights.
+    fn packed(
+        &mut self,
+        estimate: impl FnOnce(&mut Compact) -> Option<Vector3<f64>>,
+    ) -> PixelSolution {
         let mut c = std::mem::take(&mut self.compact);
         c.load(self);
-        // Start from the darker half of the samples (highlights only ever add light), or the
-        // L1 fit when that half is too small or clustered: least squares would lean towards a
-        // highlight, and a cone around a leaning normal keeps the highlight and drops the
-        // samples that disagree with it.
-        let first = match c.dark_half() {
-            Some(g) => Some(g),
-            None => {
-                let g = self.irls_estimate(Loss::L1);
-                c.gather_weights(&self.w);
-                g
-            }
-        };
-        let result = first.map(|g| c.refine(g, cos_cone, min_cos_lit));
+        let g = estimate(&mut c);
         c.scatter_weights(&mut self.w);
         self.compact = c;
-        self.finish_with(result)
+        self.finish_with(g)
     }
 
     fn finish(&mut self, g: Option<Vector3<f64>>) -> PixelSolution {
@@ -503,13 +446,6 @@ impl Compact {
         ] {
             buf.clear();
             buf.resize(m, 0.0);
-        }
-    }
-
-    /// Copies per-light weights `w` into the packed weights.
-    fn gather_weights(&mut self, w: &[f64]) {
-        for (p, &k) in self.w.iter_mut().zip(&self.idx) {
-            *p = w[k];
         }
     }
 
@@ -627,6 +563,36 @@ impl Compact {
             return None;
         }
         self.wls()
+    }
+
+    /// Iteratively reweighted least squares with `loss` over every packed sample, from the
+    /// unweighted fit; leaves the final weights in `w`.
+    fn irls(&mut self, loss: Loss) -> Option<Vector3<f64>> {
+        self.w.fill(1.0);
+        self.keep.fill(1.0);
+        let mut current = self.wls()?;
+        for _ in 0..MAX_IRLS_ITERATIONS {
+            self.residuals(&current);
+            let s = self.scale();
+            if s.is_nan() || s <= 1e-12 * current.norm() {
+                break;
+            }
+            self.previous_w.copy_from_slice(&self.w);
+            for (w, r) in self.w.iter_mut().zip(&self.r) {
+                *w = loss.weight(r / s);
+            }
+            let Some(next) = self.wls() else {
+                // Too few samples kept weight: return to the last solvable weights.
+                std::mem::swap(&mut self.w, &mut self.previous_w);
+                break;
+            };
+            let change = (next - current).norm();
+            current = next;
+            if change <= IRLS_TOLERANCE * current.norm() {
+                break;
+            }
+        }
+        Some(current)
     }
 
     /// Residuals r_j = v_j − g·l_j of every sample into `r`.
