@@ -173,10 +173,22 @@ impl Capture {
         options: &LoadOptions,
         progress: &dyn Progress,
     ) -> Result<Self> {
-        let stack = load_stack(&images, &lights, options, progress)?;
-        let mask = match mask_file {
-            Some(path) => load_mask_for(path, &stack)?,
-            None => Grid::new(stack.width(), stack.height(), true),
+        // Read the mask first: rows it does not touch need not be decoded.
+        let mask = mask_file.map(read_mask).transpose()?;
+        let rows = mask.as_ref().and_then(|m| {
+            let w = m.width().max(1);
+            let first = m.data().iter().position(|&v| v)? / w;
+            let last = m.data().iter().rposition(|&v| v)? / w;
+            Some((first, last + 1))
+        });
+        let options = LoadOptions {
+            rows: options.rows.or(rows),
+            ..*options
+        };
+        let stack = load_stack(&images, &lights, &options, progress)?;
+        let mask = match (mask, mask_file) {
+            (Some(m), Some(path)) => check_mask_size(m, path, &stack)?,
+            _ => Grid::new(stack.width(), stack.height(), true),
         };
         Ok(Capture {
             stack,
@@ -191,7 +203,11 @@ impl Capture {
 
 /// Reads a mask and checks it against the stack's size.
 fn load_mask_for(path: &Path, stack: &ImageStack) -> Result<Mask> {
-    let m = read_mask(path)?;
+    check_mask_size(read_mask(path)?, path, stack)
+}
+
+/// `m`, read from `path`, when its size is the stack's.
+fn check_mask_size(m: Mask, path: &Path, stack: &ImageStack) -> Result<Mask> {
     if m.width() != stack.width() || m.height() != stack.height() {
         return Err(Error::Mask {
             path: path.to_path_buf(),

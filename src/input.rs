@@ -13,6 +13,7 @@ use crate::progress::Progress;
 use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::Serialize;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 /// BT.601 luma weights (R, G, B) used to mix colour images to grey.
@@ -73,6 +74,10 @@ pub struct LoadOptions {
     /// Stored value (after scaling integers to [0, 1], before linearisation) at or above which a
     /// sample counts as saturated. `None`: the maximum code for integer files, no limit for floats.
     pub saturation: Option<f32>,
+    /// Read only rows `start..end` of every image (clamped to its height); the other rows are
+    /// NaN and a PNG is not decoded past `end`. [`crate::dataset::Capture`] sets it to the
+    /// rows its mask spans. `None`: every row.
+    pub rows: Option<(usize, usize)>,
 }
 
 /// Samples of one decoded file, interleaved, as stored.
@@ -160,7 +165,7 @@ struct RawDecoded {
     samples: Samples,
 }
 
-fn decode_raw(path: &Path) -> Result<RawDecoded> {
+fn decode_raw(path: &Path, rows: Option<Range<usize>>) -> Result<RawDecoded> {
     let is_exr = path
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("exr"));
@@ -171,7 +176,7 @@ fn decode_raw(path: &Path) -> Result<RawDecoded> {
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("png"));
     if is_png {
-        return decode_png(path);
+        return decode_png(path, rows);
     }
     let reader = image::ImageReader::open(path)
         .map_err(|e| Error::io(path, e))?
@@ -219,7 +224,9 @@ fn decode_raw(path: &Path) -> Result<RawDecoded> {
 }
 
 /// PNG through the `png` crate directly: 16-bit samples stay in the decoder's big-endian buffer.
-fn decode_png(path: &Path) -> Result<RawDecoded> {
+/// With `rows`, a non-interlaced image is decoded only up to the end of the range (the rows
+/// below stay zero, and the rest of the stream is not read).
+fn decode_png(path: &Path, rows: Option<Range<usize>>) -> Result<RawDecoded> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     let bad = |e: png::DecodingError| match e {
         png::DecodingError::IoError(io) => Error::io(path, io),
@@ -239,21 +246,40 @@ fn decode_png(path: &Path) -> Result<RawDecoded> {
             reason: "image too large".into(),
         })?;
     let mut buf = vec![0u8; size];
-    let info = reader.next_frame(&mut buf).map_err(bad)?;
-    buf.truncate(info.buffer_size());
-    let (channels, stride) = match info.color_type {
+    let (width, height) = (reader.info().width, reader.info().height);
+    let (color_type, bit_depth) = match rows {
+        Some(rows) if !reader.info().interlaced => {
+            let line = reader
+                .output_line_size(width)
+                .ok_or_else(|| Error::UnsupportedImage {
+                    path: path.to_path_buf(),
+                    reason: "image too large".into(),
+                })?;
+            buf.truncate(line * height as usize);
+            for row in buf.chunks_exact_mut(line.max(1)).take(rows.end) {
+                reader.read_row(row).map_err(bad)?;
+            }
+            reader.output_color_type()
+        }
+        _ => {
+            let info = reader.next_frame(&mut buf).map_err(bad)?;
+            buf.truncate(info.buffer_size());
+            (info.color_type, info.bit_depth)
+        }
+    };
+    let (channels, stride) = match color_type {
         png::ColorType::Grayscale => (1, 1),
         png::ColorType::GrayscaleAlpha => (1, 2),
         png::ColorType::Rgb | png::ColorType::Indexed => (3, 3),
         png::ColorType::Rgba => (3, 4),
     };
-    let (format, samples) = match info.bit_depth {
+    let (format, samples) = match bit_depth {
         png::BitDepth::Sixteen => (SampleFormat::U16, Samples::U16Be(buf)),
         _ => (SampleFormat::U8, Samples::U8(buf)),
     };
     Ok(RawDecoded {
-        width: info.width as usize,
-        height: info.height as usize,
+        width: width as usize,
+        height: height as usize,
         channels,
         stride,
         format,
@@ -372,7 +398,7 @@ pub fn read_exr_channel(path: &Path, name: &str) -> Result<crate::grid::ScalarMa
 /// # Errors
 /// [`Error::Io`], [`Error::Decode`] or [`Error::UnsupportedImage`] naming the file.
 pub fn read_image(path: &Path) -> Result<DecodedImage> {
-    let raw = decode_raw(path)?;
+    let raw = decode_raw(path, None)?;
     let n = raw.width * raw.height;
     let mut data = Vec::with_capacity(n * raw.channels);
     for i in 0..n {
@@ -527,11 +553,14 @@ fn combine_row<const STRIDE: usize, const CIN: usize, const COUT: usize>(
     }
 }
 
+/// Converts rows `rows` of `raw` into `out` (planes of the stack's layout); the other rows
+/// become NaN.
 fn convert_into(
     raw: &RawDecoded,
     cv: &Convert,
     out: &mut [f32],
     path: &Path,
+    rows: Range<usize>,
 ) -> (Option<Vec<u64>>, ImageInfo) {
     let (w, h) = (raw.width, raw.height);
     let n = w * h;
@@ -567,7 +596,11 @@ fn convert_into(
         saturated: 0,
         non_finite: 0,
     };
-    for y in 0..h {
+    for plane in out.chunks_exact_mut(n.max(1)) {
+        plane[..rows.start * w].fill(f32::NAN);
+        plane[rows.end * w..].fill(f32::NAN);
+    }
+    for y in rows {
         let r = y * row_len..(y + 1) * row_len;
         // Stored values scaled to [0, 1], and the row's largest (in integer codes where possible,
         // which vectorises; NaN for float rows, whose finiteness is then checked).
@@ -708,6 +741,10 @@ pub fn load_stack(
     };
     let (width, height) = image_size(first_path)?;
     let n = width * height;
+    let rows = match options.rows {
+        Some((start, end)) => start.min(height)..end.min(height).max(start.min(height)),
+        None => 0..height,
+    };
     let channels = match options.color {
         ColorMode::Grey => 1,
         ColorMode::PerChannel => 3,
@@ -723,7 +760,7 @@ pub fn load_stack(
         .zip(paths.par_iter())
         .enumerate()
         .map(|(index, (out, path))| {
-            let raw = decode_raw(path)?;
+            let raw = decode_raw(path, Some(rows.clone()))?;
             if (raw.width, raw.height) != (width, height) {
                 return Err(Error::SizeMismatch {
                     path: path.clone(),
@@ -749,7 +786,7 @@ pub fn load_stack(
                 intensity: lights.lights()[index].intensity.map(|v| v as f32),
                 srgb_lut: &lut,
             };
-            let r = convert_into(&raw, &cv, out, path);
+            let r = convert_into(&raw, &cv, out, path, rows.clone());
             progress.advance(1);
             Ok(r)
         })

@@ -63,7 +63,7 @@ fn opts(color: ColorMode, transfer: Transfer) -> LoadOptions {
     LoadOptions {
         color,
         transfer,
-        saturation: None,
+        ..LoadOptions::default()
     }
 }
 
@@ -1307,4 +1307,97 @@ fn image_size_of_each_format() {
         vec![SampleFormat::U16, SampleFormat::U8, SampleFormat::F32]
     );
     assert_eq!((stack.width(), stack.height()), (7, 3));
+}
+
+/// Loading only some rows (as a capture does for the rows its mask spans) gives bit-identical
+/// values there and NaN elsewhere, for 16-bit RGB PNG (decoded only up to the last row read) and
+/// float EXR; saturation and non-finite counts come from the rows read only. Through
+/// [`photostereo::dataset::Capture`] the rows are those of the mask.
+#[test]
+fn row_range_reads_only_those_rows() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (7u32, 9u32);
+    let n = (w * h) as usize;
+    let codes = |k: u32| -> Vec<u16> {
+        (0..3 * n as u32)
+            .map(|i| ((i * 2731 + 997 * k + 40001) % 65536) as u16)
+            .collect()
+    };
+    let mut pngs = Vec::new();
+    let mut exrs = Vec::new();
+    for k in 0..3u32 {
+        let c = codes(k);
+        let png = dir.path().join(format!("img_{k}.png"));
+        save(rgb16(w, h, &c), &png);
+        pngs.push(png);
+        let unit = u16_to_unit(&c);
+        let exr = dir.path().join(format!("img_{k}.exr"));
+        let planes: Vec<Vec<f32>> = (0..3).map(|ch| channel(&unit, 3, ch)).collect();
+        write_exr(
+            &exr,
+            w as usize,
+            h as usize,
+            &[("R", &planes[0]), ("G", &planes[1]), ("B", &planes[2])],
+            &[],
+        )
+        .unwrap();
+        exrs.push(exr);
+    }
+    for paths in [&pngs, &exrs] {
+        for color in [ColorMode::Grey, ColorMode::PerChannel] {
+            let full = load(paths, opts(color, Transfer::Auto));
+            let part = load(
+                paths,
+                LoadOptions {
+                    rows: Some((2, 6)),
+                    ..opts(color, Transfer::Auto)
+                },
+            );
+            for k in 0..3 {
+                for ch in 0..full.channels() {
+                    let (a, b) = (full.plane(k, ch), part.plane(k, ch));
+                    for (i, (x, y)) in a.iter().zip(b).enumerate() {
+                        let row = i / w as usize;
+                        if (2..6).contains(&row) {
+                            assert_eq!(x.to_bits(), y.to_bits(), "{paths:?} pixel {i}");
+                        } else {
+                            assert!(y.is_nan(), "{paths:?} pixel {i} outside the rows: {y}");
+                        }
+                    }
+                }
+                assert_eq!(part.info()[k].non_finite, 0);
+            }
+        }
+    }
+    // A capture reads the rows its mask spans (rows 3..=5 here).
+    let mask: Vec<u8> = (0..n)
+        .map(|i| {
+            if (3..6).contains(&(i / w as usize)) && i % 2 == 0 {
+                255
+            } else {
+                0
+            }
+        })
+        .collect();
+    let mask_path = dir.path().join("mask.png");
+    save(luma8(w, h, &mask), &mask_path);
+    let lights_path = dir.path().join("lights.txt");
+    std::fs::write(&lights_path, "0 0 1\n1 0 1\n0 1 1\n").unwrap();
+    let capture = photostereo::dataset::Capture::from_files(
+        &pngs,
+        &lights_path,
+        Some(&mask_path),
+        &LoadOptions::default(),
+        &Silent,
+    )
+    .unwrap();
+    let full = load(&pngs, LoadOptions::default());
+    let plane = capture.stack.plane(1, 0);
+    for (i, (x, y)) in full.plane(1, 0).iter().zip(plane).enumerate() {
+        if (3..6).contains(&(i / w as usize)) {
+            assert_eq!(x.to_bits(), y.to_bits(), "pixel {i}");
+        } else {
+            assert!(y.is_nan(), "pixel {i}");
+        }
+    }
 }

@@ -525,6 +525,7 @@ impl LoadArgs {
                 Transfer::Auto
             },
             saturation: self.saturation,
+            rows: None,
         })
     }
 }
