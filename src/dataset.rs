@@ -158,9 +158,26 @@ impl Capture {
     /// Replaces the mask by the one in `path`.
     ///
     /// # Errors
-    /// The errors of [`read_mask`]; [`Error::Mask`] when its size differs from the images'.
+    /// The errors of [`read_mask`]; [`Error::Mask`] when its size differs from the images', or
+    /// when it reaches rows that were not read (the capture was loaded for another mask; load
+    /// it with [`LoadOptions::rows`] covering this one).
     pub fn with_mask_file(mut self, path: &Path) -> Result<Self> {
-        self.mask = load_mask_for(path, &self.stack)?;
+        let mask = load_mask_for(path, &self.stack)?;
+        let read = self.stack.rows();
+        if let Some((first, end)) = mask.row_span()
+            && (first < read.start || end > read.end)
+        {
+            return Err(Error::Mask {
+                path: path.to_path_buf(),
+                reason: format!(
+                    "covers rows {first}–{} but only rows {}–{} of the images were read (for another mask); load with LoadOptions::rows covering it",
+                    end - 1,
+                    read.start,
+                    read.end.saturating_sub(1)
+                ),
+            });
+        }
+        self.mask = mask;
         self.mask_source = Some(path.to_path_buf());
         Ok(self)
     }
@@ -175,12 +192,7 @@ impl Capture {
     ) -> Result<Self> {
         // Read the mask first: rows it does not touch need not be decoded.
         let mask = mask_file.map(read_mask).transpose()?;
-        let rows = mask.as_ref().and_then(|m| {
-            let w = m.width().max(1);
-            let first = m.data().iter().position(|&v| v)? / w;
-            let last = m.data().iter().rposition(|&v| v)? / w;
-            Some((first, last + 1))
-        });
+        let rows = mask.as_ref().and_then(Mask::row_span);
         let options = LoadOptions {
             rows: options.rows.or(rows),
             ..*options

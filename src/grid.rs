@@ -159,4 +159,12 @@ impl Grid<bool> {
     pub fn count(&self) -> usize {
         self.data.iter().filter(|&&b| b).count()
     }
+
+    /// The rows holding `true` pixels, as `(first, last + 1)`; `None` for an empty mask.
+    pub fn row_span(&self) -> Option<(usize, usize)> {
+        let w = self.width.max(1);
+        let first = self.data.iter().position(|&v| v)? / w;
+        let last = self.data.iter().rposition(|&v| v)? / w;
+        Some((first, last + 1))
+    }
 }

@@ -134,6 +134,8 @@ pub struct ImageStack {
     data: Vec<f32>,
     saturated: Vec<Option<Vec<u64>>>,
     info: Vec<ImageInfo>,
+    /// Rows read from the files (the others are NaN).
+    rows: Range<usize>,
 }
 
 /// sRGB EOTF (IEC 61966-2-1): encoded value in [0, 1] to linear.
@@ -807,6 +809,7 @@ pub fn load_stack(
         data,
         saturated,
         info,
+        rows,
     })
 }
 
@@ -864,6 +867,7 @@ impl ImageStack {
             data,
             saturated: vec![None; images.len()],
             info,
+            rows: 0..height,
         })
     }
 
@@ -947,7 +951,13 @@ impl ImageStack {
             data,
             saturated: self.saturated.clone(),
             info: self.info.clone(),
+            rows: self.rows.clone(),
         }
+    }
+
+    /// The rows that were read from the files ([`LoadOptions::rows`]); the others are NaN.
+    pub fn rows(&self) -> Range<usize> {
+        self.rows.clone()
     }
 
     /// What was loaded, per image.

@@ -246,6 +246,35 @@ fn diligent_layout_folder_with_colour_intensities() {
     }
 }
 
+/// `--mask` on a DiLiGenT folder replaces the folder's mask, and the images are read for the
+/// rows it spans (here every row, where the folder's mask covers only the sphere's).
+#[test]
+fn mask_option_replaces_a_folder_mask() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = diligent_like(&tmp.path().join("objPNG"));
+    let wide = tmp.path().join("wide.png");
+    image::GrayImage::from_pixel(80, 80, image::Luma([255u8]))
+        .save(&wide)
+        .unwrap();
+    let out = tmp.path().join("out");
+    let o = run(&[
+        dir.as_os_str(),
+        os("--mask"),
+        wide.as_os_str(),
+        os("--integrate"),
+        os("none"),
+        os("-q"),
+        os("-o"),
+        out.as_os_str(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report["pixels"]["masked"], 6400, "{}", report["pixels"]);
+    let e = eval(&out, &dir.join("normal_gt.exr"), &dir.join("mask.png"));
+    assert!(e["mean_deg"].as_f64().unwrap() < 0.05, "{e}");
+}
+
 #[test]
 fn demo_writes_outputs_scene_and_evaluation() {
     let tmp = tempfile::tempdir().unwrap();

@@ -1391,6 +1391,17 @@ fn row_range_reads_only_those_rows() {
         &Silent,
     )
     .unwrap();
+    assert_eq!(capture.stack.rows(), 3..6);
+    // A mask reaching rows that were not read is refused, naming the file.
+    let wide_path = dir.path().join("wide.png");
+    save(luma8(w, h, &vec![255u8; n]), &wide_path);
+    match capture.clone().with_mask_file(&wide_path) {
+        Err(Error::Mask { path, reason }) => {
+            assert_eq!(path, wide_path);
+            assert!(reason.contains("rows 0–8"), "{reason}");
+        }
+        other => panic!("expected a mask error, got {:?}", other.map(|c| c.mask.count())),
+    }
     let full = load(&pngs, LoadOptions::default());
     let plane = capture.stack.plane(1, 0);
     for (i, (x, y)) in full.plane(1, 0).iter().zip(plane).enumerate() {

@@ -25,7 +25,7 @@ use photostereo::dataset::Capture;
 use photostereo::demo;
 use photostereo::grid::Grid;
 use photostereo::grid::Mask;
-use photostereo::input::read_normal_map;
+use photostereo::input::{LoadOptions, read_mask, read_normal_map};
 use photostereo::integrate::integrate_normals;
 use photostereo::mesh::Mesh;
 use photostereo::metrics::{angular_errors, depth_errors, scaled_depth_errors};
@@ -66,15 +66,25 @@ fn run(cli: Cli) -> Result<()> {
 /// Loads a capture as the configuration says; returns it with the load time.
 pub fn load_capture(rc: &RunConfig, progress: &dyn Progress) -> Result<(Capture, f64)> {
     let t = Instant::now();
-    let mut capture = match &rc.source {
-        Source::Diligent(dir) => Capture::from_diligent(dir, &rc.load, progress)?,
+    // A capture reads only the rows its mask spans.
+    let capture = match &rc.source {
+        Source::Diligent(dir) => {
+            // A --mask replaces the folder's own mask, so its rows are the ones to read.
+            let rows = rc.mask.as_deref().map(read_mask).transpose()?;
+            let load = LoadOptions {
+                rows: rows.and_then(|m| m.row_span()).or(rc.load.rows),
+                ..rc.load
+            };
+            let capture = Capture::from_diligent(dir, &load, progress)?;
+            match &rc.mask {
+                Some(mask) => capture.with_mask_file(mask)?,
+                None => capture,
+            }
+        }
         Source::Files { images, lights } => {
-            Capture::from_files(images, lights, None, &rc.load, progress)?
+            Capture::from_files(images, lights, rc.mask.as_deref(), &rc.load, progress)?
         }
     };
-    if let Some(mask) = &rc.mask {
-        capture = capture.with_mask_file(mask)?;
-    }
     Ok((capture, t.elapsed().as_secs_f64()))
 }
 
