@@ -1400,7 +1400,10 @@ fn row_range_reads_only_those_rows() {
             assert_eq!(path, wide_path);
             assert!(reason.contains("rows 0–8"), "{reason}");
         }
-        other => panic!("expected a mask error, got {:?}", other.map(|c| c.mask.count())),
+        other => panic!(
+            "expected a mask error, got {:?}",
+            other.map(|c| c.mask.count())
+        ),
     }
     let full = load(&pngs, LoadOptions::default());
     let plane = capture.stack.plane(1, 0);
