@@ -30,6 +30,7 @@ use crate::input::ImageStack;
 use crate::lights::Lights;
 use crate::linalg::solve_spd;
 use crate::metrics::median_by;
+use crate::robust::half_vector;
 use crate::solve::{PixelStatus, SolveOptions, fit_with, fitter};
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
@@ -243,7 +244,7 @@ fn update_gains(
     rule: &RatioRule,
     gains: &mut [f32],
 ) -> f64 {
-    let dirs = &rule.dirs;
+    let dirs = rule.dirs;
     let k = gains.len();
     let mut ratios: Vec<Vec<f64>> = vec![Vec::new(); k];
     for (i, fit) in fits.iter().enumerate() {
@@ -290,21 +291,17 @@ fn update_gains(
 /// vector of light and view). A highlight that the pixel's fit kept would otherwise read as a
 /// brighter image: on a rendered Blinn–Phong scene with k_s = 0.4 and exact intensities the
 /// gains strayed 10% from 1 without this rule.
-struct RatioRule {
-    dirs: Vec<Vector3<f64>>,
+struct RatioRule<'a> {
+    dirs: &'a [Vector3<f64>],
     halves: Vec<Vector3<f64>>,
     cos_cone: f64,
 }
 
-impl RatioRule {
-    fn new(dirs: &[Vector3<f64>], cone_deg: f64) -> Self {
-        let view = Vector3::z();
+impl<'a> RatioRule<'a> {
+    fn new(dirs: &'a [Vector3<f64>], cone_deg: f64) -> Self {
         RatioRule {
-            dirs: dirs.to_vec(),
-            halves: dirs
-                .iter()
-                .map(|l| (l + view).try_normalize(1e-12).unwrap_or(view))
-                .collect(),
+            dirs,
+            halves: dirs.iter().map(half_vector).collect(),
             cos_cone: cone_deg.to_radians().cos(),
         }
     }

@@ -153,15 +153,7 @@ impl<'a> PixelFitter<'a> {
         reject_saturated: bool,
         max_condition: f64,
     ) -> Self {
-        let view = Vector3::z();
-        let halves = dirs
-            .iter()
-            .map(|l| {
-                let h = l + view;
-                let n = h.norm();
-                if n > 1e-12 { h / n } else { view }
-            })
-            .collect();
+        let halves = dirs.iter().map(half_vector).collect();
         let k = dirs.len();
         PixelFitter {
             dirs,
@@ -397,7 +389,8 @@ impl<'a> PixelFitter<'a> {
 }
 
 /// The threshold-set samples of one pixel as packed columns (structure of arrays), so the
-/// per-sample loops of the specular estimator run over contiguous memory without branches.
+/// per-sample loops of the IRLS and specular estimators run over contiguous memory without
+/// branches.
 #[derive(Default)]
 struct Compact {
     /// Light index of each packed sample.
@@ -727,6 +720,13 @@ impl Sym3 {
         let [xx, xy, xz, yy, yz, zz] = self.0;
         Matrix3::new(xx, xy, xz, xy, yy, yz, xz, yz, zz)
     }
+}
+
+/// The half vector h = (l + v)/|l + v| of light direction `l` and the orthographic view
+/// v = (0, 0, 1) (v itself for a light straight behind the surface).
+pub(crate) fn half_vector(l: &Vector3<f64>) -> Vector3<f64> {
+    let view = Vector3::z();
+    (l + view).try_normalize(1e-12).unwrap_or(view)
 }
 
 /// Upper quantile of the χ² distribution with `dof` degrees of freedom at standard-normal
