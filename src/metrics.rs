@@ -158,15 +158,21 @@ pub struct DepthErrorStats {
     pub pixels: usize,
 }
 
-/// Depth error of `est` against `gt` over `mask` after removing the mean offset.
-///
-/// # Errors
-/// [`Error::DimensionMismatch`] when sizes differ; [`Error::Mask`] when no pixel can be compared.
-pub fn depth_errors(est: &ScalarMap, gt: &ScalarMap, mask: &Mask) -> Result<DepthErrorStats> {
+/// The (estimated, true) depth pairs inside `mask` where both are finite and the estimate
+/// passes `keep`.
+fn depth_pairs(
+    est: &ScalarMap,
+    gt: &ScalarMap,
+    mask: &Mask,
+    keep: impl Fn(f32) -> bool,
+) -> Result<Vec<(f64, f64)>> {
     est.check_same_size(gt, "estimated vs true depth")?;
     est.check_same_size(mask, "depth vs mask")?;
     let pairs: Vec<(f64, f64)> = (0..est.len())
-        .filter(|&i| mask.data()[i] && est.data()[i].is_finite() && gt.data()[i].is_finite())
+        .filter(|&i| {
+            let (e, g) = (est.data()[i], gt.data()[i]);
+            mask.data()[i] && e.is_finite() && g.is_finite() && keep(e)
+        })
         .map(|i| (f64::from(est.data()[i]), f64::from(gt.data()[i])))
         .collect();
     if pairs.is_empty() {
@@ -175,6 +181,15 @@ pub fn depth_errors(est: &ScalarMap, gt: &ScalarMap, mask: &Mask) -> Result<Dept
             reason: "no pixel has both an estimated and a true depth inside the mask".into(),
         });
     }
+    Ok(pairs)
+}
+
+/// Depth error of `est` against `gt` over `mask` after removing the mean offset.
+///
+/// # Errors
+/// [`Error::DimensionMismatch`] when sizes differ; [`Error::Mask`] when no pixel can be compared.
+pub fn depth_errors(est: &ScalarMap, gt: &ScalarMap, mask: &Mask) -> Result<DepthErrorStats> {
+    let pairs = depth_pairs(est, gt, mask, |_| true)?;
     let n = pairs.len() as f64;
     let (me, mg) = pairs
         .iter()
@@ -222,23 +237,7 @@ pub fn scaled_depth_errors(
     gt: &ScalarMap,
     mask: &Mask,
 ) -> Result<ScaledDepthErrorStats> {
-    est.check_same_size(gt, "estimated vs true depth")?;
-    est.check_same_size(mask, "depth vs mask")?;
-    let pairs: Vec<(f64, f64)> = (0..est.len())
-        .filter(|&i| {
-            mask.data()[i]
-                && est.data()[i].is_finite()
-                && gt.data()[i].is_finite()
-                && est.data()[i] != 0.0
-        })
-        .map(|i| (f64::from(est.data()[i]), f64::from(gt.data()[i])))
-        .collect();
-    if pairs.is_empty() {
-        return Err(Error::Mask {
-            path: "<evaluation>".into(),
-            reason: "no pixel has both an estimated and a true depth inside the mask".into(),
-        });
-    }
+    let pairs = depth_pairs(est, gt, mask, |e| e != 0.0)?;
     let mut ratios: Vec<f64> = pairs.iter().map(|(e, g)| g / e).collect();
     ratios.sort_by(f64::total_cmp);
     let n = ratios.len();

@@ -276,13 +276,21 @@ pub struct IntegrationBenchArgs {
     /// Repetitions at sizes up to 512² (one run above); medians are reported.
     #[arg(long, default_value_t = 3)]
     pub repeat: usize,
-    /// The numpy peer script.
+    /// The numpy peer.
+    #[command(flatten)]
+    pub peer: PeerArgs,
+}
+
+/// The numpy peer a benchmark runs beside photostereo.
+#[derive(Debug, Args)]
+pub struct PeerArgs {
+    /// The numpy peer script to time beside photostereo (skipped when absent).
     #[arg(
-        long,
+        long = "peer",
         value_name = "SCRIPT",
         default_value = "../shared/peers/numpy_ps.py"
     )]
-    pub peer: PathBuf,
+    pub script: PathBuf,
     /// Python interpreter for the peer.
     #[arg(long, default_value = "python3")]
     pub python: String,
@@ -294,16 +302,9 @@ pub struct BenchArgs {
     /// DiLiGenT-layout folder to time.
     #[arg(value_name = "DIR")]
     pub dir: PathBuf,
-    /// The numpy peer script to time beside it (skipped when absent).
-    #[arg(
-        long,
-        value_name = "SCRIPT",
-        default_value = "../shared/peers/numpy_ps.py"
-    )]
-    pub peer: PathBuf,
-    /// Python interpreter for the peer.
-    #[arg(long, default_value = "python3")]
-    pub python: String,
+    /// The numpy peer.
+    #[command(flatten)]
+    pub peer: PeerArgs,
     /// Repetitions; medians are reported.
     #[arg(long, default_value_t = 5)]
     pub repeat: usize,

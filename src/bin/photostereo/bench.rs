@@ -86,7 +86,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
     let exe = std::env::current_exe().context("locating the photostereo executable")?;
     let method = config.solve.method.name();
     let integrate = config.integration.map_or("none", |o| o.method.name());
-    let peer = a.peer.is_file();
+    let peer = a.peer.script.is_file();
     let (mut ours_wall, mut peer_wall, mut peer_internal) = (vec![], vec![], vec![]);
     for _ in 0..repeat {
         let t = Instant::now();
@@ -103,12 +103,14 @@ pub fn run(a: BenchArgs) -> Result<()> {
         );
         if peer {
             let t = Instant::now();
-            let o = Command::new(&a.python)
-                .arg(&a.peer)
+            let o = Command::new(&a.peer.python)
+                .arg(&a.peer.script)
                 .arg("diligent")
                 .arg(&a.dir)
                 .output()
-                .with_context(|| format!("running {} {}", a.python, a.peer.display()))?;
+                .with_context(|| {
+                    format!("running {} {}", a.peer.python, a.peer.script.display())
+                })?;
             peer_wall.push(t.elapsed().as_secs_f64());
             anyhow::ensure!(
                 o.status.success(),
@@ -128,14 +130,14 @@ pub fn run(a: BenchArgs) -> Result<()> {
     if peer {
         let (pw, pi) = (median(peer_wall), median(peer_internal));
         out["peer"] = json!({
-            "script": a.peer,
+            "script": a.peer.script,
             "process_wall_s": pw,
             "load_plus_solve_s": pi,
         });
         out["speedup_process_vs_process"] = json!(pw / ours_process);
         out["speedup_vs_peer_load_plus_solve"] = json!(pi / ours_process);
     } else {
-        out["peer"] = json!(format!("not found: {}", a.peer.display()));
+        out["peer"] = json!(format!("not found: {}", a.peer.script.display()));
     }
     say!("{}", serde_json::to_string_pretty(&out)?);
     Ok(())
@@ -195,7 +197,7 @@ pub fn integration(a: IntegrationBenchArgs) -> Result<()> {
     }
     // DCT Poisson against the peer on its own test field.
     let mut peer_rows = Vec::new();
-    if a.peer.is_file() {
+    if a.peer.script.is_file() {
         for &n in &a.sizes {
             let (p, q) = peaks_gradients(n);
             let mask = Grid::new(n, n, true);
@@ -207,8 +209,8 @@ pub fn integration(a: IntegrationBenchArgs) -> Result<()> {
             }
             let mut theirs = Vec::new();
             for _ in 0..a.repeat.max(1) {
-                let o = Command::new(&a.python)
-                    .arg(&a.peer)
+                let o = Command::new(&a.peer.python)
+                    .arg(&a.peer.script)
                     .arg("poisson")
                     .arg(n.to_string())
                     .output()?;
