@@ -149,6 +149,23 @@ pub fn reconstruct(
     config: &Config,
     progress: &dyn Progress,
 ) -> Result<Reconstruction> {
+    let mut recon = reconstruct_normals(capture, config, progress)?;
+    let (integration, integrate_s) = integrate_stage(&recon, config, progress)?;
+    recon.integration = integration;
+    recon.timings.integrate = integrate_s;
+    Ok(recon)
+}
+
+/// [`reconstruct`] up to and including the integrability check, without the depth
+/// (`integration` is `None` and its time 0): what [`reconstruct_and_write`] overlaps with writing.
+///
+/// # Errors
+/// As [`reconstruct`], except the integration errors.
+pub fn reconstruct_normals(
+    capture: &Capture,
+    config: &Config,
+    progress: &dyn Progress,
+) -> Result<Reconstruction> {
     capture.lights.check_usable(MAX_LIGHT_CONDITION)?;
     let t = Instant::now();
     let (stack, lights, mask) = (&capture.stack, &capture.lights, &capture.mask);
@@ -224,15 +241,6 @@ pub fn reconstruct(
         .filter(|&i| albedo.iter().any(|a| a.data()[i] > 1.0))
         .count();
     let normals_s = t.elapsed().as_secs_f64();
-
-    let t = Instant::now();
-    let integration = match &config.integration {
-        Some(options) if solved.count() > 0 => {
-            Some(integrate_normals(&normals, &solved, options, progress)?)
-        }
-        _ => None,
-    };
-    let integrate_s = t.elapsed().as_secs_f64();
 
     let mut warnings = Vec::new();
     let linearised = capture.stack.info().iter().filter(|i| i.linearised).count();
@@ -328,7 +336,7 @@ pub fn reconstruct(
         solved,
         curl: integ.curl,
         integrability: integ.summary,
-        integration,
+        integration: None,
         counts,
         albedo_above_one,
         robust,
@@ -337,11 +345,31 @@ pub fn reconstruct(
             load: 0.0,
             solve: solve_s,
             normals: normals_s,
-            integrate: integrate_s,
+            integrate: 0.0,
             write: 0.0,
         },
         warnings,
     })
+}
+
+/// Integrates the normals of `recon` as `config` says (`None` without integration or without
+/// solved pixels); returns the result and its time in seconds.
+fn integrate_stage(
+    recon: &Reconstruction,
+    config: &Config,
+    progress: &dyn Progress,
+) -> Result<(Option<Integration>, f64)> {
+    let t = Instant::now();
+    let integration = match &config.integration {
+        Some(options) if recon.solved.count() > 0 => Some(integrate_normals(
+            &recon.normals,
+            &recon.solved,
+            options,
+            progress,
+        )?),
+        _ => None,
+    };
+    Ok((integration, t.elapsed().as_secs_f64()))
 }
 
 /// Summary of the input, for the report.
@@ -480,11 +508,60 @@ pub fn write_outputs(
     evaluation: Option<serde_json::Value>,
 ) -> Result<Report> {
     let t = Instant::now();
-    let (w, h) = (recon.normals.width(), recon.normals.height());
     let mut out = OutputDir::create(dir)?;
-    let method = config.solve.method.name().to_string();
-    let attrs = [
-        ("photostereo:method", method),
+    stage_maps(&mut out, recon, capture, config)?;
+    stage_depth(&mut out, recon, capture, config)?;
+    recon.timings.write = t.elapsed().as_secs_f64();
+    commit_with_report(out, recon, capture, config, evaluation)
+}
+
+/// [`reconstruct`] and [`write_outputs`] in one, with the integration running concurrently
+/// with the writing of every output that does not depend on depth (normals, albedo, residual,
+/// curl and their previews): the two are the longest stages after the solve and each uses
+/// about one core. `evaluate` sees the finished reconstruction (depth included) and returns
+/// what goes into the report's `evaluation` section. `load_s` is the time the caller spent
+/// loading (or rendering) the capture, recorded as [`Timings::load`].
+///
+/// The outputs are the same as those of [`reconstruct`] followed by [`write_outputs`]. The
+/// timings of the integration and the writing overlap, so their sum exceeds the wall time.
+///
+/// # Errors
+/// The errors of [`reconstruct`], [`write_outputs`] and `evaluate`; nothing is left in `dir`
+/// when any of them fails.
+pub fn reconstruct_and_write(
+    capture: &Capture,
+    config: &Config,
+    dir: &Path,
+    load_s: f64,
+    progress: &dyn Progress,
+    evaluate: impl FnOnce(&Reconstruction) -> Result<Option<serde_json::Value>>,
+) -> Result<(Reconstruction, Report)> {
+    let mut recon = reconstruct_normals(capture, config, progress)?;
+    recon.timings.load = load_s;
+    let mut out = OutputDir::create(dir)?;
+    let (integrated, staged) = rayon::join(
+        || integrate_stage(&recon, config, progress),
+        || {
+            let t = Instant::now();
+            stage_maps(&mut out, &recon, capture, config).map(|()| t.elapsed().as_secs_f64())
+        },
+    );
+    let (integration, integrate_s) = integrated?;
+    let maps_s = staged?;
+    recon.integration = integration;
+    recon.timings.integrate = integrate_s;
+    let t = Instant::now();
+    stage_depth(&mut out, &recon, capture, config)?;
+    recon.timings.write = maps_s + t.elapsed().as_secs_f64();
+    let evaluation = evaluate(&recon)?;
+    let report = commit_with_report(out, &recon, capture, config, evaluation)?;
+    Ok((recon, report))
+}
+
+/// The string attributes of every EXR header: method, frame, units, light count.
+fn exr_attributes(capture: &Capture, config: &Config) -> Vec<(&'static str, String)> {
+    vec![
+        ("photostereo:method", config.solve.method.name().to_string()),
         (
             "photostereo:frame",
             "x right, y up, z towards the camera; row 0 at the top".to_string(),
@@ -495,7 +572,19 @@ pub fn write_outputs(
                 .to_string(),
         ),
         ("photostereo:lights", capture.lights.len().to_string()),
-    ];
+    ]
+}
+
+/// Stages every output that does not depend on depth: `normal.exr`, `albedo.exr`,
+/// `residual.exr`, `curl.exr`, `mask.png`, `normal.png`, `albedo.png`.
+fn stage_maps(
+    out: &mut OutputDir,
+    recon: &Reconstruction,
+    capture: &Capture,
+    config: &Config,
+) -> Result<()> {
+    let (w, h) = (recon.normals.width(), recon.normals.height());
+    let attrs = exr_attributes(capture, config);
     let [nx, ny, nz] = normal_planes(&recon.normals);
     out.stage_exr(
         "normal.exr",
@@ -519,36 +608,6 @@ pub fn write_outputs(
             &attrs,
         )?,
         _ => return Err(Error::param("albedo", "1 or 3 channels expected")),
-    }
-    let nan_map = Grid::new(w, h, f32::NAN);
-    let depth = recon.depth().unwrap_or(&nan_map);
-    let mut depth_channels: Vec<(&str, &[f32])> = vec![("Z", depth.data())];
-    if let Some(i) = &recon.integration {
-        depth_channels.push(("residual", i.residual.data()));
-        if let Some((wu, wv)) = &i.weights {
-            depth_channels.push(("wu", wu.data()));
-            depth_channels.push(("wv", wv.data()));
-        }
-    }
-    let mut depth_attrs = attrs.to_vec();
-    if let Some(options) = &config.integration {
-        depth_attrs.push(("photostereo:integration", options.method.name().to_string()));
-        depth_attrs[2].1 = match &options.camera {
-            None => "Z: height towards the camera in pixel units (orthographic), larger is nearer"
-                .into(),
-            Some(k) => format!(
-                "Z: depth along the optical axis, up to scale (pinhole fx={} fy={} cx={} cy={}), larger is farther",
-                k.fx, k.fy, k.cx, k.cy
-            ),
-        };
-    }
-    out.stage_exr("depth.exr", w, h, &depth_channels, &depth_attrs)?;
-    if config.mesh
-        && let Some(d) = recon.depth()
-    {
-        let camera = config.integration.as_ref().and_then(|o| o.camera);
-        let mesh = crate::mesh::Mesh::from_depth(d, &recon.normals, camera.as_ref())?;
-        out.stage_bytes("mesh.ply", &mesh.to_ply())?;
     }
     let samples: Vec<f32> = recon
         .samples
@@ -600,13 +659,65 @@ pub fn write_outputs(
             .collect();
         out.stage_png8("albedo.png", w, h, 3, &rgb)?;
     }
+    Ok(())
+}
+
+/// Stages the outputs that depend on depth: `depth.exr` (NaN without integration, with the
+/// integration residual and weights), `depth.png`, and `mesh.ply` when asked for.
+fn stage_depth(
+    out: &mut OutputDir,
+    recon: &Reconstruction,
+    capture: &Capture,
+    config: &Config,
+) -> Result<()> {
+    let (w, h) = (recon.normals.width(), recon.normals.height());
+    let nan_map = Grid::new(w, h, f32::NAN);
+    let depth = recon.depth().unwrap_or(&nan_map);
+    let mut depth_channels: Vec<(&str, &[f32])> = vec![("Z", depth.data())];
+    if let Some(i) = &recon.integration {
+        depth_channels.push(("residual", i.residual.data()));
+        if let Some((wu, wv)) = &i.weights {
+            depth_channels.push(("wu", wu.data()));
+            depth_channels.push(("wv", wv.data()));
+        }
+    }
+    let mut depth_attrs = exr_attributes(capture, config);
+    if let Some(options) = &config.integration {
+        depth_attrs.push(("photostereo:integration", options.method.name().to_string()));
+        depth_attrs[2].1 = match &options.camera {
+            None => "Z: height towards the camera in pixel units (orthographic), larger is nearer"
+                .into(),
+            Some(k) => format!(
+                "Z: depth along the optical axis, up to scale (pinhole fx={} fy={} cx={} cy={}), larger is farther",
+                k.fx, k.fy, k.cx, k.cy
+            ),
+        };
+    }
+    out.stage_exr("depth.exr", w, h, &depth_channels, &depth_attrs)?;
+    if config.mesh
+        && let Some(d) = recon.depth()
+    {
+        let camera = config.integration.as_ref().and_then(|o| o.camera);
+        let mesh = crate::mesh::Mesh::from_depth(d, &recon.normals, camera.as_ref())?;
+        out.stage_bytes("mesh.ply", &mesh.to_ply())?;
+    }
     out.stage_png8("depth.png", w, h, 1, &depth_preview(depth))?;
+    Ok(())
+}
+
+/// Stages `report.json` and moves every staged file into place; returns the report.
+fn commit_with_report(
+    mut out: OutputDir,
+    recon: &Reconstruction,
+    capture: &Capture,
+    config: &Config,
+    evaluation: Option<serde_json::Value>,
+) -> Result<Report> {
     let res = crate::metrics::summarize(&recon.residual);
     let residual = ResidualSummary {
         mean: res.mean,
         median: res.median,
     };
-    recon.timings.write = t.elapsed().as_secs_f64();
     let mut outputs: Vec<String> = OUTPUT_FILES.iter().map(|s| s.to_string()).collect();
     if config.mesh && recon.depth().is_some() {
         outputs.push("mesh.ply".into());
@@ -642,7 +753,7 @@ pub fn write_outputs(
         evaluation,
     };
     let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Encode {
-        path: dir.join("report.json"),
+        path: out.path().join("report.json"),
         reason: e.to_string(),
     })?;
     out.stage_bytes("report.json", &json)?;

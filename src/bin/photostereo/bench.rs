@@ -14,7 +14,7 @@ use photostereo::integrate::{
     IntegrationOptions, Integrator, LinearSolver, integrate_gradients, integrate_normals,
 };
 use photostereo::metrics::depth_errors;
-use photostereo::pipeline::{reconstruct, write_outputs};
+use photostereo::pipeline::{reconstruct, reconstruct_and_write};
 use photostereo::progress::Silent;
 use photostereo::scene::{Albedo, Scene};
 use rayon::prelude::*;
@@ -45,9 +45,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
         let t = Instant::now();
         let capture = Capture::from_diligent(&a.dir, &LoadOptions::default(), &Silent)?;
         let load_s = t.elapsed().as_secs_f64();
-        let mut recon = reconstruct(&capture, &config, &Silent)?;
-        recon.timings.load = load_s;
-        write_outputs(&mut recon, &capture, &config, &tmp, None)?;
+        let (recon, _) =
+            reconstruct_and_write(&capture, &config, &tmp, load_s, &Silent, |_| Ok(None))?;
         total.push(t.elapsed().as_secs_f64());
         load.push(load_s);
         solve.push(recon.timings.solve);
