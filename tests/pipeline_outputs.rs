@@ -111,7 +111,7 @@ fn a_failure_after_writing_started_leaves_no_file() {
             ))
         },
     );
-    let err = result.err().expect("the evaluation error is returned");
+    let err = result.expect_err("the evaluation error is returned");
     assert!(err.to_string().contains("evaluation"), "{err}");
     // The folder was created for staging; it must hold no file, not even a hidden temporary.
     assert!(listing(&out).is_empty(), "left behind: {:?}", listing(&out));
