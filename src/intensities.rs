@@ -147,16 +147,20 @@ pub(crate) fn estimate_gains_with(
     let stride = masked.len().div_ceil(SAMPLE_PIXELS).max(1);
     let pixels: Vec<usize> = masked.into_iter().step_by(stride).collect();
     let n = pixels.len();
-    // Gather the subsample as [pixel][image].
+    // Gather the subsample as [pixel][image] (the pixels in parallel: each reads one value from
+    // every image, far apart in memory).
     let mut values = vec![0f32; n * k];
     let mut saturated = vec![false; n * k];
-    for img in 0..k {
-        let plane = stack.plane(img, channel);
-        for (i, &p) in pixels.iter().enumerate() {
-            values[i * k + img] = plane[p];
-            saturated[i * k + img] = stack.is_saturated(img, p);
-        }
-    }
+    values
+        .par_chunks_mut(k.max(1))
+        .zip(saturated.par_chunks_mut(k.max(1)))
+        .zip(pixels.par_iter())
+        .for_each(|((v, s), &p)| {
+            for img in 0..k {
+                v[img] = stack.plane(img, channel)[p];
+                s[img] = stack.is_saturated(img, p);
+            }
+        });
     let dirs = lights.directions();
     let ratio_rule = RatioRule::new(&dirs, options.specular_cone_deg);
     let mut gains = vec![1.0f32; k];
@@ -246,26 +250,36 @@ fn update_gains(
 ) -> f64 {
     let dirs = rule.dirs;
     let k = gains.len();
-    let mut ratios: Vec<Vec<f64>> = vec![Vec::new(); k];
-    for (i, fit) in fits.iter().enumerate() {
-        let Some(g) = fit else { continue };
-        let rho = g.norm();
-        let normal = g / rho;
-        for img in 0..k {
-            let c = normal.dot(&dirs[img]);
-            if weights[i * k + img] > 0.0 && rule.counts(&normal, img, c) {
-                let v = f64::from(values[i * k + img]) * f64::from(gains[img]);
-                ratios[img].push(v / (rho * c));
+    let normals: Vec<Option<(Vector3<f64>, f64)>> = fits
+        .iter()
+        .map(|fit| {
+            fit.map(|g| {
+                let rho = g.norm();
+                (g / rho, rho)
+            })
+        })
+        .collect();
+    // Each image's median ratio, the images in parallel (the ratios are gathered in pixel
+    // order, so the medians do not depend on the threads).
+    let mut factors: Vec<f64> = (0..k)
+        .into_par_iter()
+        .map_init(Vec::new, |ratios: &mut Vec<f64>, img| {
+            ratios.clear();
+            let gain = f64::from(gains[img]);
+            for (i, nr) in normals.iter().enumerate() {
+                let Some((normal, rho)) = nr else { continue };
+                if weights[i * k + img] <= 0.0 {
+                    continue;
+                }
+                let c = normal.dot(&dirs[img]);
+                if rule.counts(normal, img, c) {
+                    ratios.push(f64::from(values[i * k + img]) * gain / (rho * c));
+                }
             }
-        }
-    }
-    let mut factors: Vec<f64> = ratios
-        .iter_mut()
-        .map(|r| {
-            if r.len() < MIN_RATIOS {
+            if ratios.len() < MIN_RATIOS {
                 f64::NAN
             } else {
-                median_by(r, f64::total_cmp).unwrap_or(f64::NAN)
+                median_by(ratios, f64::total_cmp).unwrap_or(f64::NAN)
             }
         })
         .collect();
