@@ -756,7 +756,7 @@ pub fn load_stack(
         *v = srgb_to_linear(code as f32 / 255.0);
     }
     progress.begin("load", paths.len() as u64);
-    let mut data = vec![0f32; paths.len() * channels * n];
+    let mut data = crate::buffer::zeroed_f32(paths.len() * channels * n);
     let results: Vec<Result<(Option<Vec<u64>>, ImageInfo)>> = data
         .par_chunks_mut(channels * n)
         .zip(paths.par_iter())
@@ -935,7 +935,7 @@ impl ImageStack {
             return self.clone();
         }
         let n = self.pixels();
-        let mut data = vec![0f32; self.count * n];
+        let mut data = crate::buffer::zeroed_f32(self.count * n);
         for (k, out) in data.chunks_mut(n.max(1)).enumerate().take(self.count) {
             for (c, w) in GREY_WEIGHTS.iter().enumerate() {
                 for (o, v) in out.iter_mut().zip(self.plane(k, c)) {

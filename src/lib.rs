@@ -25,6 +25,7 @@
 //! ```
 #![deny(missing_docs)]
 
+mod buffer;
 pub mod camera;
 pub mod color;
 pub mod dataset;

@@ -354,7 +354,7 @@ impl Direct {
         );
         let mat = SparseColMatRef::new(sym, &values);
         let par = Par::rayon(0);
-        let mut l_values = vec![0f64; self.symbolic.len_val()];
+        let mut l_values = crate::buffer::zeroed_f64(self.symbolic.len_val());
         let mut mem = MemBuffer::try_new(
             self.symbolic
                 .factorize_numeric_llt_scratch::<f64>(par, Default::default()),
