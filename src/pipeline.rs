@@ -558,6 +558,10 @@ pub fn reconstruct_and_write(
     Ok((recon, report))
 }
 
+/// The `photostereo:units` header attribute of an orthographic depth map.
+const ORTHOGRAPHIC_UNITS: &str =
+    "Z: height towards the camera in pixel units (orthographic), larger is nearer";
+
 /// The string attributes of every EXR header: method, frame, units, light count.
 fn exr_attributes(capture: &Capture, config: &Config) -> Vec<(&'static str, String)> {
     vec![
@@ -566,11 +570,7 @@ fn exr_attributes(capture: &Capture, config: &Config) -> Vec<(&'static str, Stri
             "photostereo:frame",
             "x right, y up, z towards the camera; row 0 at the top".to_string(),
         ),
-        (
-            "photostereo:units",
-            "Z: height towards the camera in pixel units (orthographic), larger is nearer"
-                .to_string(),
-        ),
+        ("photostereo:units", ORTHOGRAPHIC_UNITS.to_string()),
         ("photostereo:lights", capture.lights.len().to_string()),
     ]
 }
@@ -685,8 +685,7 @@ fn stage_depth(
     if let Some(options) = &config.integration {
         depth_attrs.push(("photostereo:integration", options.method.name().to_string()));
         depth_attrs[2].1 = match &options.camera {
-            None => "Z: height towards the camera in pixel units (orthographic), larger is nearer"
-                .into(),
+            None => ORTHOGRAPHIC_UNITS.into(),
             Some(k) => format!(
                 "Z: depth along the optical axis, up to scale (pinhole fx={} fy={} cx={} cy={}), larger is farther",
                 k.fx, k.fy, k.cx, k.cy
