@@ -126,10 +126,14 @@ pub fn solve_shared_normal(
                     let g = grey.plane(img, 0);
                     let planes = [0, 1, 2].map(|c| stack.plane(img, c));
                     for (i, &p) in chunk.iter().enumerate() {
-                        values[i * k + img] = g[p];
+                        // The mask lies in the window (checked above).
+                        let Some(local) = stack.local(p) else {
+                            continue;
+                        };
+                        values[i * k + img] = g[local];
                         saturated[i * k + img] = grey.is_saturated(img, p);
                         for (c, plane) in planes.iter().enumerate() {
-                            colour[(i * 3 + c) * k + img] = plane[p];
+                            colour[(i * 3 + c) * k + img] = plane[local];
                         }
                     }
                 }

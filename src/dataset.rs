@@ -159,21 +159,18 @@ impl Capture {
     ///
     /// # Errors
     /// The errors of [`read_mask`]; [`Error::Mask`] when its size differs from the images', or
-    /// when it reaches rows that were not read (the capture was loaded for another mask; load
-    /// it with [`LoadOptions::rows`] covering this one).
+    /// when it reaches pixels outside the window that was loaded (the capture was loaded for
+    /// another mask; load it with [`LoadOptions::window`] covering this one).
     pub fn with_mask_file(mut self, path: &Path) -> Result<Self> {
         let mask = load_mask_for(path, &self.stack)?;
-        let read = self.stack.rows();
-        if let Some((first, end)) = mask.row_span()
-            && (first < read.start || end > read.end)
+        let read = self.stack.window();
+        if let Some(needed) = mask.bounding_box()
+            && !read.covers(&needed)
         {
             return Err(Error::Mask {
                 path: path.to_path_buf(),
                 reason: format!(
-                    "covers rows {first}–{} but only rows {}–{} of the images were read (for another mask); load with LoadOptions::rows covering it",
-                    end - 1,
-                    read.start,
-                    read.end.saturating_sub(1)
+                    "spans {needed} but only {read} of the images were loaded (for another mask); load with LoadOptions::window covering it"
                 ),
             });
         }
@@ -190,11 +187,12 @@ impl Capture {
         options: &LoadOptions,
         progress: &dyn Progress,
     ) -> Result<Self> {
-        // Read the mask first: rows it does not touch need not be decoded.
+        // Read the mask first: only its bounding box is stored, and rows below it are not
+        // decoded.
         let mask = mask_file.map(read_mask).transpose()?;
-        let rows = mask.as_ref().and_then(Mask::row_span);
+        let window = mask.as_ref().and_then(Mask::bounding_box);
         let options = LoadOptions {
-            rows: options.rows.or(rows),
+            window: options.window.or(window),
             ..*options
         };
         let stack = load_stack(&images, &lights, &options, progress)?;

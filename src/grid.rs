@@ -160,11 +160,110 @@ impl Grid<bool> {
         self.data.iter().filter(|&&b| b).count()
     }
 
-    /// The rows holding `true` pixels, as `(first, last + 1)`; `None` for an empty mask.
-    pub fn row_span(&self) -> Option<(usize, usize)> {
+    /// The smallest window holding every `true` pixel; `None` for an empty mask.
+    pub fn bounding_box(&self) -> Option<Window> {
         let w = self.width.max(1);
-        let first = self.data.iter().position(|&v| v)? / w;
-        let last = self.data.iter().rposition(|&v| v)? / w;
-        Some((first, last + 1))
+        let y0 = self.data.iter().position(|&v| v)? / w;
+        let y1 = self.data.iter().rposition(|&v| v)? / w + 1;
+        let (mut x0, mut x1) = (self.width, 0);
+        for row in self.data[y0 * w..y1 * w].chunks_exact(w) {
+            if let Some(first) = row.iter().position(|&v| v) {
+                x0 = x0.min(first);
+                x1 = x1.max(row.iter().rposition(|&v| v).unwrap_or(first) + 1);
+            }
+        }
+        Some(Window { x0, y0, x1, y1 })
+    }
+}
+
+/// An axis-aligned rectangle of pixels: columns `x0..x1`, rows `y0..y1` (ends excluded).
+///
+/// An [`crate::input::ImageStack`] stores only the window its mask spans; pixel indices stay
+/// those of the whole image (`y * width + x`) and [`Window::local`] maps them into the window.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
+pub struct Window {
+    /// First column.
+    pub x0: usize,
+    /// First row.
+    pub y0: usize,
+    /// One past the last column.
+    pub x1: usize,
+    /// One past the last row.
+    pub y1: usize,
+}
+
+impl Window {
+    /// The whole of a `width`×`height` image.
+    pub fn full(width: usize, height: usize) -> Self {
+        Window {
+            x0: 0,
+            y0: 0,
+            x1: width,
+            y1: height,
+        }
+    }
+
+    /// Columns in the window.
+    pub fn width(&self) -> usize {
+        self.x1.saturating_sub(self.x0)
+    }
+
+    /// Rows in the window.
+    pub fn height(&self) -> usize {
+        self.y1.saturating_sub(self.y0)
+    }
+
+    /// Pixels in the window.
+    pub fn len(&self) -> usize {
+        self.width() * self.height()
+    }
+
+    /// Whether the window holds no pixel.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The window cut to a `width`×`height` image (empty when it lies outside).
+    pub fn clamp(&self, width: usize, height: usize) -> Self {
+        let (x1, y1) = (self.x1.min(width), self.y1.min(height));
+        Window {
+            x0: self.x0.min(x1),
+            y0: self.y0.min(y1),
+            x1,
+            y1,
+        }
+    }
+
+    /// Whether pixel `(x, y)` lies inside.
+    pub fn contains(&self, x: usize, y: usize) -> bool {
+        (self.x0..self.x1).contains(&x) && (self.y0..self.y1).contains(&y)
+    }
+
+    /// Whether `other` lies entirely inside this window.
+    pub fn covers(&self, other: &Window) -> bool {
+        other.is_empty()
+            || (self.x0 <= other.x0
+                && other.x1 <= self.x1
+                && self.y0 <= other.y0
+                && other.y1 <= self.y1)
+    }
+
+    /// Index inside the window (row-major, [`Window::width`] wide) of pixel `pixel` of an
+    /// image `image_width` wide; `None` outside the window.
+    pub fn local(&self, image_width: usize, pixel: usize) -> Option<usize> {
+        let w = image_width.max(1);
+        let (x, y) = (pixel % w, pixel / w);
+        self.contains(x, y)
+            .then(|| (y - self.y0) * self.width() + (x - self.x0))
+    }
+}
+
+impl std::fmt::Display for Window {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "columns {}..{}, rows {}..{}",
+            self.x0, self.x1, self.y0, self.y1
+        )
     }
 }

@@ -7,7 +7,7 @@
 //! weights [`GREY_WEIGHTS`] or kept as three channels for a per-channel solve.
 
 use crate::error::{Error, Result};
-use crate::grid::{Grid, Mask, NormalMap};
+use crate::grid::{Grid, Mask, NormalMap, Window};
 use crate::lights::Lights;
 use crate::progress::Progress;
 use nalgebra::Vector3;
@@ -74,10 +74,10 @@ pub struct LoadOptions {
     /// Stored value (after scaling integers to [0, 1], before linearisation) at or above which a
     /// sample counts as saturated. `None`: the maximum code for integer files, no limit for floats.
     pub saturation: Option<f32>,
-    /// Read only rows `start..end` of every image (clamped to its height); the other rows are
-    /// NaN and a PNG is not decoded past `end`. [`crate::dataset::Capture`] sets it to the
-    /// rows its mask spans. `None`: every row.
-    pub rows: Option<(usize, usize)>,
+    /// Keep only this window of every image (clamped to its size): the stack stores just the
+    /// window, and a PNG is not decoded past its last row. [`crate::dataset::Capture`] sets it
+    /// to its mask's bounding box. `None`: the whole image.
+    pub window: Option<Window>,
 }
 
 /// Samples of one decoded file, interleaved, as stored.
@@ -134,8 +134,8 @@ pub struct ImageStack {
     data: Vec<f32>,
     saturated: Vec<Option<Vec<u64>>>,
     info: Vec<ImageInfo>,
-    /// Rows read from the files (the others are NaN).
-    rows: Range<usize>,
+    /// The part of each image that is stored (see [`ImageStack::plane`]).
+    window: Window,
 }
 
 /// sRGB EOTF (IEC 61966-2-1): encoded value in [0, 1] to linear.
@@ -498,8 +498,9 @@ struct Converted {
 
 /// Combines one row: `stored` and `linear` hold `STRIDE` values per pixel of which the first
 /// `CIN` are colour; writes `COUT` planes at `out[k * n + offset + x]`. Saturated when a stored
-/// colour value ≥ `level`; pixels with a non-finite value become NaN. The arithmetic runs as a
-/// straight loop; saturation and finiteness are checked per pixel only in rows that need it.
+/// colour value ≥ `level` (bit `pixel + x` of the image's flags); pixels with a non-finite value
+/// become NaN. The arithmetic runs as a straight loop; saturation and finiteness are checked per
+/// pixel only in rows that need it.
 #[allow(clippy::too_many_arguments)]
 fn combine_row<const STRIDE: usize, const CIN: usize, const COUT: usize>(
     stored: &[f32],
@@ -509,6 +510,7 @@ fn combine_row<const STRIDE: usize, const CIN: usize, const COUT: usize>(
     out: &mut [f32],
     n: usize,
     offset: usize,
+    pixel: usize,
     row_max: f32,
     check_finite: bool,
     c: &mut Converted,
@@ -535,7 +537,7 @@ fn combine_row<const STRIDE: usize, const CIN: usize, const COUT: usize>(
     if level.is_finite() && row_max >= level {
         for (x, s) in stored.chunks_exact(STRIDE).enumerate() {
             if s[..CIN].iter().any(|v| *v >= level) {
-                let i = offset + x;
+                let i = pixel + x;
                 c.bits[i >> 6] |= 1 << (i & 63);
                 c.saturated += 1;
             }
@@ -555,17 +557,17 @@ fn combine_row<const STRIDE: usize, const CIN: usize, const COUT: usize>(
     }
 }
 
-/// Converts rows `rows` of `raw` into `out` (planes of the stack's layout); the other rows
-/// become NaN.
+/// Converts window `window` of `raw` into `out` (planes of the stack's layout, each
+/// `window.len()` long); saturation flags are indexed by whole-image pixel.
 fn convert_into(
     raw: &RawDecoded,
     cv: &Convert,
     out: &mut [f32],
     path: &Path,
-    rows: Range<usize>,
+    window: Window,
 ) -> (Option<Vec<u64>>, ImageInfo) {
     let (w, h) = (raw.width, raw.height);
-    let n = w * h;
+    let (n, ww) = (window.len(), window.width());
     let linearise = match cv.transfer {
         Transfer::Auto => raw.format == SampleFormat::U8,
         Transfer::Linear => false,
@@ -591,19 +593,15 @@ fn convert_into(
         cv.intensity.map(|i| 1.0 / i)
     };
     let row_len = w * raw.stride;
-    let mut stored = vec![0f32; row_len];
-    let mut linear = vec![0f32; if linearise { row_len } else { 0 }];
+    let mut stored = vec![0f32; ww * raw.stride];
+    let mut linear = vec![0f32; if linearise { stored.len() } else { 0 }];
     let mut c = Converted {
-        bits: vec![0u64; n.div_ceil(64)],
+        bits: vec![0u64; (w * h).div_ceil(64)],
         saturated: 0,
         non_finite: 0,
     };
-    for plane in out.chunks_exact_mut(n.max(1)) {
-        plane[..rows.start * w].fill(f32::NAN);
-        plane[rows.end * w..].fill(f32::NAN);
-    }
-    for y in rows {
-        let r = y * row_len..(y + 1) * row_len;
+    for y in window.y0..window.y1 {
+        let r = y * row_len + window.x0 * raw.stride..y * row_len + window.x1 * raw.stride;
         // Stored values scaled to [0, 1], and the row's largest (in integer codes where possible,
         // which vectorises; NaN for float rows, whose finiteness is then checked).
         let row_max = match &raw.samples {
@@ -649,7 +647,7 @@ fn convert_into(
         // finiteness checked; integers are always finite.
         let check_finite = row_max.is_nan();
         let row_max = if check_finite { level } else { row_max };
-        let args = (coef, level, y * w);
+        let args = (coef, level, (y - window.y0) * ww, y * w + window.x0);
         macro_rules! go {
             ($s:literal, $ci:literal, $co:literal) => {
                 combine_row::<$s, $ci, $co>(
@@ -660,6 +658,7 @@ fn convert_into(
                     out,
                     n,
                     args.2,
+                    args.3,
                     row_max,
                     check_finite,
                     &mut c,
@@ -742,11 +741,20 @@ pub fn load_stack(
         return Err(Error::TooFewImages { count: 0 });
     };
     let (width, height) = image_size(first_path)?;
-    let n = width * height;
-    let rows = match options.rows {
-        Some((start, end)) => start.min(height)..end.min(height).max(start.min(height)),
-        None => 0..height,
+    let window = match options.window {
+        Some(win) => {
+            let clamped = win.clamp(width, height);
+            if clamped.is_empty() {
+                return Err(Error::param(
+                    "window",
+                    format!("{win} holds no pixel of the {width}×{height} images"),
+                ));
+            }
+            clamped
+        }
+        None => Window::full(width, height),
     };
+    let n = window.len();
     let channels = match options.color {
         ColorMode::Grey => 1,
         ColorMode::PerChannel => 3,
@@ -762,7 +770,7 @@ pub fn load_stack(
         .zip(paths.par_iter())
         .enumerate()
         .map(|(index, (out, path))| {
-            let raw = decode_raw(path, Some(rows.clone()))?;
+            let raw = decode_raw(path, Some(0..window.y1))?;
             if (raw.width, raw.height) != (width, height) {
                 return Err(Error::SizeMismatch {
                     path: path.clone(),
@@ -788,7 +796,7 @@ pub fn load_stack(
                 intensity: lights.lights()[index].intensity.map(|v| v as f32),
                 srgb_lut: &lut,
             };
-            let r = convert_into(&raw, &cv, out, path, rows.clone());
+            let r = convert_into(&raw, &cv, out, path, window);
             progress.advance(1);
             Ok(r)
         })
@@ -809,7 +817,7 @@ pub fn load_stack(
         data,
         saturated,
         info,
-        rows,
+        window,
     })
 }
 
@@ -867,7 +875,7 @@ impl ImageStack {
             data,
             saturated: vec![None; images.len()],
             info,
-            rows: 0..height,
+            window: Window::full(width, height),
         })
     }
 
@@ -896,14 +904,38 @@ impl ImageStack {
         self.width * self.height
     }
 
-    /// Channel `channel` of image `image`, row-major.
+    /// The part of each image that is stored: the whole image, or the window it was loaded
+    /// with ([`LoadOptions::window`]).
+    pub fn window(&self) -> Window {
+        self.window
+    }
+
+    /// Channel `channel` of image `image` inside [`ImageStack::window`], row-major and
+    /// `window().width()` wide: pixel `p` of the image (`y * width + x`) is at
+    /// `window().local(width, p)`.
     ///
     /// # Panics
     /// When `image >= count()` or `channel >= channels()`.
     pub fn plane(&self, image: usize, channel: usize) -> &[f32] {
-        let n = self.pixels();
+        let n = self.window.len();
         let start = (image * self.channels + channel) * n;
         &self.data[start..start + n]
+    }
+
+    /// Index in [`ImageStack::plane`] of pixel `pixel` of the image; `None` outside the window.
+    pub fn local(&self, pixel: usize) -> Option<usize> {
+        self.window.local(self.width, pixel)
+    }
+
+    /// The value of pixel `pixel` of channel `channel` of image `image`: NaN outside the
+    /// window, the image or the channels.
+    pub fn value(&self, image: usize, channel: usize, pixel: usize) -> f32 {
+        match self.local(pixel) {
+            Some(i) if image < self.count && channel < self.channels => {
+                self.plane(image, channel)[i]
+            }
+            _ => f32::NAN,
+        }
     }
 
     /// Saturation bits of image `image` (bit `p % 64` of word `p / 64` set when pixel `p` has a
@@ -934,7 +966,7 @@ impl ImageStack {
         if self.channels == 1 {
             return self.clone();
         }
-        let n = self.pixels();
+        let n = self.window.len();
         let mut data = crate::buffer::zeroed_f32(self.count * n);
         for (k, out) in data.chunks_mut(n.max(1)).enumerate().take(self.count) {
             for (c, w) in GREY_WEIGHTS.iter().enumerate() {
@@ -951,13 +983,8 @@ impl ImageStack {
             data,
             saturated: self.saturated.clone(),
             info: self.info.clone(),
-            rows: self.rows.clone(),
+            window: self.window,
         }
-    }
-
-    /// The rows that were read from the files ([`LoadOptions::rows`]); the others are NaN.
-    pub fn rows(&self) -> Range<usize> {
-        self.rows.clone()
     }
 
     /// What was loaded, per image.
@@ -965,7 +992,7 @@ impl ImageStack {
         &self.info
     }
 
-    /// All samples, image-major then channel then pixel.
+    /// All stored samples, image-major then channel then pixel of the window.
     pub fn data(&self) -> &[f32] {
         &self.data
     }

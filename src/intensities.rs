@@ -156,8 +156,9 @@ pub(crate) fn estimate_gains_with(
         .zip(saturated.par_chunks_mut(k.max(1)))
         .zip(pixels.par_iter())
         .for_each(|((v, s), &p)| {
+            let local = stack.local(p);
             for img in 0..k {
-                v[img] = stack.plane(img, channel)[p];
+                v[img] = local.map_or(f32::NAN, |i| stack.plane(img, channel)[i]);
                 s[img] = stack.is_saturated(img, p);
             }
         });

@@ -88,12 +88,23 @@ fn noise_at(plane: &[f32], width: usize, interior: &[usize]) -> NoiseLevel {
     }
 }
 
-/// [`image_noise`] for every image of channel `channel` of `stack`, in parallel.
+/// [`image_noise`] for every image of channel `channel` of `stack`, in parallel. Pixels of
+/// the mask outside the stack's window are left out.
 pub fn stack_noise(stack: &ImageStack, channel: usize, mask: &Mask) -> Vec<NoiseLevel> {
-    let interior = interior_sample(mask);
+    // A pixel's whole neighbourhood is in the mask, so inside the window when the pixel's
+    // neighbours are; the sample is mapped into the window's planes.
+    let window = stack.window();
+    let interior: Vec<usize> = interior_sample(mask)
+        .into_iter()
+        .filter(|&i| {
+            let (x, y) = (i % stack.width(), i / stack.width());
+            x > window.x0 && x + 1 < window.x1 && y > window.y0 && y + 1 < window.y1
+        })
+        .filter_map(|i| stack.local(i))
+        .collect();
     (0..stack.count())
         .into_par_iter()
-        .map(|k| noise_at(stack.plane(k, channel), stack.width(), &interior))
+        .map(|k| noise_at(stack.plane(k, channel), window.width(), &interior))
         .collect()
 }
 

@@ -32,7 +32,7 @@
 //! parallel; the robust ones gather each block's samples pixel by pixel.
 
 use crate::error::{Error, Result};
-use crate::grid::{Grid, Mask, ScalarMap};
+use crate::grid::{Grid, Mask, ScalarMap, Window};
 use crate::input::ImageStack;
 use crate::lights::Lights;
 use crate::linalg::{condition_from_gram, solve_spd};
@@ -581,15 +581,18 @@ impl GramCache {
     }
 }
 
-/// A run of consecutive masked pixels `[start, start + len)` in row-major order.
+/// A run of consecutive masked pixels `[start, start + len)` in row-major order, at
+/// `[local, local + len)` in the stack's planes.
 #[derive(Clone, Copy)]
 struct Span {
     start: usize,
+    local: usize,
     len: usize,
 }
 
-/// Splits the mask into blocks of at most [`BLOCK_PIXELS`] masked pixels made of row spans.
-fn blocks(mask: &Mask) -> Vec<Vec<Span>> {
+/// Splits the mask into blocks of at most [`BLOCK_PIXELS`] masked pixels made of row spans;
+/// `window` (the stack's, covering the mask) gives their place in the planes.
+fn blocks(mask: &Mask, window: Window) -> Vec<Vec<Span>> {
     let (w, h) = (mask.width(), mask.height());
     let mut out = Vec::new();
     let mut current = Vec::new();
@@ -611,6 +614,7 @@ fn blocks(mask: &Mask) -> Vec<Vec<Span>> {
                 let take = (end - s).min(BLOCK_PIXELS - filled);
                 current.push(Span {
                     start: y * w + s,
+                    local: (y - window.y0) * window.width() + (s - window.x0),
                     len: take,
                 });
                 filled += take;
@@ -826,7 +830,7 @@ fn solve_block(
             let plane = stack.plane(k, channel);
             let mut off = 0;
             for sp in spans {
-                let src = &plane[sp.start..sp.start + sp.len];
+                let src = &plane[sp.local..sp.local + sp.len];
                 let gain = per.gains[k];
                 for (t, &v) in s.threshold[off..off + sp.len].iter_mut().zip(src) {
                     // NaN compares false and is skipped.
@@ -859,7 +863,7 @@ fn solve_block(
         ];
         let mut off = 0;
         for sp in spans {
-            let src = &plane[sp.start..sp.start + sp.len];
+            let src = &plane[sp.local..sp.local + sp.len];
             let r = off..off + sp.len;
             let [g0, g1, g2, g3, g4, g5] = &mut s.gram;
             let [a0, a1, a2, a3, a4, a5] = &mut s.a;
@@ -953,7 +957,7 @@ fn solve_block(
         };
         let mut off = 0;
         for sp in spans {
-            let src = &plane[sp.start..sp.start + sp.len];
+            let src = &plane[sp.local..sp.local + sp.len];
             let r = off..off + sp.len;
             let (thr, g) = (&s.threshold[r.clone()], &s.g[r.clone()]);
             let (ss, chi2) = (&mut s.ss[r.clone()], &mut s.chi2[r]);
@@ -975,8 +979,6 @@ fn solve_block(
 }
 
 /// Copies the block's samples into `s.values`/`s.saturated` as [pixel][image].
-// `p` indexes the plane and the saturation bits alike.
-#[allow(clippy::needless_range_loop)]
 fn gather_block(stack: &ImageStack, channel: usize, spans: &[Span], s: &mut Scratch) {
     let k = stack.count();
     let len: usize = spans.iter().map(|sp| sp.len).sum();
@@ -989,8 +991,8 @@ fn gather_block(stack: &ImageStack, channel: usize, spans: &[Span], s: &mut Scra
         let bits = stack.saturation_bits(img);
         let mut i = 0;
         for sp in spans {
-            for p in sp.start..sp.start + sp.len {
-                s.values[i * k + img] = plane[p];
+            for (p, &v) in (sp.start..).zip(&plane[sp.local..sp.local + sp.len]) {
+                s.values[i * k + img] = v;
                 s.saturated[i * k + img] = bits.is_some_and(|b| sat_bit(b, p));
                 i += 1;
             }
@@ -1089,7 +1091,17 @@ pub(crate) fn check_inputs(
             format!("{channel} ≥ the stack's {} channels", stack.channels()),
         ));
     }
-    Grid::new(stack.width(), stack.height(), ()).check_same_size(mask, "mask vs images")
+    Grid::new(stack.width(), stack.height(), ()).check_same_size(mask, "mask vs images")?;
+    let stored = stack.window();
+    match mask.bounding_box() {
+        Some(needed) if !stored.covers(&needed) => Err(Error::param(
+            "mask",
+            format!(
+                "spans {needed} but the stack holds only {stored} of the images; load it with LoadOptions::window covering the mask"
+            ),
+        )),
+        _ => Ok(()),
+    }
 }
 
 /// The per-image noise of the fit test (NaN unless [`Method::Auto`]) and the intensity gains
@@ -1162,7 +1174,7 @@ pub fn solve(
         gains: gains.gains.clone(),
         sigma: sigma.clone(),
     };
-    let work = blocks(mask);
+    let work = blocks(mask, stack.window());
     progress.begin("solve", work.len() as u64);
     let results: Vec<BlockOut> = work
         .into_par_iter()

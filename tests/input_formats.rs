@@ -9,6 +9,7 @@ use exr::prelude::{
 use image::{DynamicImage, ImageBuffer};
 use nalgebra::Vector3;
 use photostereo::Error;
+use photostereo::grid::Window;
 use photostereo::input::{
     ColorMode, GREY_WEIGHTS, ImageStack, LoadOptions, SampleFormat, Transfer, image_size,
     load_stack, read_image, read_mask, srgb_to_linear,
@@ -1309,12 +1310,13 @@ fn image_size_of_each_format() {
     assert_eq!((stack.width(), stack.height()), (7, 3));
 }
 
-/// Loading only some rows (as a capture does for the rows its mask spans) gives bit-identical
-/// values there and NaN elsewhere, for 16-bit RGB PNG (decoded only up to the last row read) and
-/// float EXR; saturation and non-finite counts come from the rows read only. Through
-/// [`photostereo::dataset::Capture`] the rows are those of the mask.
+/// Loading only a window (as a capture does for its mask's bounding box) stores just that
+/// window, bit-identical to the same pixels of a full load, for 16-bit RGB PNG (decoded only up
+/// to the window's last row) and float EXR; saturation flags keep whole-image pixel indices and
+/// counts come from the window only. Through [`photostereo::dataset::Capture`] the window is the
+/// mask's bounding box, and a mask reaching outside it is refused.
 #[test]
-fn row_range_reads_only_those_rows() {
+fn window_stores_only_those_pixels() {
     let dir = tempfile::tempdir().unwrap();
     let (w, h) = (7u32, 9u32);
     let n = (w * h) as usize;
@@ -1326,7 +1328,10 @@ fn row_range_reads_only_those_rows() {
     let mut pngs = Vec::new();
     let mut exrs = Vec::new();
     for k in 0..3u32 {
-        let c = codes(k);
+        let mut c = codes(k);
+        // One saturated pixel inside the window below, one outside it.
+        c[3 * (3 * w as usize + 2)] = 65535;
+        c[3 * (7 * w as usize + 6) + 1] = 65535;
         let png = dir.path().join(format!("img_{k}.png"));
         save(rgb16(w, h, &c), &png);
         pngs.push(png);
@@ -1343,36 +1348,82 @@ fn row_range_reads_only_those_rows() {
         .unwrap();
         exrs.push(exr);
     }
-    for paths in [&pngs, &exrs] {
+    let window = Window {
+        x0: 1,
+        y0: 2,
+        x1: 5,
+        y1: 6,
+    };
+    for (paths, saturation) in [(&pngs, None), (&exrs, Some(1.0))] {
         for color in [ColorMode::Grey, ColorMode::PerChannel] {
-            let full = load(paths, opts(color, Transfer::Auto));
+            let base = LoadOptions {
+                saturation,
+                ..opts(color, Transfer::Auto)
+            };
+            let full = load(paths, base);
             let part = load(
                 paths,
                 LoadOptions {
-                    rows: Some((2, 6)),
-                    ..opts(color, Transfer::Auto)
+                    window: Some(window),
+                    ..base
                 },
             );
+            assert_eq!(part.window(), window);
             for k in 0..3 {
                 for ch in 0..full.channels() {
-                    let (a, b) = (full.plane(k, ch), part.plane(k, ch));
-                    for (i, (x, y)) in a.iter().zip(b).enumerate() {
-                        let row = i / w as usize;
-                        if (2..6).contains(&row) {
-                            assert_eq!(x.to_bits(), y.to_bits(), "{paths:?} pixel {i}");
-                        } else {
-                            assert!(y.is_nan(), "{paths:?} pixel {i} outside the rows: {y}");
+                    let b = part.plane(k, ch);
+                    assert_eq!(b.len(), window.len());
+                    for p in 0..n {
+                        let (x, y) = (p % w as usize, p / w as usize);
+                        let a = full.plane(k, ch)[p];
+                        match part.local(p) {
+                            Some(i) => {
+                                assert!(window.contains(x, y));
+                                assert_eq!(a.to_bits(), b[i].to_bits(), "{paths:?} pixel {p}");
+                                assert_eq!(part.value(k, ch, p).to_bits(), a.to_bits());
+                            }
+                            None => {
+                                assert!(!window.contains(x, y), "pixel {p} in the window");
+                                assert!(part.value(k, ch, p).is_nan());
+                            }
                         }
                     }
                 }
+                let inside = 3 * w as usize + 2;
+                let outside = 7 * w as usize + 6;
+                assert!(full.is_saturated(k, inside) && full.is_saturated(k, outside));
+                assert!(part.is_saturated(k, inside), "{paths:?} image {k}");
+                assert!(!part.is_saturated(k, outside), "{paths:?} image {k}");
+                assert_eq!(part.info()[k].saturated, 1);
                 assert_eq!(part.info()[k].non_finite, 0);
             }
         }
     }
-    // A capture reads the rows its mask spans (rows 3..=5 here).
+    // A window outside the images is refused, naming the parameter.
+    let outside = LoadOptions {
+        window: Some(Window {
+            x0: 8,
+            y0: 0,
+            x1: 12,
+            y1: 4,
+        }),
+        ..LoadOptions::default()
+    };
+    match load_stack(&pngs, &unit_lights(3), &outside, &Silent) {
+        Err(Error::InvalidParameter { name, reason }) => {
+            assert_eq!(name, "window");
+            assert!(reason.contains("no pixel"), "{reason}");
+        }
+        other => panic!(
+            "expected a window error, got {:?}",
+            other.map(|s| s.window())
+        ),
+    }
+    // A capture stores its mask's bounding box (columns 2..=4 of rows 3..=5 here).
     let mask: Vec<u8> = (0..n)
         .map(|i| {
-            if (3..6).contains(&(i / w as usize)) && i % 2 == 0 {
+            let (x, y) = (i % w as usize, i / w as usize);
+            if (3..6).contains(&y) && (2..5).contains(&x) && (x + y) % 2 == 0 {
                 255
             } else {
                 0
@@ -1391,27 +1442,53 @@ fn row_range_reads_only_those_rows() {
         &Silent,
     )
     .unwrap();
-    assert_eq!(capture.stack.rows(), 3..6);
-    // A mask reaching rows that were not read is refused, naming the file.
+    let boxed = Window {
+        x0: 2,
+        y0: 3,
+        x1: 5,
+        y1: 6,
+    };
+    assert_eq!(capture.stack.window(), boxed);
+    assert_eq!(capture.mask.bounding_box(), Some(boxed));
+    let full = load(&pngs, LoadOptions::default());
+    for p in 0..n {
+        let v = capture.stack.value(1, 0, p);
+        if capture.stack.local(p).is_some() {
+            assert_eq!(v.to_bits(), full.plane(1, 0)[p].to_bits(), "pixel {p}");
+        } else {
+            assert!(v.is_nan(), "pixel {p}");
+        }
+    }
+    // A mask reaching pixels that were not stored is refused, naming the file; the solver
+    // refuses such a mask too rather than reading outside the window.
+    let wide = vec![255u8; n];
     let wide_path = dir.path().join("wide.png");
-    save(luma8(w, h, &vec![255u8; n]), &wide_path);
+    save(luma8(w, h, &wide), &wide_path);
     match capture.clone().with_mask_file(&wide_path) {
         Err(Error::Mask { path, reason }) => {
             assert_eq!(path, wide_path);
-            assert!(reason.contains("rows 0–8"), "{reason}");
+            assert!(reason.contains("columns 0..7, rows 0..9"), "{reason}");
+            assert!(reason.contains("columns 2..5, rows 3..6"), "{reason}");
         }
         other => panic!(
             "expected a mask error, got {:?}",
             other.map(|c| c.mask.count())
         ),
     }
-    let full = load(&pngs, LoadOptions::default());
-    let plane = capture.stack.plane(1, 0);
-    for (i, (x, y)) in full.plane(1, 0).iter().zip(plane).enumerate() {
-        if (3..6).contains(&(i / w as usize)) {
-            assert_eq!(x.to_bits(), y.to_bits(), "pixel {i}");
-        } else {
-            assert!(y.is_nan(), "pixel {i}");
+    let everything = photostereo::grid::Grid::new(w as usize, h as usize, true);
+    let solved = photostereo::solve::solve(
+        &capture.stack,
+        0,
+        &capture.lights,
+        &everything,
+        &photostereo::solve::SolveOptions::default(),
+        &Silent,
+    );
+    match solved {
+        Err(Error::InvalidParameter { name, reason }) => {
+            assert_eq!(name, "mask");
+            assert!(reason.contains("LoadOptions::window"), "{reason}");
         }
+        other => panic!("expected a mask error, got {:?}", other.is_ok()),
     }
 }

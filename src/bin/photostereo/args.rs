@@ -526,7 +526,7 @@ impl LoadArgs {
                 Transfer::Auto
             },
             saturation: self.saturation,
-            rows: None,
+            window: None,
         })
     }
 }

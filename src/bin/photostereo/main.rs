@@ -66,13 +66,13 @@ fn run(cli: Cli) -> Result<()> {
 /// Loads a capture as the configuration says; returns it with the load time.
 pub fn load_capture(rc: &RunConfig, progress: &dyn Progress) -> Result<(Capture, f64)> {
     let t = Instant::now();
-    // A capture reads only the rows its mask spans.
+    // A capture stores only the window its mask spans.
     let capture = match &rc.source {
         Source::Diligent(dir) => {
-            // A --mask replaces the folder's own mask, so its rows are the ones to read.
-            let rows = rc.mask.as_deref().map(read_mask).transpose()?;
+            // A --mask replaces the folder's own mask, so its window is the one to load.
+            let mask = rc.mask.as_deref().map(read_mask).transpose()?;
             let load = LoadOptions {
-                rows: rows.and_then(|m| m.row_span()).or(rc.load.rows),
+                window: mask.and_then(|m| m.bounding_box()).or(rc.load.window),
                 ..rc.load
             };
             let capture = Capture::from_diligent(dir, &load, progress)?;
