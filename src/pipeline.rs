@@ -188,37 +188,52 @@ pub fn reconstruct_normals(
     };
     let first = &solutions[0];
     let (w, h) = (first.g.width(), first.g.height());
-    let fold = |f: &dyn Fn(&Solution, usize) -> f32, pick: fn(f32, f32) -> f32| {
-        Grid::from_fn(w, h, |x, y| {
-            let i = y * w + x;
-            solutions
-                .iter()
-                .map(|s| f(s, i))
-                .reduce(pick)
-                .unwrap_or(f32::NAN)
-        })
-    };
-    let residual = fold(&|s, i| s.residual.data()[i], f32::max);
-    let condition = fold(&|s, i| s.condition.data()[i], f32::max);
-    let samples = Grid::from_fn(w, h, |x, y| {
-        solutions
-            .iter()
-            .map(|s| *s.samples.at(x, y))
-            .min()
-            .unwrap_or(0)
-    });
     let solved = status.map(|s| *s == PixelStatus::Solved);
-    // The integrability check uses the field that is integrated: log-depth gradients under a
-    // pinhole camera, orthographic ones otherwise.
-    let (p, q) = match config.integration.as_ref().and_then(|o| o.camera.as_ref()) {
-        Some(k) => crate::integrate::perspective_gradients(&normals, &solved, k),
-        None => gradients(&normals, &solved),
-    };
-    let integ = integrability(&p, &q);
-    let counts = StatusCounts::from_grid(&status);
-    let robust = Grid::from_fn(w, h, |x, y| {
-        *solved.at(x, y) && solutions.iter().any(|s| *s.robust.at(x, y))
-    });
+    // The integrability check (the longest part) runs beside the per-pixel summaries. It uses
+    // the field that is integrated: log-depth gradients under a pinhole camera, orthographic
+    // ones otherwise.
+    let (integ, (residual, condition, samples, counts, robust)) = rayon::join(
+        || {
+            let (p, q) = match config.integration.as_ref().and_then(|o| o.camera.as_ref()) {
+                Some(k) => crate::integrate::perspective_gradients(&normals, &solved, k),
+                None => gradients(&normals, &solved),
+            };
+            integrability(&p, &q)
+        },
+        || {
+            // The worst channel per pixel; one solution is taken as it is.
+            let fold =
+                |f: &dyn Fn(&Solution) -> &ScalarMap, pick: fn(f32, f32) -> f32| match solutions
+                    .as_slice()
+                {
+                    [one] => f(one).clone(),
+                    _ => Grid::from_fn(w, h, |x, y| {
+                        solutions
+                            .iter()
+                            .map(|s| *f(s).at(x, y))
+                            .reduce(pick)
+                            .unwrap_or(f32::NAN)
+                    }),
+                };
+            let residual = fold(&|s| &s.residual, f32::max);
+            let condition = fold(&|s| &s.condition, f32::max);
+            let samples = match solutions.as_slice() {
+                [one] => one.samples.clone(),
+                _ => Grid::from_fn(w, h, |x, y| {
+                    solutions
+                        .iter()
+                        .map(|s| *s.samples.at(x, y))
+                        .min()
+                        .unwrap_or(0)
+                }),
+            };
+            let counts = StatusCounts::from_grid(&status);
+            let robust = Grid::from_fn(w, h, |x, y| {
+                *solved.at(x, y) && solutions.iter().any(|s| *s.robust.at(x, y))
+            });
+            (residual, condition, samples, counts, robust)
+        },
+    );
     let recalibrated = config.solve.recalibrates(capture.stack.count());
     let model = ModelSummary {
         method: config.solve.method.name(),

@@ -30,7 +30,7 @@ use photostereo::integrate::integrate_normals;
 use photostereo::mesh::Mesh;
 use photostereo::metrics::{angular_errors, depth_errors, scaled_depth_errors};
 use photostereo::output::OutputDir;
-use photostereo::pipeline::{Config, Reconstruction, Report, reconstruct, write_outputs};
+use photostereo::pipeline::{Config, Reconstruction, Report, reconstruct, reconstruct_and_write};
 use photostereo::progress::{Progress, Silent};
 use std::path::Path;
 use std::time::Instant;
@@ -90,9 +90,11 @@ pub fn load_capture(rc: &RunConfig, progress: &dyn Progress) -> Result<(Capture,
 
 fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
     let (capture, load_s) = load_capture(&rc, progress)?;
-    let mut recon = reconstruct(&capture, &rc.config, progress)?;
-    recon.timings.load = load_s;
-    let report = write_outputs(&mut recon, &capture, &rc.config, &rc.output, None)?;
+    // Integration runs beside the writing of the maps that do not need depth.
+    let (recon, report) =
+        reconstruct_and_write(&capture, &rc.config, &rc.output, load_s, progress, |_| {
+            Ok(None)
+        })?;
     print_summary(&recon, &report, &rc.config, &rc.output);
     Ok(())
 }
@@ -110,22 +112,30 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
         a.noise,
         render_s
     );
-    let mut recon = reconstruct(&synth.capture, &config, progress)?;
-    recon.timings.load = render_s;
-    let eval = demo::evaluate(&recon, &synth.truth)?;
-    let eval_json = serde_json::to_value(&eval)?;
+    // The error against ground truth is measured once depth exists and goes into the report.
+    let mut evaluation = None;
+    let (recon, report) = reconstruct_and_write(
+        &synth.capture,
+        &config,
+        &a.output,
+        render_s,
+        progress,
+        |recon| {
+            let eval = demo::evaluate(recon, &synth.truth)?;
+            let json = serde_json::to_value(&eval).map_err(|e| photostereo::Error::Encode {
+                path: a.output.join("report.json"),
+                reason: e.to_string(),
+            })?;
+            evaluation = Some(eval);
+            Ok(Some(json))
+        },
+    )?;
+    let eval = evaluation.context("the demo's evaluation did not run")?;
     photostereo::dataset::write_synthetic(
         &synth.rendering,
         &synth.capture.lights,
         &a.output.join("scene"),
         photostereo::dataset::ImageFormat::Exr,
-    )?;
-    let report = write_outputs(
-        &mut recon,
-        &synth.capture,
-        &config,
-        &a.output,
-        Some(eval_json),
     )?;
     print_summary(&recon, &report, &config, &a.output);
     say!("error against ground truth:");
