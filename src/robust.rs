@@ -413,6 +413,8 @@ struct Compact {
     nh: Vec<f64>,
     /// Scratch for medians and ranks.
     scratch: Vec<f64>,
+    /// Scratch for the median of |r| as bit patterns.
+    abs_bits: Vec<u64>,
 }
 
 impl Compact {
@@ -500,9 +502,9 @@ impl Compact {
         if used < MIN_SAMPLES {
             return None;
         }
-        let (a, _) = self.gram(&self.w);
+        // Normal matrix Σ w·l·lᵀ and right-hand side Σ w·v·l in one pass.
         let [x, y, z] = &self.l;
-        let mut acc = [[0.0; LANES]; 3];
+        let mut acc = [[0.0; LANES]; 9];
         let chunks = self
             .w
             .chunks_exact(LANES)
@@ -512,18 +514,45 @@ impl Compact {
                     .zip(y.chunks_exact(LANES).zip(z.chunks_exact(LANES))),
             );
         for ((w, v), (x, (y, z))) in chunks {
+            let [xx, xy, xz, yy, yz, zz, bx, by, bz] = &mut acc;
             for lane in 0..LANES {
-                let wv = w[lane] * v[lane];
-                acc[0][lane] += wv * x[lane];
-                acc[1][lane] += wv * y[lane];
-                acc[2][lane] += wv * z[lane];
+                let (wx, wy, wz) = (w[lane] * x[lane], w[lane] * y[lane], w[lane] * z[lane]);
+                xx[lane] += wx * x[lane];
+                xy[lane] += wx * y[lane];
+                xz[lane] += wx * z[lane];
+                yy[lane] += wy * y[lane];
+                yz[lane] += wy * z[lane];
+                zz[lane] += wz * z[lane];
+                bx[lane] += wx * v[lane];
+                by[lane] += wy * v[lane];
+                bz[lane] += wz * v[lane];
             }
         }
-        let mut b = Vector3::from(acc.map(|a| a.iter().sum::<f64>()));
+        let mut sums = acc.map(|a| a.iter().sum::<f64>());
         for j in self.w.len() - self.w.len() % LANES..self.w.len() {
-            b += Vector3::new(x[j], y[j], z[j]) * (self.w[j] * self.v[j]);
+            let (wx, wy, wz) = (self.w[j] * x[j], self.w[j] * y[j], self.w[j] * z[j]);
+            for (e, t) in [
+                wx * x[j],
+                wx * y[j],
+                wx * z[j],
+                wy * y[j],
+                wy * z[j],
+                wz * z[j],
+                wx * self.v[j],
+                wy * self.v[j],
+                wz * self.v[j],
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                sums[e] += t;
+            }
         }
-        solve_spd(a, b)
+        let [a0, a1, a2, a3, a4, a5, b0, b1, b2] = sums;
+        solve_spd(
+            Sym3([a0, a1, a2, a3, a4, a5]).matrix(),
+            Vector3::new(b0, b1, b2),
+        )
     }
 
     /// Least squares over the darker half of the samples, when it has at least
@@ -599,23 +628,40 @@ impl Compact {
 
     /// Robust scale 1.4826·median|r| of the residuals of the samples with `keep`.
     fn scale(&mut self) -> f64 {
-        self.scratch.clear();
+        // |r| has a clear sign bit, and for such values the order of the IEEE-754 bit patterns
+        // is the numeric (total) order: selecting on integers gives the same median, faster.
+        self.abs_bits.clear();
         let kept = self.r.iter().zip(&self.keep).filter(|(_, k)| **k > 0.0);
-        self.scratch.extend(kept.map(|(r, _)| r.abs()));
-        MAD_TO_SIGMA * crate::metrics::median_by(&mut self.scratch, f64::total_cmp).unwrap_or(0.0)
+        self.abs_bits.extend(kept.map(|(r, _)| r.abs().to_bits()));
+        let median = crate::metrics::median_by(&mut self.abs_bits, u64::cmp).map(f64::from_bits);
+        MAD_TO_SIGMA * median.unwrap_or(0.0)
     }
 
-    /// Selects, for normal `n`, the widest specular cone (full, 2/3, 1/3, none) that leaves at
-    /// least [`MIN_ROBUST_SAMPLES`] lit samples with condition number at most
-    /// [`SELECTION_MAX_CONDITION`]; with none, every sample. Leaves the selection in `keep`.
-    fn select(&mut self, n: &Vector3<f64>, cones: &[f64; CONE_STEPS + 1], min_cos_lit: f64) {
-        let dot = |out: &mut [f64], [x, y, z]: &[Vec<f64>; 3]| {
-            for (o, (x, (y, z))) in out.iter_mut().zip(x.iter().zip(y.iter().zip(z))) {
-                *o = n.x * x + n.y * y + n.z * z;
-            }
-        };
-        dot(&mut self.nl, &self.l);
-        dot(&mut self.nh, &self.h);
+    /// For the estimate `g`, in one pass: n·l and n·h of every sample under its normal
+    /// n = g/|g|, and the residuals r = v − g·l (as v − |g|·n·l).
+    fn project(&mut self, g: &Vector3<f64>) {
+        let norm = g.norm();
+        let n = g / norm;
+        let [lx, ly, lz] = &self.l;
+        let [hx, hy, hz] = &self.h;
+        let out = self.nl.iter_mut().zip(self.nh.iter_mut().zip(&mut self.r));
+        let light = lx.iter().zip(ly.iter().zip(lz));
+        let half = hx.iter().zip(hy.iter().zip(hz));
+        for (((nl, (nh, r)), (x, (y, z))), ((hx, (hy, hz)), v)) in
+            out.zip(light).zip(half.zip(&self.v))
+        {
+            let d = n.x * x + n.y * y + n.z * z;
+            *nl = d;
+            *nh = n.x * hx + n.y * hy + n.z * hz;
+            *r = v - norm * d;
+        }
+    }
+
+    /// Selects, from the n·l and n·h of the last [`Compact::project`], the widest specular
+    /// cone (full, 2/3, 1/3, none) that leaves at least [`MIN_ROBUST_SAMPLES`] lit samples
+    /// with condition number at most [`SELECTION_MAX_CONDITION`]; with none, every sample.
+    /// Leaves the selection in `keep`.
+    fn select(&mut self, cones: &[f64; CONE_STEPS + 1], min_cos_lit: f64) {
         for &cos_c in cones {
             for (k, (nl, nh)) in self.keep.iter_mut().zip(self.nl.iter().zip(&self.nh)) {
                 *k = if *nl > min_cos_lit && *nh < cos_c {
@@ -650,18 +696,17 @@ impl Compact {
             }
         });
         for round in 0..SPECULAR_ROUNDS {
-            let n = current / current.norm();
-            self.select(&n, &cones, min_cos_lit);
-            let s = if round == 0 {
-                0.0
-            } else {
-                self.residuals(&current);
-                self.scale()
-            };
+            self.project(&current);
+            self.select(&cones, min_cos_lit);
+            let s = if round == 0 { 0.0 } else { self.scale() };
             if s > 1e-12 * current.norm() {
+                // Tukey's weight (1 − u²)² for |u| < 1, u = r/(c·s), without branches.
+                let inv = 1.0 / (TUKEY_C * s);
                 let kept = self.r.iter().zip(&self.keep);
                 for (w, (r, k)) in self.w.iter_mut().zip(kept) {
-                    *w = k * Loss::Tukey.weight(r / s);
+                    let u = r * inv;
+                    let t = (1.0 - u * u).max(0.0);
+                    *w = k * t * t;
                 }
             } else {
                 self.w.copy_from_slice(&self.keep);
