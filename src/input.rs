@@ -117,14 +117,15 @@ pub struct ImageInfo {
     pub channels: usize,
     /// Whether the sRGB transfer function was undone.
     pub linearised: bool,
-    /// Pixels with at least one saturated channel.
+    /// Pixels of the stored window with at least one saturated channel.
     pub saturated: usize,
-    /// Pixels with a NaN or infinite value (excluded from solves).
+    /// Pixels of the stored window with a NaN or infinite value (excluded from solves).
     pub non_finite: usize,
 }
 
 /// A stack of equally sized single- or three-channel images in linear radiance, each divided by
-/// its light's intensity. Layout: image-major, then channel, then row-major pixels.
+/// its light's intensity. Layout: image-major, then channel, then the row-major pixels of
+/// [`ImageStack::window`] (the whole image, or the part a mask spans).
 #[derive(Debug, Clone)]
 pub struct ImageStack {
     width: usize,
