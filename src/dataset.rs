@@ -106,6 +106,21 @@ impl Capture {
         options: &LoadOptions,
         progress: &dyn Progress,
     ) -> Result<Self> {
+        Capture::from_diligent_masked(dir, None, options, progress)
+    }
+
+    /// [`Capture::from_diligent`] with the mask in `mask` instead of the folder's `mask.png`
+    /// (its window is the part of the images that is stored).
+    ///
+    /// # Errors
+    /// As [`Capture::from_diligent`]; [`Error::Mask`] when `mask` cannot be read, is empty or
+    /// differs in size from the images (checked before any image is decoded).
+    pub fn from_diligent_masked(
+        dir: &Path,
+        mask: Option<&Path>,
+        options: &LoadOptions,
+        progress: &dyn Progress,
+    ) -> Result<Self> {
         let list = dir.join("filenames.txt");
         let dirs_file = dir.join("light_directions.txt");
         for f in [&list, &dirs_file] {
@@ -143,8 +158,10 @@ impl Capture {
                 ),
             });
         }
-        let mask = dir.join("mask.png");
-        let mask = mask.is_file().then_some(mask);
+        let folder_mask = dir.join("mask.png");
+        let mask = mask
+            .map(Path::to_path_buf)
+            .or_else(|| folder_mask.is_file().then_some(folder_mask));
         Capture::load(
             images,
             lights,
@@ -190,6 +207,12 @@ impl Capture {
         // Read the mask first: only its bounding box is stored, and rows below it are not
         // decoded.
         let mask = mask_file.map(read_mask).transpose()?;
+        // A mask of another size is refused before anything is decoded (its window would
+        // otherwise choose the part of the images to read).
+        if let (Some(m), Some(path), Some(first)) = (&mask, mask_file, images.first()) {
+            let (w, h) = crate::input::image_size(first)?;
+            check_mask_dims(m, path, w, h)?;
+        }
         let window = mask.as_ref().and_then(Mask::bounding_box);
         let options = LoadOptions {
             window: options.window.or(window),
@@ -218,19 +241,23 @@ fn load_mask_for(path: &Path, stack: &ImageStack) -> Result<Mask> {
 
 /// `m`, read from `path`, when its size is the stack's.
 fn check_mask_size(m: Mask, path: &Path, stack: &ImageStack) -> Result<Mask> {
-    if m.width() != stack.width() || m.height() != stack.height() {
+    check_mask_dims(&m, path, stack.width(), stack.height())?;
+    Ok(m)
+}
+
+/// Whether mask `m`, read from `path`, is `width`×`height`.
+fn check_mask_dims(m: &Mask, path: &Path, width: usize, height: usize) -> Result<()> {
+    if m.width() != width || m.height() != height {
         return Err(Error::Mask {
             path: path.to_path_buf(),
             reason: format!(
-                "size {}x{} differs from the images' {}x{}",
+                "size {}x{} differs from the images' {width}x{height}",
                 m.width(),
                 m.height(),
-                stack.width(),
-                stack.height()
             ),
         });
     }
-    Ok(m)
+    Ok(())
 }
 
 /// File format of written images.

@@ -51,6 +51,28 @@ pub enum Error {
         /// Height found.
         found_height: usize,
     },
+    /// An image of a stack cannot take part in a solve: its channels differ from the first
+    /// image's, or it holds no light (all dark) or no usable sample (all saturated).
+    #[error("{path} (image {index}): {reason}")]
+    BadImage {
+        /// The offending image.
+        path: PathBuf,
+        /// Its index in the stack (0-based).
+        index: usize,
+        /// What is wrong and what to do.
+        reason: String,
+    },
+    /// An output folder already holds files (or an output file exists) and overwriting was
+    /// not asked for.
+    #[error(
+        "{path}: {what}; choose another output or pass --force to overwrite the files this tool writes"
+    )]
+    OutputExists {
+        /// The folder or file.
+        path: PathBuf,
+        /// What is there.
+        what: String,
+    },
     /// A lights file is malformed.
     #[error("{path}{}: {reason}", line.map(|l| format!(" line {l}")).unwrap_or_default())]
     LightsFile {

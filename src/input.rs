@@ -799,16 +799,59 @@ pub fn load_stack(
             };
             let r = convert_into(&raw, &cv, out, path, window);
             progress.advance(1);
+            let where_ = if window == Window::full(width, height) {
+                String::new()
+            } else {
+                format!(" in the part the mask spans ({window})")
+            };
+            // NaN compares false: an image of NaN counts as dark.
+            if !out.iter().any(|v| *v > 0.0) {
+                return Err(Error::BadImage {
+                    path: path.clone(),
+                    index,
+                    reason: format!(
+                        "the image is entirely dark{where_}: no sample above 0, so it says nothing about the shape; check the exposure, or remove it and its light"
+                    ),
+                });
+            }
+            if r.1.saturated >= window.len() {
+                return Err(Error::BadImage {
+                    path: path.clone(),
+                    index,
+                    reason: format!(
+                        "every pixel is saturated{where_}; lower the exposure, or remove the image and its light"
+                    ),
+                });
+            }
             Ok(r)
         })
         .collect();
     progress.end();
     let mut saturated = Vec::with_capacity(paths.len());
-    let mut info = Vec::with_capacity(paths.len());
+    let mut info: Vec<ImageInfo> = Vec::with_capacity(paths.len());
     for r in results {
         let (s, i) = r?;
         saturated.push(s);
         info.push(i);
+    }
+    // Grey and colour files do not mix: the grey mix of an RGB file and a grey file are not
+    // the same measurement.
+    if let Some(first) = info.first()
+        && let Some((index, odd)) = info
+            .iter()
+            .enumerate()
+            .find(|(_, i)| i.channels != first.channels)
+    {
+        return Err(Error::BadImage {
+            path: odd.path.clone(),
+            index,
+            reason: format!(
+                "it has {} colour channel(s) but image 0 ({}) has {}; all images must be grey or all RGB",
+                odd.channels,
+                first.path.display(),
+                first.channels
+            ),
+        });
     }
     Ok(ImageStack {
         width,

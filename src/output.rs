@@ -1,21 +1,122 @@
 //! Writing results: float EXR maps, PNG previews and JSON, all atomically.
 //!
-//! Every file is first written to a hidden temporary file in the destination folder and renamed
-//! into place only when all files of the run were written ([`OutputDir::commit`]); a failed or
-//! interrupted run leaves no partial file (temporaries are removed when the [`OutputDir`] is
-//! dropped uncommitted; a killed process can leave only hidden `.*.tmp-*` files).
+//! Every file is first written to a temporary and put in place only when all files of the run
+//! were written ([`OutputDir::commit`]). On Linux the temporary is an unnamed file
+//! (`O_TMPFILE`) in the destination folder: it gets its name only at the commit, so a failed,
+//! interrupted (Ctrl-C) or killed (`SIGKILL`) run leaves nothing behind. Where the file system
+//! cannot create unnamed files, it is a hidden `.NAME.tmp-PID` beside the destination, removed
+//! when the [`OutputDir`] is dropped uncommitted (a killed process can leave those).
 
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
 use crate::input::linear_to_srgb;
-use std::io::{BufWriter, Write};
+use std::fs::File;
+use std::io::{BufWriter, Seek, Write};
 use std::path::{Path, PathBuf};
 
 /// A folder that receives a set of output files atomically.
 #[derive(Debug)]
 pub struct OutputDir {
     dir: PathBuf,
-    staged: Vec<(PathBuf, PathBuf)>,
+    staged: Vec<Staged>,
+}
+
+/// A written file waiting for the commit.
+#[derive(Debug)]
+struct Staged {
+    temp: Temp,
+    dest: PathBuf,
+}
+
+/// Where a staged file's bytes are.
+#[derive(Debug)]
+enum Temp {
+    /// An unnamed file in the destination's folder (Linux `O_TMPFILE`): it vanishes with the
+    /// process unless linked into place.
+    Anonymous(File),
+    /// A hidden file beside the destination.
+    Named(PathBuf),
+}
+
+/// An unnamed file in folder `dir`, or `None` where the platform or file system cannot make
+/// one.
+#[cfg(target_os = "linux")]
+fn anonymous_file(dir: &Path) -> Option<File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .mode(0o644)
+        .custom_flags(libc::O_TMPFILE)
+        .open(dir)
+        .ok()
+}
+
+#[cfg(not(target_os = "linux"))]
+fn anonymous_file(_: &Path) -> Option<File> {
+    None
+}
+
+/// Gives the unnamed file `file` the name `dest`: a hard link through `/proc/self/fd`, straight
+/// to `dest` when it does not exist, else to a hidden temporary renamed over it (so an existing
+/// file is replaced atomically). Without `/proc`, the bytes are copied to the temporary.
+#[cfg(target_os = "linux")]
+fn link_into_place(file: &mut File, dest: &Path) -> std::io::Result<()> {
+    use std::ffi::CString;
+    use std::os::fd::AsRawFd;
+    use std::os::unix::ffi::OsStrExt;
+    let link = |to: &Path| -> std::io::Result<()> {
+        let from = CString::new(format!("/proc/self/fd/{}", file.as_raw_fd()))?;
+        let to = CString::new(to.as_os_str().as_bytes())?;
+        // SAFETY: both arguments are valid NUL-terminated paths that outlive the call;
+        // linkat only reads them.
+        #[allow(unsafe_code)]
+        let r = unsafe {
+            libc::linkat(
+                libc::AT_FDCWD,
+                from.as_ptr(),
+                libc::AT_FDCWD,
+                to.as_ptr(),
+                libc::AT_SYMLINK_FOLLOW,
+            )
+        };
+        if r == 0 {
+            Ok(())
+        } else {
+            Err(std::io::Error::last_os_error())
+        }
+    };
+    match link(dest) {
+        Ok(()) => return Ok(()),
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+        Err(_) => return copy_into_place(file, dest),
+    }
+    let tmp = temp_path(dest);
+    let _ = std::fs::remove_file(&tmp);
+    link(&tmp)?;
+    std::fs::rename(&tmp, dest).inspect_err(|_| {
+        let _ = std::fs::remove_file(&tmp);
+    })
+}
+
+#[cfg(not(target_os = "linux"))]
+fn link_into_place(file: &mut File, dest: &Path) -> std::io::Result<()> {
+    copy_into_place(file, dest)
+}
+
+/// Copies the bytes of `file` to a hidden temporary beside `dest` and renames it over `dest`.
+fn copy_into_place(file: &mut File, dest: &Path) -> std::io::Result<()> {
+    let tmp = temp_path(dest);
+    let result = (|| {
+        file.rewind()?;
+        let mut out = File::create(&tmp)?;
+        std::io::copy(file, &mut out)?;
+        std::fs::rename(&tmp, dest)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
 }
 
 /// One named channel of an EXR file.
@@ -28,6 +129,50 @@ fn temp_path(dest: &Path) -> PathBuf {
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     dest.with_file_name(format!(".{name}.tmp-{}", std::process::id()))
+}
+
+/// Checks that `dir` can take a new set of outputs without overwriting anything: it does not
+/// exist yet, or it is an empty folder. (The command line calls this unless `--force` is given.)
+///
+/// # Errors
+/// [`Error::OutputExists`] when `dir` is a folder holding entries; [`Error::Io`] when it exists
+/// but is not a folder, or cannot be listed.
+pub fn ensure_fresh_dir(dir: &Path) -> Result<()> {
+    match std::fs::metadata(dir) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+        Err(e) => Err(Error::io(dir, e)),
+        Ok(m) if !m.is_dir() => Err(Error::io(
+            dir,
+            std::io::Error::other("exists and is not a folder; pass a folder for the outputs"),
+        )),
+        Ok(_) => {
+            let entries = std::fs::read_dir(dir)
+                .map_err(|e| Error::io(dir, e))?
+                .count();
+            if entries == 0 {
+                Ok(())
+            } else {
+                Err(Error::OutputExists {
+                    path: dir.to_path_buf(),
+                    what: format!("the output folder already exists and holds {entries} entries"),
+                })
+            }
+        }
+    }
+}
+
+/// Checks that the output file `path` does not exist yet.
+///
+/// # Errors
+/// [`Error::OutputExists`] when it does.
+pub fn ensure_fresh_file(path: &Path) -> Result<()> {
+    if std::fs::symlink_metadata(path).is_ok() {
+        return Err(Error::OutputExists {
+            path: path.to_path_buf(),
+            what: "the output file already exists".into(),
+        });
+    }
+    Ok(())
 }
 
 impl OutputDir {
@@ -48,20 +193,37 @@ impl OutputDir {
         &self.dir
     }
 
-    /// Writes `name` (a file name, or a relative path whose folders are created) to its
-    /// temporary with `write`, to be renamed into place by [`OutputDir::commit`].
-    fn stage(&mut self, name: &str, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+    /// Writes `name` (a file name, or a relative path whose folders are created) to a
+    /// temporary with `write` (given the file and the path to name in errors), to be put in
+    /// place by [`OutputDir::commit`].
+    fn stage(
+        &mut self,
+        name: &str,
+        write: impl FnOnce(&mut File, &Path) -> Result<()>,
+    ) -> Result<()> {
         let dest = self.dir.join(name);
-        if let Some(parent) = dest.parent() {
-            std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
+        let parent = dest.parent().unwrap_or(&self.dir);
+        std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
+        if let Some(mut file) = anonymous_file(parent) {
+            write(&mut file, &dest)?;
+            self.staged.push(Staged {
+                temp: Temp::Anonymous(file),
+                dest,
+            });
+            return Ok(());
         }
         let tmp = temp_path(&dest);
-        let result = write(&tmp);
+        let result = File::create(&tmp)
+            .map_err(|e| Error::io(&tmp, e))
+            .and_then(|mut file| write(&mut file, &tmp));
         if result.is_err() {
             let _ = std::fs::remove_file(&tmp);
             return result;
         }
-        self.staged.push((tmp, dest));
+        self.staged.push(Staged {
+            temp: Temp::Named(tmp),
+            dest,
+        });
         Ok(())
     }
 
@@ -79,8 +241,8 @@ impl OutputDir {
         channels: &[ExrChannel],
         attributes: &[(&str, String)],
     ) -> Result<()> {
-        self.stage(name, |tmp| {
-            write_exr(tmp, width, height, channels, attributes)
+        self.stage(name, |file, path| {
+            encode_exr(file, path, width, height, channels, attributes)
         })
     }
 
@@ -96,7 +258,9 @@ impl OutputDir {
         channels: usize,
         data: &[u8],
     ) -> Result<()> {
-        self.stage(name, |tmp| write_png8(tmp, width, height, channels, data))
+        self.stage(name, |file, path| {
+            encode_png8(file, path, width, height, channels, data)
+        })
     }
 
     /// Stages a 16-bit PNG (`channels` 1 or 3, interleaved).
@@ -111,7 +275,9 @@ impl OutputDir {
         channels: usize,
         data: &[u16],
     ) -> Result<()> {
-        self.stage(name, |tmp| write_png16(tmp, width, height, channels, data))
+        self.stage(name, |file, path| {
+            encode_png16(file, path, width, height, channels, data)
+        })
     }
 
     /// Stages a file with the given bytes (JSON, text).
@@ -119,26 +285,37 @@ impl OutputDir {
     /// # Errors
     /// [`Error::Io`] when writing fails.
     pub fn stage_bytes(&mut self, name: &str, bytes: &[u8]) -> Result<()> {
-        self.stage(name, |tmp| {
-            let mut f = std::fs::File::create(tmp).map_err(|e| Error::io(tmp, e))?;
-            f.write_all(bytes).map_err(|e| Error::io(tmp, e))?;
-            f.sync_all().map_err(|e| Error::io(tmp, e))
+        self.stage(name, |file, path| {
+            file.write_all(bytes).map_err(|e| Error::io(path, e))?;
+            file.sync_all().map_err(|e| Error::io(path, e))
         })
     }
 
-    /// Moves every staged file into place; returns the final paths.
+    /// Puts every staged file in place; returns the final paths. While it runs,
+    /// [`hold_commits`] waits.
     ///
     /// # Errors
-    /// [`Error::Io`] when a rename fails (the remaining temporaries are removed).
+    /// [`Error::Io`] when a file cannot be put in place (the remaining temporaries are
+    /// removed).
     pub fn commit(mut self) -> Result<Vec<PathBuf>> {
+        let _commit = COMMITS
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
         let staged = std::mem::take(&mut self.staged);
         let mut done = Vec::with_capacity(staged.len());
         let mut iter = staged.into_iter();
-        while let Some((tmp, dest)) = iter.next() {
-            if let Err(e) = std::fs::rename(&tmp, &dest) {
-                let _ = std::fs::remove_file(&tmp);
-                for (t, _) in iter {
-                    let _ = std::fs::remove_file(t);
+        while let Some(Staged { temp, dest }) = iter.next() {
+            let result = match temp {
+                Temp::Anonymous(mut file) => link_into_place(&mut file, &dest),
+                Temp::Named(tmp) => std::fs::rename(&tmp, &dest).inspect_err(|_| {
+                    let _ = std::fs::remove_file(&tmp);
+                }),
+            };
+            if let Err(e) = result {
+                for rest in iter {
+                    if let Temp::Named(t) = rest.temp {
+                        let _ = std::fs::remove_file(t);
+                    }
                 }
                 return Err(Error::io(dest, e));
             }
@@ -150,10 +327,25 @@ impl OutputDir {
 
 impl Drop for OutputDir {
     fn drop(&mut self) {
-        for (tmp, _) in &self.staged {
-            let _ = std::fs::remove_file(tmp);
+        // Unnamed files vanish when closed; named ones are removed.
+        for staged in &self.staged {
+            if let Temp::Named(tmp) = &staged.temp {
+                let _ = std::fs::remove_file(tmp);
+            }
         }
     }
+}
+
+/// Held by [`OutputDir::commit`] while it puts files in place.
+static COMMITS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+/// Waits for a commit in progress to finish and keeps new ones from starting while the guard
+/// lives: an interrupt handler takes it before exiting, so that a run stops either before its
+/// outputs appear or after all of them are in place.
+pub fn hold_commits() -> std::sync::MutexGuard<'static, ()> {
+    COMMITS
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// Writes a float32 EXR (ZIP) at `path` directly (not atomically; see [`OutputDir`]).
@@ -161,6 +353,19 @@ impl Drop for OutputDir {
 /// # Errors
 /// As [`OutputDir::stage_exr`].
 pub fn write_exr(
+    path: &Path,
+    width: usize,
+    height: usize,
+    channels: &[ExrChannel],
+    attributes: &[(&str, String)],
+) -> Result<()> {
+    let mut file = File::create(path).map_err(|e| Error::io(path, e))?;
+    encode_exr(&mut file, path, width, height, channels, attributes)
+}
+
+/// Encodes a float32 EXR (ZIP) into `file`; `path` names it in errors.
+fn encode_exr(
+    file: &mut File,
     path: &Path,
     width: usize,
     height: usize,
@@ -197,16 +402,18 @@ pub fn write_exr(
         Encoding::SMALL_LOSSLESS,
         AnyChannels::sort(list),
     );
+    let mut out = BufWriter::new(file);
     Image::from_layer(layer)
         .write()
-        .to_file(path)
+        .to_buffered(&mut out)
         .map_err(|e| match e {
             exr::error::Error::Io(io) => crate::Error::io(path, io),
             other => crate::Error::Encode {
                 path: path.to_path_buf(),
                 reason: other.to_string(),
             },
-        })
+        })?;
+    out.flush().map_err(|e| crate::Error::io(path, e))
 }
 
 fn encode_err(path: &Path, e: image::ImageError) -> Error {
@@ -219,17 +426,24 @@ fn encode_err(path: &Path, e: image::ImageError) -> Error {
     }
 }
 
-fn create_buffered(path: &Path) -> Result<BufWriter<std::fs::File>> {
-    Ok(BufWriter::new(
-        std::fs::File::create(path).map_err(|e| Error::io(path, e))?,
-    ))
-}
-
 /// Writes an 8-bit PNG with 1 or 3 interleaved channels.
 ///
 /// # Errors
 /// [`Error::Encode`] or [`Error::Io`].
 pub fn write_png8(
+    path: &Path,
+    width: usize,
+    height: usize,
+    channels: usize,
+    data: &[u8],
+) -> Result<()> {
+    let mut file = File::create(path).map_err(|e| Error::io(path, e))?;
+    encode_png8(&mut file, path, width, height, channels, data)
+}
+
+/// Encodes an 8-bit PNG into `file`; `path` names it in errors.
+fn encode_png8(
+    file: &mut File,
     path: &Path,
     width: usize,
     height: usize,
@@ -247,7 +461,7 @@ pub fn write_png8(
             ));
         }
     };
-    let mut w = create_buffered(path)?;
+    let mut w = BufWriter::new(file);
     image::codecs::png::PngEncoder::new(&mut w)
         .write_image(data, width as u32, height as u32, color)
         .map_err(|e| encode_err(path, e))?;
@@ -265,12 +479,25 @@ pub fn write_png16(
     channels: usize,
     data: &[u16],
 ) -> Result<()> {
+    let mut file = File::create(path).map_err(|e| Error::io(path, e))?;
+    encode_png16(&mut file, path, width, height, channels, data)
+}
+
+/// Encodes a 16-bit PNG into `file`; `path` names it in errors.
+fn encode_png16(
+    file: &mut File,
+    path: &Path,
+    width: usize,
+    height: usize,
+    channels: usize,
+    data: &[u16],
+) -> Result<()> {
     fn encode<P>(
         path: &Path,
         width: usize,
         height: usize,
         data: &[u16],
-        out: &mut BufWriter<std::fs::File>,
+        out: &mut BufWriter<&mut File>,
     ) -> Result<()>
     where
         P: image::Pixel<Subpixel = u16> + image::PixelWithColorType,
@@ -282,7 +509,7 @@ pub fn write_png16(
         buf.write_to(out, image::ImageFormat::Png)
             .map_err(|e| encode_err(path, e))
     }
-    let mut w = create_buffered(path)?;
+    let mut w = BufWriter::new(file);
     match channels {
         1 => encode::<image::Luma<u16>>(path, width, height, data, &mut w)?,
         3 => encode::<image::Rgb<u16>>(path, width, height, data, &mut w)?,

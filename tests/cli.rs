@@ -3,41 +3,13 @@
 
 mod common;
 
+use common::{listing, os, run, sphere_dataset};
 use photostereo::dataset::{ImageFormat, write_synthetic};
 use photostereo::demo::synthesize;
 use photostereo::lights::Lights;
 use photostereo::render::RenderOptions;
 use photostereo::scene::{Albedo, Scene};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn run(args: &[&std::ffi::OsStr]) -> Output {
-    Command::new(common::bin()).args(args).output().unwrap()
-}
-
-fn os<S: AsRef<std::ffi::OsStr> + ?Sized>(s: &S) -> &std::ffi::OsStr {
-    s.as_ref()
-}
-
-/// A noise-free sphere data set written as EXR files with `lights.json`; returns the image
-/// paths in file order.
-fn sphere_dataset(dir: &Path, format: ImageFormat) -> Vec<PathBuf> {
-    let scene = Scene::sphere(
-        96,
-        40.0,
-        Albedo::Smooth {
-            mean: 0.6,
-            amplitude: 0.2,
-            period: 23.0,
-        },
-    );
-    let lights = Lights::fibonacci(10, 30.0).unwrap();
-    let synth = synthesize(scene, lights.clone(), &RenderOptions::default()).unwrap();
-    write_synthetic(&synth.rendering, &lights, dir, format).unwrap();
-    (0..10)
-        .map(|k| dir.join(format!("img_{k:03}.{}", format.extension())))
-        .collect()
-}
 
 /// Mean angular error of `out/normal.exr` against `gt` via the `eval` subcommand.
 fn eval(out: &Path, gt: &Path, mask: &Path) -> serde_json::Value {
@@ -52,18 +24,6 @@ fn eval(out: &Path, gt: &Path, mask: &Path) -> serde_json::Value {
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     serde_json::from_slice(&o.stdout).unwrap()
-}
-
-/// Files in a folder (names), sorted.
-fn listing(dir: &Path) -> Vec<String> {
-    let mut v: Vec<String> = std::fs::read_dir(dir)
-        .map(|r| {
-            r.map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-                .collect()
-        })
-        .unwrap_or_default();
-    v.sort();
-    v
 }
 
 #[test]

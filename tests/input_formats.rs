@@ -1163,7 +1163,8 @@ fn missing_file_is_io_error_with_path() {
     }
 }
 
-/// A per-channel load meeting a grey image fails with `UnsupportedImage` naming file and index.
+/// A per-channel load meeting a grey image fails with `UnsupportedImage` naming file and index;
+/// a grey load of grey and RGB files mixed fails with `BadImage`.
 #[test]
 fn per_channel_load_of_grey_image_fails() {
     let dir = tempfile::tempdir().unwrap();
@@ -1184,9 +1185,26 @@ fn per_channel_load_of_grey_image_fails() {
         );
         assert!(msg.contains("image 1"), "{msg}");
     }
-    // The same grey images load fine in grey mode.
-    let paths = vec![rgb.clone(), grey, y];
-    assert!(load_stack(&paths, &unit_lights(3), &LoadOptions::default(), &Silent).is_ok());
+    // Grey mode refuses them too: a grey file and the grey mix of an RGB file are different
+    // measurements. The first image whose channels differ from image 0's is named.
+    for bad in [&grey, &y] {
+        let paths = vec![rgb.clone(), rgb.clone(), bad.clone()];
+        match load_stack(&paths, &unit_lights(3), &LoadOptions::default(), &Silent) {
+            Err(Error::BadImage {
+                path,
+                index,
+                reason,
+            }) => {
+                assert_eq!((&path, index), (bad, 2));
+                assert!(reason.contains("1 colour channel(s)"), "{reason}");
+                assert!(reason.contains("has 3"), "{reason}");
+            }
+            other => panic!(
+                "expected a channel mismatch, got {:?}",
+                other.map(|s| s.count())
+            ),
+        }
+    }
 }
 
 /// An all-zero mask is rejected with `Error::Mask` naming the file.
@@ -1300,8 +1318,10 @@ fn image_size_of_each_format() {
         assert_eq!((img.width, img.height), (7, 3));
         assert_eq!(img.data.len(), 21 * img.channels);
     }
-    // A stack mixing the three formats loads, with each image's format recorded.
-    let stack = load(&[png, tif, exr], LoadOptions::default());
+    // A stack mixing the three formats (all grey) loads, with each image's format recorded.
+    let grey_tif = dir.path().join("g.tif");
+    save(luma8(7, 3, &[5; 21]), &grey_tif);
+    let stack = load(&[png, grey_tif, exr], LoadOptions::default());
     let formats: Vec<SampleFormat> = stack.info().iter().map(|i| i.format).collect();
     assert_eq!(
         formats,

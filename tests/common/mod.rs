@@ -1,7 +1,13 @@
 //! Helpers shared by the integration tests.
 #![allow(dead_code)]
 
-use std::path::PathBuf;
+use photostereo::dataset::{ImageFormat, write_synthetic};
+use photostereo::demo::synthesize;
+use photostereo::lights::Lights;
+use photostereo::render::RenderOptions;
+use photostereo::scene::{Albedo, Scene};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
 
 /// `../shared/data` beside the repository, or `None` (the caller prints why it skips).
 pub fn shared_data() -> Option<PathBuf> {
@@ -32,4 +38,46 @@ macro_rules! require_shared {
 /// The photostereo binary built for these tests.
 pub fn bin() -> PathBuf {
     PathBuf::from(env!("CARGO_BIN_EXE_photostereo"))
+}
+
+/// Runs the photostereo binary with `args`.
+pub fn run(args: &[&std::ffi::OsStr]) -> Output {
+    Command::new(bin()).args(args).output().unwrap()
+}
+
+/// An argument as an `OsStr`.
+pub fn os<S: AsRef<std::ffi::OsStr> + ?Sized>(s: &S) -> &std::ffi::OsStr {
+    s.as_ref()
+}
+
+/// A noise-free sphere data set written as EXR files with `lights.json`; returns the image
+/// paths in file order.
+pub fn sphere_dataset(dir: &Path, format: ImageFormat) -> Vec<PathBuf> {
+    let scene = Scene::sphere(
+        96,
+        40.0,
+        Albedo::Smooth {
+            mean: 0.6,
+            amplitude: 0.2,
+            period: 23.0,
+        },
+    );
+    let lights = Lights::fibonacci(10, 30.0).unwrap();
+    let synth = synthesize(scene, lights.clone(), &RenderOptions::default()).unwrap();
+    write_synthetic(&synth.rendering, &lights, dir, format).unwrap();
+    (0..10)
+        .map(|k| dir.join(format!("img_{k:03}.{}", format.extension())))
+        .collect()
+}
+
+/// Files in a folder (names), sorted.
+pub fn listing(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .map(|r| {
+            r.map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect()
+        })
+        .unwrap_or_default();
+    v.sort();
+    v
 }

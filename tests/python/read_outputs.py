@@ -35,7 +35,12 @@ out = sys.argv[1]
 summary = {}
 normal, header = channels(f"{out}/normal.exr")
 check(sorted(normal) == ["B", "G", "R"], f"normal.exr channels {sorted(normal)}")
-check("photostereo:method" in header, "normal.exr lacks the photostereo:method attribute")
+for key in ["photostereo:method", "photostereo:frame", "photostereo:units", "photostereo:lights"]:
+    check(key in header, f"normal.exr lacks the {key} attribute")
+dirs = json.loads(header["photostereo:light_directions"])
+check(len(dirs) == int(header["photostereo:lights"]), "light_directions and lights disagree")
+check(np.allclose(np.linalg.norm(np.array(dirs), axis=1), 1.0, atol=1e-9), "light directions are not unit vectors")
+summary["lights"] = len(dirs)
 h, w = normal["R"].shape
 n = np.dstack([normal[c] for c in "RGB"])
 check(n.dtype == np.float32, f"normal dtype {n.dtype}")

@@ -66,9 +66,12 @@ pub struct RunArgs {
     /// Object mask (pixels > 0 are solved); default: every pixel (DiLiGenT: its mask.png).
     #[arg(long, value_name = "FILE")]
     pub mask: Option<PathBuf>,
-    /// Output folder.
+    /// Output folder (refused when it exists and is not empty, unless --force).
     #[arg(long, short, value_name = "DIR")]
     pub output: Option<PathBuf>,
+    /// Write into an existing, non-empty output folder, replacing the files this tool writes.
+    #[arg(long)]
+    pub force: bool,
     /// Solver and integration options.
     #[command(flatten)]
     pub method: MethodArgs,
@@ -150,9 +153,12 @@ pub struct LoadArgs {
 /// `demo` options.
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    /// Output folder.
+    /// Output folder (refused when it exists and is not empty, unless --force).
     #[arg(long, short, value_name = "DIR")]
     pub output: PathBuf,
+    /// Write into an existing, non-empty output folder, replacing the files this tool writes.
+    #[arg(long)]
+    pub force: bool,
     /// Standard deviation of Gaussian image noise (images peak near 1).
     #[arg(long, default_value_t = photostereo::demo::DEFAULT_NOISE)]
     pub noise: f32,
@@ -226,6 +232,9 @@ pub struct IntegrateArgs {
     /// Also write a triangle mesh of the depth map (binary PLY with normals).
     #[arg(long, value_name = "FILE")]
     pub ply: Option<PathBuf>,
+    /// Replace existing output files.
+    #[arg(long)]
+    pub force: bool,
 }
 
 /// `bench` subcommands.
@@ -564,6 +573,9 @@ impl RunArgs {
         let output = self
             .output
             .context("no output folder: pass -o DIR (see --help)")?;
+        if !self.force {
+            photostereo::output::ensure_fresh_dir(&output)?;
+        }
         if self.inputs.is_empty() {
             bail!(
                 "no input images: give image files and --lights FILE, or a DiLiGenT folder (see --help), or run `photostereo demo -o out/`"

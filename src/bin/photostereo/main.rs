@@ -25,7 +25,7 @@ use photostereo::dataset::Capture;
 use photostereo::demo;
 use photostereo::grid::Grid;
 use photostereo::grid::Mask;
-use photostereo::input::{LoadOptions, read_mask, read_normal_map};
+use photostereo::input::read_normal_map;
 use photostereo::integrate::integrate_normals;
 use photostereo::mesh::Mesh;
 use photostereo::metrics::{angular_errors, depth_errors, scaled_depth_errors};
@@ -43,7 +43,28 @@ fn main() {
     }
 }
 
+/// Exit status of a run stopped by Ctrl-C (128 + SIGINT), as shells report it.
+const INTERRUPTED_EXIT: i32 = 130;
+
+/// Ctrl-C (and SIGTERM): let a commit in progress finish, so the outputs are all in place or
+/// none is, then exit. The temporaries are unnamed files, which vanish with the process.
+fn stop_cleanly_on_interrupt() {
+    let handler = || {
+        let _held = photostereo::output::hold_commits();
+        eprintln!(
+            "interrupted: stopped; outputs are written all at once at the end, so none from this run is left half-written"
+        );
+        std::process::exit(INTERRUPTED_EXIT);
+    };
+    if let Err(e) = ctrlc::set_handler(handler) {
+        eprintln!(
+            "warning: cannot catch Ctrl-C ({e}); an interrupt will still leave no partial file"
+        );
+    }
+}
+
 fn run(cli: Cli) -> Result<()> {
+    stop_cleanly_on_interrupt();
     if let Some(n) = cli.threads {
         rayon::ThreadPoolBuilder::new()
             .num_threads(n)
@@ -69,17 +90,8 @@ pub fn load_capture(rc: &RunConfig, progress: &dyn Progress) -> Result<(Capture,
     // A capture stores only the window its mask spans.
     let capture = match &rc.source {
         Source::Diligent(dir) => {
-            // A --mask replaces the folder's own mask, so its window is the one to load.
-            let mask = rc.mask.as_deref().map(read_mask).transpose()?;
-            let load = LoadOptions {
-                window: mask.and_then(|m| m.bounding_box()).or(rc.load.window),
-                ..rc.load
-            };
-            let capture = Capture::from_diligent(dir, &load, progress)?;
-            match &rc.mask {
-                Some(mask) => capture.with_mask_file(mask)?,
-                None => capture,
-            }
+            // A --mask replaces the folder's own mask (and chooses the window to load).
+            Capture::from_diligent_masked(dir, rc.mask.as_deref(), &rc.load, progress)?
         }
         Source::Files { images, lights } => {
             Capture::from_files(images, lights, rc.mask.as_deref(), &rc.load, progress)?
@@ -101,6 +113,9 @@ fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
 
 fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
     let config = a.method.config()?;
+    if !a.force {
+        photostereo::output::ensure_fresh_dir(&a.output)?;
+    }
     let t = Instant::now();
     let synth = demo::default_capture(a.noise, a.seed)?;
     let render_s = t.elapsed().as_secs_f64();
@@ -277,6 +292,12 @@ fn read_depth(path: &Path) -> Result<photostereo::grid::ScalarMap> {
 }
 
 fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
+    if !a.force {
+        photostereo::output::ensure_fresh_file(&a.output)?;
+        if let Some(ply) = &a.ply {
+            photostereo::output::ensure_fresh_file(ply)?;
+        }
+    }
     let normals = read_normal_map(&a.normals)?;
     let (w, h) = (normals.width(), normals.height());
     let mask = match &a.mask {
