@@ -248,8 +248,17 @@ fn decode_png(path: &Path, rows: Option<Range<usize>>) -> Result<RawDecoded> {
             path: path.to_path_buf(),
             reason: "image too large".into(),
         })?;
-    let mut buf = vec![0u8; size];
     let (width, height) = (reader.info().width, reader.info().height);
+    // The header is checked before allocating what it declares (at most 2 bytes a sample).
+    if size > 2 * MAX_IMAGE_SAMPLES {
+        return Err(Error::UnsupportedImage {
+            path: path.to_path_buf(),
+            reason: format!(
+                "the header declares {width}x{height} pixels ({size} bytes decoded), more than the {MAX_IMAGE_SAMPLES} samples this tool reads"
+            ),
+        });
+    }
+    let mut buf = vec![0u8; size];
     let (color_type, bit_depth) = match rows {
         Some(rows) if !reader.info().interlaced => {
             let line = reader
@@ -290,12 +299,42 @@ fn decode_png(path: &Path, rows: Option<Range<usize>>) -> Result<RawDecoded> {
     })
 }
 
+/// Most samples (pixels × channels) of one image file this tool decodes: 2²⁸, 1 GiB as f32,
+/// far above real captures (50 Mpx RGB is 1.5·10⁸), and a guard against headers that declare
+/// sizes no file holds.
+pub const MAX_IMAGE_SAMPLES: usize = 1 << 28;
+
 /// The first valid layer of an EXR file with all its channels.
 fn read_exr_layer(
     path: &Path,
 ) -> Result<exr::image::Image<exr::image::Layer<exr::image::AnyChannels<exr::image::FlatSamples>>>>
 {
     use exr::prelude::*;
+    // The header is checked before the decoder allocates what it declares.
+    let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| match e {
+        exr::error::Error::Io(io) => crate::Error::io(path, io),
+        other => crate::Error::Decode {
+            path: path.to_path_buf(),
+            reason: other.to_string(),
+        },
+    })?;
+    for header in &meta.headers {
+        let samples = header
+            .layer_size
+            .area()
+            .saturating_mul(header.channels.list.len());
+        if samples > MAX_IMAGE_SAMPLES {
+            return Err(crate::Error::UnsupportedImage {
+                path: path.to_path_buf(),
+                reason: format!(
+                    "the header declares {}x{} pixels × {} channels, more than the {MAX_IMAGE_SAMPLES} samples this tool reads",
+                    header.layer_size.width(),
+                    header.layer_size.height(),
+                    header.channels.list.len()
+                ),
+            });
+        }
+    }
     read()
         .no_deep_data()
         .largest_resolution_level()
@@ -742,6 +781,14 @@ pub fn load_stack(
         return Err(Error::TooFewImages { count: 0 });
     };
     let (width, height) = image_size(first_path)?;
+    if width.saturating_mul(height) > MAX_IMAGE_SAMPLES {
+        return Err(Error::UnsupportedImage {
+            path: first_path.clone(),
+            reason: format!(
+                "{width}x{height} pixels, more than the {MAX_IMAGE_SAMPLES} this tool reads"
+            ),
+        });
+    }
     let window = match options.window {
         Some(win) => {
             let clamped = win.clamp(width, height);

@@ -106,14 +106,22 @@ impl Lights {
                     reason: format!("direction {:?} is not finite", d.as_slice()),
                 });
             }
-            let norm = d.norm();
-            if norm < 1e-12 {
+            // Huge or tiny components would overflow or underflow the norm: those directions
+            // are scaled by their largest component first.
+            let largest = d.amax();
+            if largest < 1e-12 {
                 return Err(Error::InvalidLight {
                     index,
                     reason: "direction is the zero vector".into(),
                 });
             }
-            light.direction = d / norm;
+            let norm = d.norm();
+            light.direction = if norm.is_finite() && norm > 1e-150 {
+                d / norm
+            } else {
+                let scaled = d / largest;
+                scaled / scaled.norm()
+            };
             if let Some(bad) = light
                 .intensity
                 .iter()
@@ -609,6 +617,30 @@ fn strip_count_line(mut rows: Vec<(usize, Vec<f64>)>) -> Vec<(usize, Vec<f64>)> 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Found by the `lights` fuzz target: a direction with a component near 1e200 once
+    /// overflowed the norm and normalised to the zero vector. It must normalise exactly.
+    #[test]
+    fn huge_and_tiny_components_normalise() {
+        let text = format!("0 4{} 66\n1e-9 0 1e-9\n0 1 1\n", "4".repeat(199));
+        let lights = Lights::from_text_str(&text, Path::new("fuzz")).unwrap();
+        let d = lights.directions();
+        assert!(
+            (d[0] - Vector3::new(0.0, 1.0, 0.0)).norm() < 1e-12,
+            "{:?}",
+            d[0]
+        );
+        let s = std::f64::consts::FRAC_1_SQRT_2;
+        assert!(
+            (d[1] - Vector3::new(s, 0.0, s)).norm() < 1e-12,
+            "{:?}",
+            d[1]
+        );
+        for l in &d {
+            assert!((l.norm() - 1.0).abs() < 1e-12);
+        }
+        assert!(Lights::from_json_str(&lights.to_json(), Path::new("fuzz")).is_ok());
+    }
     use approx::assert_relative_eq;
 
     #[test]

@@ -1107,6 +1107,34 @@ fn corrupt_png_error_names_the_file() {
     assert!(read_mask(&bad).unwrap_err().to_string().contains(&name));
 }
 
+/// Found by the fuzz targets: an EXR whose header declares 8×822 083 578 pixels made the decoder
+/// allocate 26 GB, a PNG header declaring 2 097 160 columns likewise. Headers are checked first.
+#[test]
+fn exr_header_declaring_a_huge_image_is_refused() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/huge_header.exr");
+    match read_image(&path) {
+        Err(Error::UnsupportedImage { path: p, reason }) => {
+            assert_eq!(p, path);
+            assert!(reason.contains("8x822083578"), "{reason}");
+        }
+        other => panic!("expected a size refusal, got {:?}", other.map(|i| i.width)),
+    }
+    // The stack loader meets the same check.
+    let paths = vec![path.clone(); 3];
+    assert!(load_stack(&paths, &unit_lights(3), &LoadOptions::default(), &Silent).is_err());
+    // Likewise a PNG header (from the `diligent_folder` target, read as a mask).
+    let png = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/huge_header.png");
+    for result in [read_image(&png).map(|_| ()), read_mask(&png).map(|_| ())] {
+        match result {
+            Err(Error::UnsupportedImage { path: p, reason }) => {
+                assert_eq!(p, png);
+                assert!(reason.contains("the header declares"), "{reason}");
+            }
+            other => panic!("expected a size refusal, got {other:?}"),
+        }
+    }
+}
+
 /// A PNG cut short after its header fails with an error naming the file.
 #[test]
 fn truncated_png_error_names_the_file() {
