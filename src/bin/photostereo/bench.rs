@@ -91,7 +91,16 @@ pub fn run(a: BenchArgs) -> Result<()> {
         let t = Instant::now();
         let o = Command::new(&exe)
             .arg(&a.dir)
-            .args(["--method", method, "--integrate", integrate, "-q", "-o"])
+            // The same scratch folder every time: --force lets each run overwrite the last.
+            .args([
+                "--method",
+                method,
+                "--integrate",
+                integrate,
+                "-q",
+                "--force",
+                "-o",
+            ])
             .arg(&tmp)
             .output()?;
         ours_wall.push(t.elapsed().as_secs_f64());
