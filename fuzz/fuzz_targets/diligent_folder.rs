@@ -18,7 +18,8 @@ fn folder() -> PathBuf {
         let _ = std::fs::create_dir_all(&dir);
         for k in 1..=3u16 {
             let values: Vec<u16> = (0..64u16).map(|i| 1000 + 700 * k + 97 * i).collect();
-            let _ = photostereo::output::write_png16(&dir.join(format!("{k}.png")), 8, 8, 1, &values);
+            let _ =
+                photostereo::output::write_png16(&dir.join(format!("{k}.png")), 8, 8, 1, &values);
         }
     }
     dir
@@ -27,7 +28,12 @@ fn folder() -> PathBuf {
 fuzz_target!(|data: &[u8]| {
     let dir = folder();
     let mut parts = data.split(|&b| b == 0xFF);
-    let names = ["filenames.txt", "light_directions.txt", "light_intensities.txt", "mask.png"];
+    let names = [
+        "filenames.txt",
+        "light_directions.txt",
+        "light_intensities.txt",
+        "mask.png",
+    ];
     for name in names {
         let path = dir.join(name);
         match parts.next() {
