@@ -238,7 +238,12 @@ fn decode_png(path: &Path, rows: Option<Range<usize>>) -> Result<RawDecoded> {
             reason: other.to_string(),
         },
     };
-    let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
+    // The png crate's default limit (64 MiB decoded) refuses 16-bit RGB captures above
+    // 11 Mpx; the image's own size is checked against MAX_IMAGE_SAMPLES below instead.
+    let limits = png::Limits {
+        bytes: 4 * MAX_IMAGE_SAMPLES,
+    };
+    let mut decoder = png::Decoder::new_with_limits(std::io::Cursor::new(bytes), limits);
     // Palette → RGB, grey below 8 bits → 8 bits, transparency chunk → alpha.
     decoder.set_transformations(png::Transformations::EXPAND);
     let mut reader = decoder.read_info().map_err(bad)?;

@@ -1135,6 +1135,23 @@ fn exr_header_declaring_a_huge_image_is_refused() {
     }
 }
 
+/// A 16-bit RGB PNG of 4000×3000 (72 MB decoded, above the png crate's default 64 MiB limit)
+/// loads: camera captures are that large.
+#[test]
+fn png16_above_64_mib_decoded_loads() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (4000u32, 3000u32);
+    let path = dir.path().join("big.png");
+    let codes: Vec<u16> = (0..(w * h * 3) as usize)
+        .map(|i| (i % 7) as u16 * 9000)
+        .collect();
+    save(rgb16(w, h, &codes), &path);
+    let img = read_image(&path).unwrap();
+    assert_eq!((img.width, img.height, img.channels), (4000, 3000, 3));
+    // Pixel 7, green: sample 22, code (22 mod 7)·9000 = 9000.
+    assert_eq!(img.data[7 * 3 + 1], u16_to_unit(&[9000])[0]);
+}
+
 /// A PNG cut short after its header fails with an error naming the file.
 #[test]
 fn truncated_png_error_names_the_file() {
