@@ -19,6 +19,8 @@ use std::path::{Path, PathBuf};
 pub struct OutputDir {
     dir: PathBuf,
     staged: Vec<Staged>,
+    /// Whether to try unnamed temporaries first (off only in tests of the fallback).
+    anonymous: bool,
 }
 
 /// A written file waiting for the commit.
@@ -185,6 +187,7 @@ impl OutputDir {
         Ok(OutputDir {
             dir: dir.to_path_buf(),
             staged: Vec::new(),
+            anonymous: true,
         })
     }
 
@@ -204,7 +207,7 @@ impl OutputDir {
         let dest = self.dir.join(name);
         let parent = dest.parent().unwrap_or(&self.dir);
         std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
-        if let Some(mut file) = anonymous_file(parent) {
+        if let Some(mut file) = self.anonymous.then(|| anonymous_file(parent)).flatten() {
             write(&mut file, &dest)?;
             self.staged.push(Staged {
                 temp: Temp::Anonymous(file),
@@ -626,4 +629,79 @@ pub fn nan_outside(map: &ScalarMap, mask: &Mask) -> ScalarMap {
         .map(|(v, m)| if *m { *v } else { f32::NAN })
         .collect();
     Grid::from_vec(map.width(), map.height(), data).unwrap_or_else(|_| map.clone())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn names(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    }
+
+    /// Both staging paths (unnamed files where the platform has them, hidden named files
+    /// otherwise): nothing is visible before the commit, the files are complete after it, an
+    /// existing file is replaced, and an uncommitted set leaves nothing behind.
+    #[test]
+    fn staging_commits_all_or_nothing_with_either_kind_of_temporary() {
+        for anonymous in [true, false] {
+            let tmp = tempfile::tempdir().unwrap();
+            let dir = tmp.path().join("out");
+            let mut out = OutputDir::create(&dir).unwrap();
+            out.anonymous = anonymous;
+            std::fs::write(dir.join("b.txt"), b"old").unwrap();
+            out.stage_bytes("a.txt", b"first").unwrap();
+            out.stage_bytes("b.txt", b"second").unwrap();
+            out.stage_bytes("sub/c.txt", b"third").unwrap();
+            let staged: Vec<bool> = out
+                .staged
+                .iter()
+                .map(|s| matches!(s.temp, Temp::Named(_)))
+                .collect();
+            assert!(
+                staged
+                    .iter()
+                    .all(|&named| named == !anonymous || cfg!(not(target_os = "linux"))),
+                "{anonymous}: {staged:?}"
+            );
+            // Before the commit only the old file is visible (and, with named temporaries,
+            // their hidden names).
+            let before: Vec<String> = names(&dir)
+                .into_iter()
+                .filter(|n| !n.starts_with('.'))
+                .collect();
+            assert_eq!(before, vec!["b.txt", "sub"], "{anonymous}");
+            let done = out.commit().unwrap();
+            assert_eq!(done.len(), 3);
+            assert_eq!(names(&dir), vec!["a.txt", "b.txt", "sub"], "{anonymous}");
+            assert_eq!(std::fs::read(dir.join("a.txt")).unwrap(), b"first");
+            assert_eq!(std::fs::read(dir.join("b.txt")).unwrap(), b"second");
+            assert_eq!(std::fs::read(dir.join("sub/c.txt")).unwrap(), b"third");
+            // Dropped without a commit: nothing new, no temporary.
+            let mut out = OutputDir::create(&dir).unwrap();
+            out.anonymous = anonymous;
+            out.stage_bytes("d.txt", b"never").unwrap();
+            drop(out);
+            assert_eq!(names(&dir), vec!["a.txt", "b.txt", "sub"], "{anonymous}");
+        }
+    }
+
+    /// The copy fallback (used where an unnamed file cannot be linked) writes the bytes and
+    /// replaces the destination, leaving no temporary.
+    #[test]
+    fn copy_fallback_replaces_the_destination() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dest = tmp.path().join("x.bin");
+        std::fs::write(&dest, b"old contents").unwrap();
+        let mut file = tempfile::tempfile().unwrap();
+        file.write_all(b"new").unwrap();
+        copy_into_place(&mut file, &dest).unwrap();
+        assert_eq!(std::fs::read(&dest).unwrap(), b"new");
+        assert_eq!(names(tmp.path()), vec!["x.bin"]);
+    }
 }
