@@ -666,7 +666,7 @@ mod tests {
             assert!(
                 staged
                     .iter()
-                    .all(|&named| named == !anonymous || cfg!(not(target_os = "linux"))),
+                    .all(|&named| named != anonymous || cfg!(not(target_os = "linux"))),
                 "{anonymous}: {staged:?}"
             );
             // Before the commit only the old file is visible (and, with named temporaries,
