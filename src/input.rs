@@ -851,10 +851,13 @@ pub fn load_stack(
             };
             let r = convert_into(&raw, &cv, out, path, window);
             progress.advance(1);
-            let where_ = if window == Window::full(width, height) {
-                String::new()
-            } else {
-                format!(" in the part the mask spans ({window})")
+            // Where the verdicts below apply, for their messages.
+            let where_ = || {
+                if window == Window::full(width, height) {
+                    String::new()
+                } else {
+                    format!(" in the part the mask spans ({window})")
+                }
             };
             // NaN compares false: an image of NaN counts as dark.
             if !out.iter().any(|v| *v > 0.0) {
@@ -862,7 +865,8 @@ pub fn load_stack(
                     path: path.clone(),
                     index,
                     reason: format!(
-                        "the image is entirely dark{where_}: no sample above 0, so it says nothing about the shape; check the exposure, or remove it and its light"
+                        "the image is entirely dark{}: no sample above 0, so it says nothing about the shape; check the exposure, or remove it and its light",
+                        where_()
                     ),
                 });
             }
@@ -871,7 +875,8 @@ pub fn load_stack(
                     path: path.clone(),
                     index,
                     reason: format!(
-                        "every pixel is saturated{where_}; lower the exposure, or remove the image and its light"
+                        "every pixel is saturated{}; lower the exposure, or remove the image and its light",
+                        where_()
                     ),
                 });
             }

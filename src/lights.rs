@@ -617,6 +617,7 @@ fn strip_count_line(mut rows: Vec<(usize, Vec<f64>)>) -> Vec<(usize, Vec<f64>)> 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use approx::assert_relative_eq;
 
     /// Found by the `lights` fuzz target: a direction with a component near 1e200 once
     /// overflowed the norm and normalised to the zero vector. It must normalise exactly.
@@ -641,7 +642,6 @@ mod tests {
         }
         assert!(Lights::from_json_str(&lights.to_json(), Path::new("fuzz")).is_ok());
     }
-    use approx::assert_relative_eq;
 
     #[test]
     fn json_with_files_intensities_and_normalisation() {

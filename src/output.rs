@@ -301,9 +301,7 @@ impl OutputDir {
     /// [`Error::Io`] when a file cannot be put in place (the remaining temporaries are
     /// removed).
     pub fn commit(mut self) -> Result<Vec<PathBuf>> {
-        let _commit = COMMITS
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let _commit = hold_commits();
         let staged = std::mem::take(&mut self.staged);
         let mut done = Vec::with_capacity(staged.len());
         let mut iter = staged.into_iter();
