@@ -8,7 +8,9 @@
 //! [`solve`] (per-pixel g = ρN; [`color`] for one normal from RGB) → [`normals`] (albedo, normals, gradients, integrability) →
 //! [`integrate`] (depth) → [`output`] (EXR/PNG, atomically). [`pipeline`] composes them;
 //! [`dataset`] assembles inputs from files. Beside it: [`reflectance`] holds the BRDF models,
-//! [`scene`] and [`render`] make synthetic data with ground truth, [`metrics`] measures errors,
+//! [`scene`] and [`render`] make synthetic data with ground truth, [`reflectance_map`] gives
+//! brightness as a function of the surface gradient and [`sfs`] inverts it for one image (shape
+//! from shading), [`metrics`] measures errors,
 //! [`demo`] is the built-in default scene.
 //!
 //! Conventions: camera frame x right, y up, z towards the camera; image row 0 is the top; light
@@ -45,9 +47,11 @@ pub mod output;
 pub mod pipeline;
 pub mod progress;
 pub mod reflectance;
+pub mod reflectance_map;
 pub mod render;
 pub mod robust;
 pub mod scene;
+pub mod sfs;
 pub mod solve;
 
 pub use error::{Error, Result};

@@ -49,6 +49,9 @@ pub enum Command {
     Eval(EvalArgs),
     /// Integrate a normal map into depth (EXR), optionally with a mesh (PLY).
     Integrate(IntegrateArgs),
+    /// Shape from shading of one image under a known (or estimated) distant light: depth,
+    /// normals, the reflectance map's contours and a report.
+    Sfs(SfsArgs),
     /// Benchmarks, beside the numpy peer where it applies, as JSON.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -615,4 +618,104 @@ impl RunArgs {
             },
         })
     }
+}
+
+/// `sfs` options.
+#[derive(Debug, Args)]
+pub struct SfsArgs {
+    /// The image (EXR, PNG or TIFF; RGB is mixed to grey; 8-bit is decoded as sRGB).
+    #[arg(value_name = "IMAGE")]
+    pub image: PathBuf,
+    /// Light direction x,y,z (towards the light; x right, y up, z to the camera); estimated from
+    /// the image when absent.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_direction, allow_hyphen_values = true)]
+    pub light: Option<[f64; 3]>,
+    /// Albedo × light intensity: the brightness of a surface facing the light; estimated when
+    /// absent.
+    #[arg(long, value_name = "A")]
+    pub albedo: Option<f64>,
+    /// Object mask (pixels > 0); default: all but the black background touching the border.
+    #[arg(long, value_name = "FILE")]
+    pub mask: Option<PathBuf>,
+    /// `horn` (any light in front), `tsai-shah` (oblique light), `fast-marching` (light at the
+    /// viewer).
+    #[arg(long, value_enum, default_value_t = SfsMethodArg::Horn)]
+    pub method: SfsMethodArg,
+    /// What the mask's edge is: `occluding` (the object turns away there: start convex) or
+    /// `free`.
+    #[arg(long, value_enum, default_value_t = BoundaryArg::Occluding)]
+    pub boundary: BoundaryArg,
+    /// Final smoothness weight of Horn's method.
+    #[arg(long, default_value_t = photostereo::sfs::DEFAULT_SMOOTHNESS, value_name = "LAMBDA")]
+    pub smoothness: f64,
+    /// Relative brightness (E/albedo) at or below which a pixel is in shadow.
+    #[arg(long, default_value_t = photostereo::sfs::DEFAULT_SHADOW_LEVEL, value_name = "F")]
+    pub shadow_level: f64,
+    /// Iteration limit (0: the method's default).
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub iterations: usize,
+    /// 8-bit images hold linear values (default: decoded as sRGB).
+    #[arg(long)]
+    pub linear: bool,
+    /// Output folder (refused when it exists and is not empty, unless --force).
+    #[arg(long, short, value_name = "DIR")]
+    pub output: PathBuf,
+    /// Write into an existing, non-empty output folder.
+    #[arg(long)]
+    pub force: bool,
+}
+
+/// Shape-from-shading methods.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum SfsMethodArg {
+    /// Horn 1990, height and gradient (Gauss–Newton on the height).
+    Horn,
+    /// Tsai–Shah 1994, linear.
+    TsaiShah,
+    /// Kimmel–Sethian 2001, fast marching (light at the viewer).
+    FastMarching,
+}
+
+impl From<SfsMethodArg> for photostereo::sfs::SfsMethod {
+    fn from(m: SfsMethodArg) -> Self {
+        match m {
+            SfsMethodArg::Horn => Self::Horn,
+            SfsMethodArg::TsaiShah => Self::TsaiShah,
+            SfsMethodArg::FastMarching => Self::FastMarching,
+        }
+    }
+}
+
+/// What the mask's edge is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum BoundaryArg {
+    /// An occluding contour.
+    Occluding,
+    /// No information.
+    Free,
+}
+
+impl From<BoundaryArg> for photostereo::sfs::Boundary {
+    fn from(b: BoundaryArg) -> Self {
+        match b {
+            BoundaryArg::Occluding => Self::Occluding,
+            BoundaryArg::Free => Self::Free,
+        }
+    }
+}
+
+/// Parses `x,y,z` into a finite, non-zero direction.
+fn parse_direction(s: &str) -> Result<[f64; 3]> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .with_context(|| format!("{s:?}: expected three numbers x,y,z"))?;
+    let [x, y, z] = v[..] else {
+        bail!("{s:?}: expected three numbers x,y,z, found {}", v.len());
+    };
+    if !(x.is_finite() && y.is_finite() && z.is_finite()) || x == 0.0 && y == 0.0 && z == 0.0 {
+        bail!("{s:?}: the direction must be finite and non-zero");
+    }
+    Ok([x, y, z])
 }

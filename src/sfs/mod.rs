@@ -1,0 +1,586 @@
+//! Shape from shading: depth and normals from one image, a known (or estimated) distant light and
+//! albedo, through the [`ReflectanceMap`] E(x, y) = ρ R(p, q).
+//!
+//! One equation per pixel for two unknowns (p, q): the problem is ill-posed without more
+//! information, and every method here says which information it adds.
+//!
+//! | method | adds | light | reference |
+//! | --- | --- | --- | --- |
+//! | [`SfsMethod::Horn`] | smoothness (decreasing to 0) and integrability; occluding-contour normals | any in front, any BRDF | Horn, "Height and gradient from shading", IJCV 5(1) 1990 |
+//! | [`SfsMethod::TsaiShah`] | linearisation of R in depth, one Newton step per pixel and sweep | oblique, any BRDF | Tsai & Shah, "Shape from shading using linear approximation", IVC 12(8) 1994 |
+//! | [`SfsMethod::FastMarching`] | viscosity solution of the eikonal equation from the singular (brightest) points | at the viewer, Lambertian | Kimmel & Sethian, "Optimal algorithm for shape from shading and path planning", JMIV 14 2001 |
+//!
+//! When the light or albedo is not known, [`estimate::estimate_light`] estimates both from the
+//! image statistics (after Zheng & Chellappa, PAMI 1991).
+//!
+//! # What can go wrong, and how it is reported
+//! - **Convex/concave ambiguity.** R(p, q) = R(−p, −q) for a light at the viewer, and nearly so
+//!   for any light near it: a bump and a dent look alike. Horn's method chooses by its boundary
+//!   (occluding contours: the object is convex there) and by its start (a convex "balloon" inside
+//!   the mask); fast marching makes every singular point a local maximum. Both say so in
+//!   [`SfsReport::assumptions`].
+//! - **Frontal light for linear methods.** Tsai–Shah's Newton step divides by ∂R/∂z, which is 0
+//!   for a flat start under a light at the viewer: it refuses lights within
+//!   [`FRONTAL_SLANT_DEG`] of the view ([`crate::Error::InvalidParameter`]), and fast marching
+//!   refuses lights farther than that.
+//! - **Unknown or wrong albedo.** Brightness above the albedo (R > 1) is impossible; the count of
+//!   such pixels is reported and warned about, and the data-fit residual E/ρ − R is exported.
+//! - **Shadows.** Pixels darker than `shadow_level` carry no slope information; they are
+//!   counted, and shaped by the neighbours only (Horn) or left to the Newton step's prior
+//!   (Tsai–Shah).
+//! - A method that stops without converging says so in [`SfsReport::converged`].
+
+pub mod estimate;
+mod fast_marching;
+mod horn;
+mod tsai_shah;
+
+use crate::error::{Error, Result};
+use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
+use crate::integrate::LinearSolver;
+use crate::integrate::sparse::{NONE, Unknowns};
+use crate::reflectance_map::{ReflectanceMap, normal_from_gradient};
+use nalgebra::Vector3;
+use serde::Serialize;
+use std::time::Instant;
+
+/// Lights closer than this to the viewing direction (degrees) count as frontal.
+pub const FRONTAL_SLANT_DEG: f64 = 5.0;
+/// Default final smoothness weight λ of Horn's method.
+pub const DEFAULT_SMOOTHNESS: f64 = 1e-4;
+/// Default relative brightness E/ρ below which a pixel is in shadow.
+pub const DEFAULT_SHADOW_LEVEL: f64 = 0.01;
+/// Fraction of pixels brighter than the albedo above which the albedo is reported as wrong.
+const TOO_BRIGHT_WARN: f64 = 0.01;
+/// Mean |E/ρ − R| above which the shading is reported as not fitting.
+const POOR_FIT: f64 = 0.02;
+/// Largest gradient magnitude any method returns (a slope of 89.4°).
+pub(crate) const MAX_GRADIENT: f64 = 100.0;
+
+/// A shape-from-shading method (see the module documentation).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SfsMethod {
+    /// Horn 1990: gradients and height with integrability, smoothness relaxed to 0.
+    Horn,
+    /// Tsai–Shah 1994: per-pixel Newton iteration of the depth-linearised brightness equation.
+    TsaiShah,
+    /// Kimmel–Sethian 2001: fast marching for a light at the viewer.
+    FastMarching,
+}
+
+impl SfsMethod {
+    /// Every method.
+    pub const ALL: [SfsMethod; 3] = [
+        SfsMethod::Horn,
+        SfsMethod::TsaiShah,
+        SfsMethod::FastMarching,
+    ];
+
+    /// The name used on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            SfsMethod::Horn => "horn",
+            SfsMethod::TsaiShah => "tsai-shah",
+            SfsMethod::FastMarching => "fast-marching",
+        }
+    }
+
+    /// Whether the method can solve under `rmap`'s light and BRDF, and if not, why.
+    pub fn applicable(self, rmap: &ReflectanceMap) -> std::result::Result<(), String> {
+        let slant = rmap.slant_deg();
+        match self {
+            SfsMethod::Horn => Ok(()),
+            SfsMethod::TsaiShah if slant < FRONTAL_SLANT_DEG => Err(format!(
+                "the light is {slant:.1}° from the viewing direction: the linear Tsai–Shah \
+                 method has no slope information from a flat start under a frontal light \
+                 (∂R/∂z = 0); use horn or fast-marching"
+            )),
+            SfsMethod::TsaiShah => Ok(()),
+            SfsMethod::FastMarching if slant > FRONTAL_SLANT_DEG => Err(format!(
+                "the light is {slant:.1}° from the viewing direction: fast marching solves the \
+                 eikonal equation of a light at the viewer (within {FRONTAL_SLANT_DEG}°); use \
+                 horn or tsai-shah"
+            )),
+            SfsMethod::FastMarching if !rmap.is_lambertian() => Err(
+                "fast marching needs the Lambertian reflectance map (its eikonal equation is \
+                 |∇z|² = 1/E² − 1)"
+                    .to_string(),
+            ),
+            SfsMethod::FastMarching => Ok(()),
+        }
+    }
+}
+
+/// What the edge of the mask is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Boundary {
+    /// The mask's edge is an occluding contour (the surface turns away from the camera there):
+    /// Horn's method starts from a convex surface over the mask, rising steeply from its edge.
+    #[default]
+    Occluding,
+    /// No information: the surface simply continues beyond the mask; Horn's method starts from
+    /// a plane.
+    Free,
+}
+
+/// Shape-from-shading options.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SfsOptions {
+    /// The method.
+    pub method: SfsMethod,
+    /// What the mask's edge is (Horn).
+    pub boundary: Boundary,
+    /// Iteration limit (0: the method's default).
+    pub max_iterations: usize,
+    /// Final smoothness weight λ of Horn's method (it starts at 1 and decreases to this).
+    pub smoothness: f64,
+    /// Relative brightness E/ρ below which a pixel is in shadow.
+    pub shadow_level: f64,
+    /// Linear solver of the height step (Horn) and of the final integration.
+    pub solver: LinearSolver,
+}
+
+impl Default for SfsOptions {
+    fn default() -> Self {
+        SfsOptions {
+            method: SfsMethod::Horn,
+            boundary: Boundary::Occluding,
+            max_iterations: 0,
+            smoothness: DEFAULT_SMOOTHNESS,
+            shadow_level: DEFAULT_SHADOW_LEVEL,
+            solver: LinearSolver::Auto,
+        }
+    }
+}
+
+/// What a shape-from-shading run did, assumed and found.
+#[derive(Debug, Clone, Serialize)]
+pub struct SfsReport {
+    /// The method.
+    pub method: SfsMethod,
+    /// The unit light direction used.
+    pub light: [f64; 3],
+    /// Angle of the light from the viewing direction, degrees.
+    pub light_slant_deg: f64,
+    /// The albedo used (brightness of a surface facing the light).
+    pub albedo: f64,
+    /// Pixels solved.
+    pub pixels: usize,
+    /// Pixels darker than the shadow level.
+    pub shadow_pixels: usize,
+    /// Pixels brighter than the albedo allows (E/ρ > 1).
+    pub too_bright_pixels: usize,
+    /// Singular points (E/ρ ≈ 1) used as sources (fast marching).
+    pub singular_points: usize,
+    /// Iterations run.
+    pub iterations: usize,
+    /// Whether the iteration met its tolerance.
+    pub converged: bool,
+    /// Mean |E/ρ − R(p, q)| over lit pixels: how well the result explains the image.
+    pub mean_abs_residual: f64,
+    /// Median |curl| of the returned gradient field (0 for an integrable field).
+    pub median_abs_curl: f64,
+    /// Seconds spent.
+    pub seconds: f64,
+    /// What the method assumed to choose one surface among those that explain the image.
+    pub assumptions: Vec<String>,
+    /// What looks wrong.
+    pub warnings: Vec<String>,
+}
+
+/// The result of [`shape_from_shading`].
+#[derive(Debug, Clone)]
+pub struct SfsResult {
+    /// Height towards the camera (pixel units), zero-mean per connected part; NaN outside.
+    pub depth: ScalarMap,
+    /// Unit normals; NaN outside.
+    pub normals: NormalMap,
+    /// p = ∂z/∂x; NaN outside.
+    pub p: ScalarMap,
+    /// q = ∂z/∂y (y up); NaN outside.
+    pub q: ScalarMap,
+    /// E/ρ − R(p, q) per pixel; NaN outside.
+    pub residual: ScalarMap,
+    /// Pixels in shadow.
+    pub shadow: Mask,
+    /// What was done.
+    pub report: SfsReport,
+}
+
+/// The normalised image on the mask's pixels, with their neighbourhoods.
+pub(crate) struct Shading<'a> {
+    pub u: Unknowns,
+    /// E/ρ per unknown (clamped to [0, 1]).
+    pub e: Vec<f64>,
+    /// In shadow, per unknown.
+    pub shadow: Vec<bool>,
+    pub rmap: &'a ReflectanceMap,
+    pub options: &'a SfsOptions,
+}
+
+/// What a solver returns, per unknown.
+pub(crate) struct Solved {
+    pub p: Vec<f64>,
+    pub q: Vec<f64>,
+    /// Depth, when the method computes it (otherwise integrated from p, q).
+    pub z: Option<Vec<f64>>,
+    /// Normals, when the method knows better than (p, q) (fast marching near the contour).
+    pub normals: Option<Vec<Vector3<f64>>>,
+    pub iterations: usize,
+    pub converged: bool,
+    pub singular: usize,
+    pub assumptions: Vec<String>,
+}
+
+/// Shape from shading of `image` (linear brightness) inside `mask`, for a surface of albedo
+/// `albedo` (the brightness of a surface facing the light) under the light and BRDF of `rmap`.
+///
+/// # Errors
+/// [`Error::InvalidParameter`] when the sizes differ, the mask is empty, the image holds a
+/// non-finite value in the mask, the albedo is not finite and > 0, the light is not in front of
+/// the surface, or the method cannot solve under this light (see [`SfsMethod::applicable`]).
+///
+/// # Example
+/// ```
+/// use photostereo::reflectance_map::ReflectanceMap;
+/// use photostereo::scene::{Albedo, Scene};
+/// use photostereo::sfs::{shape_from_shading, SfsOptions};
+/// use photostereo::nalgebra::Vector3;
+/// // A sphere lit from the upper right, rendered with its closed-form reflectance map.
+/// let truth = Scene::sphere(48, 19.0, Albedo::Constant(1.0)).height_field();
+/// let rmap = ReflectanceMap::lambertian(Vector3::new(0.4, 0.3, 0.87))?;
+/// let image = truth.normals.map(|n| {
+///     let n = n.cast::<f64>();
+///     if n.x.is_nan() { 0.0 } else { rmap.eval(-n.x / n.z, -n.y / n.z) as f32 }
+/// });
+/// let r = shape_from_shading(&image, &truth.mask, &rmap, 1.0, &SfsOptions::default())?;
+/// let err = photostereo::metrics::angular_errors(&r.normals, &truth.normals, &truth.mask)?;
+/// assert!(err.mean_deg < 5.0, "{}", err.mean_deg);
+/// # Ok::<(), photostereo::Error>(())
+/// ```
+pub fn shape_from_shading(
+    image: &ScalarMap,
+    mask: &Mask,
+    rmap: &ReflectanceMap,
+    albedo: f64,
+    options: &SfsOptions,
+) -> Result<SfsResult> {
+    let start = Instant::now();
+    image.check_same_size(mask, "mask")?;
+    if !(albedo.is_finite() && albedo > 0.0) {
+        return Err(Error::param(
+            "albedo",
+            format!("{albedo} must be finite and > 0"),
+        ));
+    }
+    if !(options.shadow_level.is_finite() && (0.0..1.0).contains(&options.shadow_level)) {
+        return Err(Error::param(
+            "shadow-level",
+            format!("{} is outside [0, 1)", options.shadow_level),
+        ));
+    }
+    if !(options.smoothness.is_finite() && options.smoothness >= 0.0) {
+        return Err(Error::param(
+            "smoothness",
+            format!("{} must be finite and ≥ 0", options.smoothness),
+        ));
+    }
+    if rmap.light().z <= 0.0 {
+        return Err(Error::param(
+            "light",
+            format!(
+                "direction ({:.3}, {:.3}, {:.3}) is at or behind the horizon: shape from shading \
+                 needs a light in front of the surface (z > 0)",
+                rmap.light().x,
+                rmap.light().y,
+                rmap.light().z
+            ),
+        ));
+    }
+    options
+        .method
+        .applicable(rmap)
+        .map_err(|why| Error::param("method", why))?;
+    if mask.count() == 0 {
+        return Err(Error::param("mask", "is empty: no pixel to solve"));
+    }
+    if let Some(i) = (0..mask.len()).find(|&i| mask.data()[i] && !image.data()[i].is_finite()) {
+        return Err(Error::param(
+            "image",
+            format!(
+                "pixel ({}, {}) inside the mask is {}: mask it out or repair the image",
+                i % image.width(),
+                i / image.width(),
+                image.data()[i]
+            ),
+        ));
+    }
+    let u = Unknowns::new(mask);
+    let mut too_bright = 0usize;
+    let e: Vec<f64> = u
+        .pixel
+        .iter()
+        .map(|&pix| {
+            let v = f64::from(image.data()[pix as usize]) / albedo;
+            if v > 1.0 + 1e-3 {
+                too_bright += 1;
+            }
+            v.clamp(0.0, 1.0)
+        })
+        .collect();
+    let shadow: Vec<bool> = e.iter().map(|&v| v <= options.shadow_level).collect();
+    let shading = Shading {
+        u,
+        e,
+        shadow,
+        rmap,
+        options,
+    };
+    let solved = match options.method {
+        SfsMethod::Horn => horn::solve(&shading)?,
+        SfsMethod::TsaiShah => tsai_shah::solve(&shading)?,
+        SfsMethod::FastMarching => fast_marching::solve(&shading)?,
+    };
+    finish(shading, solved, albedo, too_bright, start)
+}
+
+/// Depth, normals, residual and report from a solver's per-unknown output.
+fn finish(
+    s: Shading,
+    solved: Solved,
+    albedo: f64,
+    too_bright: usize,
+    start: Instant,
+) -> Result<SfsResult> {
+    let (w, h) = (s.u.w, s.u.h);
+    let n = s.u.len();
+    let p_map = s.u.to_map(&solved.p);
+    let q_map = s.u.to_map(&solved.q);
+    let mask = {
+        let mut m = Grid::new(w, h, false);
+        for &pix in &s.u.pixel {
+            m.data_mut()[pix as usize] = true;
+        }
+        m
+    };
+    let depth = match &solved.z {
+        Some(z) => {
+            let mut z = z.clone();
+            s.u.zero_mean_parts(&mut z);
+            s.u.to_map(&z)
+        }
+        None => {
+            crate::integrate::masked::integrate_masked_ls(&p_map, &q_map, &mask, s.options.solver)?
+                .0
+        }
+    };
+    let mut normals = Grid::new(w, h, Vector3::repeat(f32::NAN));
+    let mut residual = Grid::new(w, h, f32::NAN);
+    let mut shadow = Grid::new(w, h, false);
+    let (mut abs_sum, mut lit) = (0.0, 0usize);
+    for k in 0..n {
+        let pix = s.u.pixel[k] as usize;
+        let nk = match &solved.normals {
+            Some(v) => v[k],
+            None => normal_from_gradient(solved.p[k], solved.q[k]),
+        };
+        normals.data_mut()[pix] = nk.cast::<f32>();
+        let r = s.rmap.eval(solved.p[k], solved.q[k]);
+        let res = s.e[k] - r;
+        residual.data_mut()[pix] = res as f32;
+        shadow.data_mut()[pix] = s.shadow[k];
+        if !s.shadow[k] {
+            abs_sum += res.abs();
+            lit += 1;
+        }
+    }
+    let mean_abs_residual = if lit > 0 { abs_sum / lit as f64 } else { 0.0 };
+    let curl = crate::normals::integrability(&p_map, &q_map).summary;
+    let shadow_pixels = s.shadow.iter().filter(|&&b| b).count();
+    let mut warnings = Vec::new();
+    if too_bright as f64 > TOO_BRIGHT_WARN * n as f64 {
+        warnings.push(format!(
+            "{too_bright} of {n} pixels are brighter than the albedo {albedo:.4} allows \
+             (E/ρ > 1): the albedo (or the light's intensity) is too low; they were clipped"
+        ));
+    }
+    if mean_abs_residual > POOR_FIT {
+        warnings.push(format!(
+            "the result explains the image poorly (mean |E/ρ − R| = {mean_abs_residual:.3}): \
+             the light direction, the albedo or the reflectance model is probably wrong"
+        ));
+    }
+    if shadow_pixels as f64 > 0.3 * n as f64 {
+        warnings.push(format!(
+            "{shadow_pixels} of {n} pixels are in shadow: their shape comes from their \
+             neighbours only"
+        ));
+    }
+    if !solved.converged {
+        warnings.push(format!(
+            "{} stopped after {} iterations without converging",
+            s.options.method.name(),
+            solved.iterations
+        ));
+    }
+    let light = s.rmap.light();
+    let report = SfsReport {
+        method: s.options.method,
+        light: [light.x, light.y, light.z],
+        light_slant_deg: s.rmap.slant_deg(),
+        albedo,
+        pixels: n,
+        shadow_pixels,
+        too_bright_pixels: too_bright,
+        singular_points: solved.singular,
+        iterations: solved.iterations,
+        converged: solved.converged,
+        mean_abs_residual,
+        median_abs_curl: curl.median_abs_curl,
+        seconds: start.elapsed().as_secs_f64(),
+        assumptions: solved.assumptions,
+        warnings,
+    };
+    Ok(SfsResult {
+        depth,
+        normals,
+        p: p_map,
+        q: q_map,
+        residual,
+        shadow,
+        report,
+    })
+}
+
+/// Euclidean distance from each unknown's centre to the nearest pixel centre outside the mask
+/// but inside the image (the image border is not an edge), minus ½ (the contour lies half-way):
+/// Felzenszwalb & Huttenlocher's separable exact transform ("Distance transforms of sampled
+/// functions", Theory of Computing 2012). `None` when no pixel of the image is outside the mask.
+pub(crate) fn distance_to_edge(u: &Unknowns) -> Option<Vec<f64>> {
+    let (w, h) = (u.w, u.h);
+    let mut inside = vec![false; w * h];
+    for &p in &u.pixel {
+        inside[p as usize] = true;
+    }
+    if inside.iter().all(|&b| b) {
+        return None;
+    }
+    const INF: f64 = 1e20;
+    let mut f: Vec<f64> = inside.iter().map(|&b| if b { INF } else { 0.0 }).collect();
+    let mut column = vec![0.0; h];
+    for x in 0..w {
+        for y in 0..h {
+            column[y] = f[y * w + x];
+        }
+        let d = edt_1d(&column);
+        for y in 0..h {
+            f[y * w + x] = d[y];
+        }
+    }
+    for y in 0..h {
+        let d = edt_1d(&f[y * w..(y + 1) * w]);
+        f[y * w..(y + 1) * w].copy_from_slice(&d);
+    }
+    Some(
+        u.pixel
+            .iter()
+            .map(|&p| (f[p as usize].sqrt() - 0.5).max(0.5))
+            .collect(),
+    )
+}
+
+/// Squared distance transform of a sampled function in one dimension (lower envelope of
+/// parabolas).
+fn edt_1d(f: &[f64]) -> Vec<f64> {
+    let n = f.len();
+    let mut d = vec![0.0; n];
+    let mut v = vec![0usize; n];
+    let mut z = vec![0.0f64; n + 1];
+    let mut k = 0usize;
+    z[0] = f64::NEG_INFINITY;
+    z[1] = f64::INFINITY;
+    for q in 1..n {
+        loop {
+            let vk = v[k];
+            let s = ((f[q] + (q * q) as f64) - (f[vk] + (vk * vk) as f64))
+                / (2.0 * q as f64 - 2.0 * vk as f64);
+            if s <= z[k] && k > 0 {
+                k -= 1;
+            } else {
+                k += 1;
+                v[k] = q;
+                z[k] = s;
+                z[k + 1] = f64::INFINITY;
+                break;
+            }
+        }
+    }
+    k = 0;
+    for (q, dq) in d.iter_mut().enumerate() {
+        while z[k + 1] < q as f64 {
+            k += 1;
+        }
+        let dx = q as f64 - v[k] as f64;
+        *dq = dx * dx + f[v[k]];
+    }
+    d
+}
+
+/// Central (or one-sided at the mask's edge) differences of per-unknown values: (∂/∂x, ∂/∂y)
+/// with y up.
+pub(crate) fn differences(u: &Unknowns, z: &[f64], k: usize) -> (f64, f64) {
+    let d = |a: u32, b: u32, here: f64| -> f64 {
+        match (a != NONE, b != NONE) {
+            (true, true) => (z[b as usize] - z[a as usize]) / 2.0,
+            (true, false) => here - z[a as usize],
+            (false, true) => z[b as usize] - here,
+            (false, false) => 0.0,
+        }
+    };
+    // x: left → right; y up: the row below (down) → the row above (up).
+    (d(u.left[k], u.right[k], z[k]), d(u.down[k], u.up[k], z[k]))
+}
+
+/// The object of a rendered or masked-out photograph: every pixel except the black (≤ 0 or
+/// non-finite) background connected to the image border. Dark pixels inside the object (its
+/// shadows) stay in the mask, where a plain threshold would cut them out.
+pub fn object_mask(image: &ScalarMap) -> Mask {
+    let (w, h) = (image.width(), image.height());
+    let black = |i: usize| {
+        let v = image.data()[i];
+        v.is_nan() || v <= 0.0
+    };
+    let mut background = vec![false; w * h];
+    let mut stack: Vec<usize> = (0..w)
+        .flat_map(|x| [x, (h.saturating_sub(1)) * w + x])
+        .chain((0..h).flat_map(|y| [y * w, y * w + w.saturating_sub(1)]))
+        .filter(|&i| i < w * h && black(i))
+        .collect();
+    while let Some(i) = stack.pop() {
+        if background[i] {
+            continue;
+        }
+        background[i] = true;
+        let (x, y) = (i % w, i / w);
+        let mut push = |j: usize| {
+            if !background[j] && black(j) {
+                stack.push(j);
+            }
+        };
+        if x > 0 {
+            push(i - 1);
+        }
+        if x + 1 < w {
+            push(i + 1);
+        }
+        if y > 0 {
+            push(i - w);
+        }
+        if y + 1 < h {
+            push(i + w);
+        }
+    }
+    Grid::from_fn(w, h, |x, y| !background[y * w + x])
+}
