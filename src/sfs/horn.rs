@@ -20,7 +20,7 @@
 //! dropped: the cells next to the rim are far less steep than the rim itself, and forcing them
 //! raised the sphere's error from 1.6° to 21°.)
 
-use super::{Boundary, MAX_GRADIENT, Shading, Solved, differences, distance_to_edge};
+use super::{Boundary, Shading, Solved, clamp_gradient, differences, distance_to_edge};
 use crate::error::{Error, Result};
 use crate::integrate::sparse::NONE;
 use faer::linalg::solvers::SolveCore;
@@ -297,14 +297,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
             }
             (a / cs.len() as f64, b / cs.len() as f64)
         };
-        let m = a.hypot(b);
-        let scale = if m > MAX_GRADIENT {
-            MAX_GRADIENT / m
-        } else {
-            1.0
-        };
-        p[k] = a * scale;
-        q[k] = b * scale;
+        (p[k], q[k]) = clamp_gradient(a, b);
     }
     Ok(Solved {
         p,

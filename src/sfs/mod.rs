@@ -528,6 +528,16 @@ fn edt_1d(f: &[f64]) -> Vec<f64> {
     d
 }
 
+/// (p, q) scaled down to magnitude [`MAX_GRADIENT`] when steeper.
+pub(crate) fn clamp_gradient(p: f64, q: f64) -> (f64, f64) {
+    let m = p.hypot(q);
+    if m > MAX_GRADIENT {
+        (p * MAX_GRADIENT / m, q * MAX_GRADIENT / m)
+    } else {
+        (p, q)
+    }
+}
+
 /// Central (or one-sided at the mask's edge) differences of per-unknown values: (∂/∂x, ∂/∂y)
 /// with y up.
 pub(crate) fn differences(u: &Unknowns, z: &[f64], k: usize) -> (f64, f64) {

@@ -13,7 +13,7 @@
 //! boundaries; under a frontal light M = 0 at the flat start and nothing moves
 //! ([`super::SfsMethod::applicable`] refuses it).
 
-use super::{MAX_GRADIENT, Shading, Solved};
+use super::{Shading, Solved, clamp_gradient};
 use crate::error::Result;
 use crate::integrate::sparse::NONE;
 use rayon::prelude::*;
@@ -72,14 +72,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
     let (mut p, mut q) = (vec![0.0; n], vec![0.0; n]);
     for k in 0..n {
         let (a, b) = grad(&z, k);
-        let m = a.hypot(b);
-        let scale = if m > MAX_GRADIENT {
-            MAX_GRADIENT / m
-        } else {
-            1.0
-        };
-        p[k] = a * scale;
-        q[k] = b * scale;
+        (p[k], q[k]) = clamp_gradient(a, b);
     }
     Ok(Solved {
         p,
