@@ -331,12 +331,6 @@ impl Direct {
 
     /// Solves A x = b (A with this pattern; each part pinned at its anchor).
     pub fn solve(&self, a: &Stencil, b: &[f64]) -> Result<Vec<f64>> {
-        self.factor(a)?.solve(b)
-    }
-
-    /// Factorises A (with this pattern; each part pinned at its anchor) for solves with many
-    /// right-hand sides.
-    pub fn factor(&self, a: &Stencil) -> Result<Factor<'_>> {
         let mut values = Vec::with_capacity(self.row_idx.len());
         let mut diag = a.diag.clone();
         for &k in &self.anchors {
@@ -366,7 +360,8 @@ impl Direct {
                 .factorize_numeric_llt_scratch::<f64>(par, Default::default()),
         )
         .map_err(faer_err)?;
-        self.symbolic
+        let llt = self
+            .symbolic
             .factorize_numeric_llt(
                 &mut l_values,
                 mat,
@@ -377,31 +372,12 @@ impl Direct {
                 Default::default(),
             )
             .map_err(faer_err)?;
-        Ok(Factor {
-            direct: self,
-            l_values,
-        })
-    }
-}
-
-/// A numeric Cholesky factor from [`Direct::factor`].
-pub(crate) struct Factor<'a> {
-    direct: &'a Direct,
-    l_values: Vec<f64>,
-}
-
-impl Factor<'_> {
-    /// Solves A x = b with the factorised A.
-    pub fn solve(&self, b: &[f64]) -> Result<Vec<f64>> {
-        let d = self.direct;
-        let par = Par::rayon(0);
-        let llt = faer::sparse::linalg::cholesky::LltRef::new(&d.symbolic, &self.l_values);
         let mut x = b.to_vec();
-        let mut mem = MemBuffer::try_new(d.symbolic.solve_in_place_scratch::<f64>(1, par))
+        let mut mem = MemBuffer::try_new(self.symbolic.solve_in_place_scratch::<f64>(1, par))
             .map_err(faer_err)?;
         llt.solve_in_place_with_conj(
             Conj::No,
-            MatMut::from_column_major_slice_mut(&mut x, d.n, 1),
+            MatMut::from_column_major_slice_mut(&mut x, self.n, 1),
             par,
             MemStack::new(&mut mem),
         );

@@ -150,7 +150,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
     Ok(Solved {
         p,
         q,
-        z: Some(z),
+        z,
         normals: Some(normals),
         iterations: 1,
         converged: true,

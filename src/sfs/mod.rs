@@ -37,7 +37,6 @@ mod tsai_shah;
 
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
-use crate::integrate::LinearSolver;
 use crate::integrate::sparse::{NONE, Unknowns};
 use crate::reflectance_map::{ReflectanceMap, normal_from_gradient};
 use nalgebra::Vector3;
@@ -138,8 +137,6 @@ pub struct SfsOptions {
     pub smoothness: f64,
     /// Relative brightness E/ρ below which a pixel is in shadow.
     pub shadow_level: f64,
-    /// Linear solver of the height step (Horn) and of the final integration.
-    pub solver: LinearSolver,
 }
 
 impl Default for SfsOptions {
@@ -150,7 +147,6 @@ impl Default for SfsOptions {
             max_iterations: 0,
             smoothness: DEFAULT_SMOOTHNESS,
             shadow_level: DEFAULT_SHADOW_LEVEL,
-            solver: LinearSolver::Auto,
         }
     }
 }
@@ -224,8 +220,8 @@ pub(crate) struct Shading<'a> {
 pub(crate) struct Solved {
     pub p: Vec<f64>,
     pub q: Vec<f64>,
-    /// Depth, when the method computes it (otherwise integrated from p, q).
-    pub z: Option<Vec<f64>>,
+    /// Depth.
+    pub z: Vec<f64>,
     /// Normals, when the method knows better than (p, q) (fast marching near the contour).
     pub normals: Option<Vec<Vector3<f64>>>,
     pub iterations: usize,
@@ -358,23 +354,10 @@ fn finish(
     let n = s.u.len();
     let p_map = s.u.to_map(&solved.p);
     let q_map = s.u.to_map(&solved.q);
-    let mask = {
-        let mut m = Grid::new(w, h, false);
-        for &pix in &s.u.pixel {
-            m.data_mut()[pix as usize] = true;
-        }
-        m
-    };
-    let depth = match &solved.z {
-        Some(z) => {
-            let mut z = z.clone();
-            s.u.zero_mean_parts(&mut z);
-            s.u.to_map(&z)
-        }
-        None => {
-            crate::integrate::masked::integrate_masked_ls(&p_map, &q_map, &mask, s.options.solver)?
-                .0
-        }
+    let depth = {
+        let mut z = solved.z;
+        s.u.zero_mean_parts(&mut z);
+        s.u.to_map(&z)
     };
     let mut normals = Grid::new(w, h, Vector3::repeat(f32::NAN));
     let mut residual = Grid::new(w, h, f32::NAN);

@@ -77,7 +77,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
     Ok(Solved {
         p,
         q,
-        z: Some(z),
+        z,
         normals: None,
         iterations,
         converged,

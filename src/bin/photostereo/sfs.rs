@@ -82,7 +82,6 @@ pub fn run(a: SfsArgs) -> Result<()> {
         max_iterations: a.iterations,
         smoothness: a.smoothness,
         shadow_level: a.shadow_level,
-        ..SfsOptions::default()
     };
     let r = shape_from_shading(&image, &mask, &rmap, albedo, &options)?;
     let (w, h) = (image.width(), image.height());
