@@ -260,6 +260,88 @@ fn check_mask_dims(m: &Mask, path: &Path, width: usize, height: usize) -> Result
     Ok(())
 }
 
+/// An image list in the layout of the classic 12-light data sets (`psmImages/<name>.txt`): a
+/// line with the number of images, one image path per line, then optionally the mask's path.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ImageList {
+    /// The images, in order.
+    pub images: Vec<PathBuf>,
+    /// The mask, when the list names one.
+    pub mask: Option<PathBuf>,
+}
+
+/// True when `path` is a `.txt` file whose first non-empty line is a whole number (an image
+/// list, as opposed to a lights file, whose lines hold three numbers).
+pub fn is_image_list(path: &Path) -> bool {
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("txt"))
+        && std::fs::read_to_string(path).is_ok_and(|t| {
+            let mut lines = t.lines().map(str::trim).filter(|l| !l.is_empty());
+            lines.next().is_some_and(|l| l.parse::<usize>().is_ok())
+                && lines
+                    .next()
+                    .is_some_and(|l| l.split_whitespace().any(|w| w.parse::<f64>().is_err()))
+        })
+}
+
+/// Reads an image list (see [`ImageList`]). Paths are relative to the list's folder; a path
+/// that does not exist there is tried without its leading folders (the lists of the classic
+/// data set start with `psmImages/`, the folder the list sits in).
+///
+/// # Errors
+/// [`Error::Io`] when unreadable; [`Error::Dataset`] naming the line when the count is missing,
+/// the lines do not match it, or an image cannot be found.
+pub fn read_image_list(path: &Path) -> Result<ImageList> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let bad = |reason: String| Error::Dataset {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let lines: Vec<(usize, &str)> = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l.trim()))
+        .filter(|(_, l)| !l.is_empty())
+        .collect();
+    let Some(((_, first), rest)) = lines.split_first() else {
+        return Err(bad("empty image list".into()));
+    };
+    let count: usize = first.parse().map_err(|_| {
+        bad(format!(
+            "line 1 must hold the number of images, found `{first}`"
+        ))
+    })?;
+    if rest.len() < count || rest.len() > count + 1 {
+        return Err(bad(format!(
+            "{count} images announced but {} path line(s) follow (expected the images, then optionally the mask)",
+            rest.len()
+        )));
+    }
+    let base = path.parent().unwrap_or(Path::new("."));
+    let resolve = |(line, name): &(usize, &str)| -> Result<PathBuf> {
+        let rel = Path::new(name);
+        if rel.is_absolute() {
+            return Ok(rel.to_path_buf());
+        }
+        let parts: Vec<_> = rel.components().collect();
+        (0..parts.len())
+            .map(|skip| base.join(parts[skip..].iter().collect::<PathBuf>()))
+            .find(|p| p.is_file())
+            .ok_or_else(|| {
+                bad(format!(
+                    "line {line}: `{name}` is not found relative to {}",
+                    base.display()
+                ))
+            })
+    };
+    let images = rest[..count]
+        .iter()
+        .map(resolve)
+        .collect::<Result<Vec<_>>>()?;
+    let mask = rest.get(count).map(resolve).transpose()?;
+    Ok(ImageList { images, mask })
+}
+
 /// File format of written images.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ImageFormat {

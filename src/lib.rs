@@ -7,7 +7,8 @@
 //! [`input`] (images → [`input::ImageStack`]) → [`lights`] ([`lights::Lights`]) →
 //! [`solve`] (per-pixel g = ρN; [`color`] for one normal from RGB) → [`normals`] (albedo, normals, gradients, integrability) →
 //! [`integrate`] (depth) → [`output`] (EXR/PNG, atomically). [`pipeline`] composes them;
-//! [`dataset`] assembles inputs from files. Beside it: [`reflectance`] holds the BRDF models,
+//! [`dataset`] assembles inputs from files; [`calibrate`] measures the lights from a chrome
+//! sphere (directions) and a matte reference (intensities). Beside it: [`reflectance`] holds the BRDF models,
 //! [`scene`] and [`render`] make synthetic data with ground truth, [`reflectance_map`] gives
 //! brightness as a function of the surface gradient and [`sfs`] inverts it for one image (shape
 //! from shading), [`metrics`] measures errors,
@@ -28,6 +29,7 @@
 #![deny(missing_docs)]
 
 mod buffer;
+pub mod calibrate;
 pub mod camera;
 pub mod color;
 pub mod dataset;

@@ -39,6 +39,9 @@ pub struct Lights {
 #[serde(deny_unknown_fields)]
 struct JsonFile {
     lights: Vec<JsonLight>,
+    /// Written by `photostereo calibrate`: how the lights were measured (informational).
+    #[serde(default, rename = "calibration")]
+    _calibration: Option<serde::de::IgnoredAny>,
 }
 
 #[derive(Deserialize)]
@@ -49,6 +52,12 @@ struct JsonLight {
     direction: [f64; 3],
     #[serde(default)]
     intensity: Option<JsonIntensity>,
+    /// Written by `photostereo calibrate` (informational).
+    #[serde(default, rename = "confidence")]
+    _confidence: Option<f64>,
+    /// Written by `photostereo calibrate` (informational).
+    #[serde(default, rename = "uncertainty_deg")]
+    _uncertainty_deg: Option<f64>,
 }
 
 #[derive(Deserialize, Serialize, Clone, Copy)]

@@ -52,6 +52,11 @@ pub struct RenderOptions {
     pub clip: Option<f32>,
     /// Angular radius of each light in degrees (only mirror highlights depend on it).
     pub light_radius_deg: f64,
+    /// Mirror highlights integrate over the pixel's area on an n×n grid of sub-pixel positions
+    /// (a camera pixel collects light over its area; point sampling makes a highlight of a few
+    /// pixels a binary blob). 1: point sampling at the pixel centre. Other terms vary slowly
+    /// across a pixel and are always sampled at its centre.
+    pub pixel_samples: usize,
     /// Render R, G and B (with the lights' colours and the materials' colours) instead of grey.
     pub color: bool,
     /// Seed of the noise.
@@ -67,6 +72,7 @@ impl Default for RenderOptions {
             full_well: None,
             clip: None,
             light_radius_deg: DEFAULT_LIGHT_RADIUS_DEG,
+            pixel_samples: 1,
             color: false,
             seed: 0,
         }
@@ -114,9 +120,17 @@ impl RenderOptions {
             "light-radius",
             self.light_radius_deg > 0.0 && self.light_radius_deg < 90.0,
             format!("{}° is outside (0°, 90°)", self.light_radius_deg),
+        )?;
+        check(
+            "pixel-samples",
+            (1..=MAX_PIXEL_SAMPLES).contains(&self.pixel_samples),
+            format!("{} is outside 1..={MAX_PIXEL_SAMPLES}", self.pixel_samples),
         )
     }
 }
+
+/// Largest [`RenderOptions::pixel_samples`] (a 16×16 grid per pixel).
+pub const MAX_PIXEL_SAMPLES: usize = 16;
 
 /// Rendered images and their ground truth.
 #[derive(Debug, Clone)]
@@ -378,10 +392,20 @@ pub fn render(scene: &Scene, lights: &Lights, options: &RenderOptions) -> Result
                         for (ch, v) in rgb.iter_mut().enumerate() {
                             *v += light.intensity[ch] * std::f64::consts::PI * f[ch] * cos_i;
                         }
+                        let covered = match mat.mirror() {
+                            None => 0.0,
+                            Some(_) if options.pixel_samples <= 1 => {
+                                f64::from(u8::from(reflect(&view, &n).dot(&l) >= cos_radius))
+                            }
+                            Some(_) => {
+                                let (x, y) = scene.pixel_xy(c, r);
+                                mirror_coverage(scene, x, y, &l, cos_radius, options.pixel_samples)
+                            }
+                        };
                         if let Some(mirror) = mat.mirror()
-                            && reflect(&view, &n).dot(&l) >= cos_radius
+                            && covered > 0.0
                         {
-                            let fr = mirror.reflectance(n.dot(&view));
+                            let fr = covered * mirror.reflectance(n.dot(&view));
                             for (ch, v) in rgb.iter_mut().enumerate() {
                                 *v += light.intensity[ch]
                                     * mat.specular_color[ch]
@@ -448,6 +472,33 @@ pub fn render(scene: &Scene, lights: &Lights, options: &RenderOptions) -> Result
         out.saturated.push(s);
     }
     Ok(out)
+}
+
+/// Fraction of an n×n grid of positions over the pixel centred at scene point (x, y) where
+/// the surface mirrors the view direction into the light's disc (positions off the surface
+/// count as not reflecting).
+fn mirror_coverage(
+    scene: &Scene,
+    x: f64,
+    y: f64,
+    l: &Vector3<f64>,
+    cos_radius: f64,
+    n: usize,
+) -> f64 {
+    let view = Vector3::z();
+    let mut hits = 0usize;
+    for j in 0..n {
+        for i in 0..n {
+            let dx = (i as f64 + 0.5) / n as f64 - 0.5;
+            let dy = (j as f64 + 0.5) / n as f64 - 0.5;
+            if let Some((_, normal, _)) = scene.surface_at(x + dx, y - dy)
+                && reflect(&view, &normal).dot(l) >= cos_radius
+            {
+                hits += 1;
+            }
+        }
+    }
+    hits as f64 / (n * n) as f64
 }
 
 #[cfg(test)]

@@ -213,6 +213,11 @@ struct Cli {
     /// only.
     #[arg(long, value_name = "DEG", help_heading = "Camera")]
     light_radius: Option<f64>,
+    /// Mirror highlights integrate over each pixel on an N×N grid of sub-pixel positions, as a
+    /// camera pixel collects light over its area (1: point sampling at the pixel centre). Other
+    /// terms are smooth across a pixel and always sampled at its centre.
+    #[arg(long, default_value_t = 1, value_name = "N", help_heading = "Camera")]
+    pixel_samples: usize,
     /// Render R, G and B images with the material colours instead of grey ones.
     #[arg(long, help_heading = "Camera")]
     color: bool,
@@ -728,6 +733,7 @@ impl Cli {
             full_well: self.full_well,
             clip: self.saturation,
             light_radius_deg,
+            pixel_samples: self.pixel_samples,
             color: self.color,
             seed: self.seed,
         };

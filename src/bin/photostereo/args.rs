@@ -52,6 +52,9 @@ pub enum Command {
     /// Shape from shading of one image under a known (or estimated) distant light: depth,
     /// normals, the reflectance map's contours and a report.
     Sfs(SfsArgs),
+    /// Light calibration: directions from a chrome sphere's highlights, relative intensities
+    /// from a matte sphere or grey card; writes a lights file for the main command.
+    Calibrate(CalibrateArgs),
     /// Benchmarks, beside the numpy peer where it applies, as JSON.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -60,7 +63,8 @@ pub enum Command {
 /// Reconstruction of user images.
 #[derive(Debug, Args)]
 pub struct RunArgs {
-    /// Image files (EXR, PNG, TIFF), one per light; or one folder in the DiLiGenT layout.
+    /// Image files (EXR, PNG, TIFF), one per light; or one folder in the DiLiGenT layout; or
+    /// one image list (`<name>.txt`: the count, the image paths, optionally the mask).
     #[arg(value_name = "INPUTS")]
     pub inputs: Vec<PathBuf>,
     /// Lights file: JSON {"lights": [{"file", "direction", "intensity"}]} or `x y z` lines.
@@ -584,6 +588,7 @@ impl RunArgs {
                 "no input images: give image files and --lights FILE, or a DiLiGenT folder (see --help), or run `photostereo demo -o out/`"
             );
         }
+        let mut list_mask = None;
         let source = if self.inputs.len() == 1 && self.inputs[0].is_dir() {
             let dir = self.inputs[0].clone();
             if !photostereo::dataset::is_diligent_dir(&dir) {
@@ -602,14 +607,27 @@ impl RunArgs {
             let lights = self.lights.context(
                 "no --lights FILE: give the light directions as JSON or `x y z` lines (see README)",
             )?;
-            Source::Files {
-                images: self.inputs,
-                lights,
+            // One image list (`<name>.txt`, as the classic 12-light sets have) names the
+            // images and usually the mask.
+            if let [list] = &self.inputs[..]
+                && photostereo::dataset::is_image_list(list)
+            {
+                let list = photostereo::dataset::read_image_list(list)?;
+                list_mask = list.mask;
+                Source::Files {
+                    images: list.images,
+                    lights,
+                }
+            } else {
+                Source::Files {
+                    images: self.inputs,
+                    lights,
+                }
             }
         };
         Ok(RunConfig {
             source,
-            mask: self.mask,
+            mask: self.mask.or(list_mask),
             output,
             load: self.load.options()?,
             config: Config {
@@ -618,6 +636,47 @@ impl RunArgs {
             },
         })
     }
+}
+
+/// `calibrate` options.
+///
+/// Example: photostereo calibrate chrome/*.png --mask chrome/mask.png -o lights.json
+#[derive(Debug, Args)]
+pub struct CalibrateArgs {
+    /// Chrome-sphere images, one per light, in the order of the object's images; or one image
+    /// list (`<name>.txt`: the count, the image paths, optionally the mask).
+    #[arg(required = true, value_name = "IMAGES")]
+    pub images: Vec<PathBuf>,
+    /// The chrome sphere's mask (pixels > 0; anti-aliased masks are used at half level).
+    /// Default: the image list's mask, else the sphere is detected in the images.
+    #[arg(long, value_name = "FILE")]
+    pub mask: Option<PathBuf>,
+    /// Images of a matte (Lambertian) sphere under the same lights, in the same order, for
+    /// relative intensities per colour channel (or one image list).
+    #[arg(long, num_args = 1.., value_name = "IMAGES")]
+    pub matte: Vec<PathBuf>,
+    /// The matte sphere's mask: in the --matte images, or in the chrome images when both
+    /// spheres are in one picture. Default with --matte: the list's mask, else detected.
+    #[arg(long, value_name = "FILE")]
+    pub matte_mask: Option<PathBuf>,
+    /// A grey card's mask (in the --matte images if given, else in the chrome images): relative
+    /// intensities from the card's mean brightness over n·l.
+    #[arg(long, value_name = "FILE", conflicts_with = "matte_mask")]
+    pub card_mask: Option<PathBuf>,
+    /// The grey card's normal, x,y,z in the camera frame (x right, y up, z to the camera).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_direction, allow_hyphen_values = true,
+          default_value = "0,0,1")]
+    pub card_normal: [f64; 3],
+    /// Treat 8-bit images as linear (by default they are decoded as sRGB). Matters for the
+    /// intensities, hardly for the directions.
+    #[arg(long)]
+    pub linear: bool,
+    /// Output lights file (JSON), written atomically.
+    #[arg(long, short, value_name = "FILE")]
+    pub output: PathBuf,
+    /// Replace an existing output file.
+    #[arg(long)]
+    pub force: bool,
 }
 
 /// `sfs` options.

@@ -17,6 +17,7 @@ macro_rules! say {
 mod args;
 mod bar;
 mod bench;
+mod calibrate;
 mod sfs;
 
 use anyhow::{Context, Result};
@@ -79,6 +80,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Eval(a)) => run_eval(a),
         Some(Command::Integrate(a)) => run_integrate(a, progress),
         Some(Command::Sfs(a)) => sfs::run(a),
+        Some(Command::Calibrate(a)) => calibrate::run(a, progress),
         Some(Command::Bench(args::BenchCommand::Diligent(a))) => bench::run(a),
         Some(Command::Bench(args::BenchCommand::Integration(a))) => bench::integration(a),
         Some(Command::Bench(args::BenchCommand::Specularity(a))) => bench::specularity(a),

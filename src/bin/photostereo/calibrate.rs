@@ -1,0 +1,223 @@
+//! `photostereo calibrate`: lights from a chrome sphere (and a matte reference).
+
+use crate::args::CalibrateArgs;
+use anyhow::{Context, Result, bail};
+use photostereo::calibrate::intensity::{
+    MatteOptions, intensities_from_card, intensities_from_sphere,
+};
+use photostereo::calibrate::{
+    ChromeOptions, HighlightResult, IntensityCalibration, calibrate_chrome, find_sphere,
+    lights_file_json, load_reference_images, read_grey_mask,
+};
+use photostereo::dataset::{is_image_list, read_image_list};
+use photostereo::input::{Transfer, read_mask};
+use photostereo::lights::{Light, Lights};
+use photostereo::nalgebra::Vector3;
+use photostereo::output::{OutputDir, ensure_fresh_file};
+use photostereo::progress::Progress;
+use std::path::{Path, PathBuf};
+
+/// Angle (degrees) between the matte sphere's and the chrome sphere's direction of a light
+/// above which the two references are said to disagree.
+const DISAGREEMENT_DEG: f64 = 5.0;
+
+/// Images from the command line: the files, or one image list with its mask.
+fn expand(paths: &[PathBuf]) -> Result<(Vec<PathBuf>, Option<PathBuf>)> {
+    if let [one] = paths
+        && is_image_list(one)
+    {
+        let list = read_image_list(one)?;
+        return Ok((list.images, list.mask));
+    }
+    Ok((paths.to_vec(), None))
+}
+
+pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
+    if !a.force {
+        ensure_fresh_file(&a.output)?;
+    }
+    let transfer = if a.linear {
+        Transfer::Linear
+    } else {
+        Transfer::Auto
+    };
+    let (chrome_paths, list_mask) = expand(&a.images)?;
+    let chrome_mask = a.mask.clone().or(list_mask);
+    let stack = load_reference_images(&chrome_paths, transfer, progress)?;
+    let mask = chrome_mask.as_deref().map(read_grey_mask).transpose()?;
+    let cal = calibrate_chrome(
+        &stack,
+        mask.as_ref().zip(chrome_mask.as_deref()),
+        &ChromeOptions::default(),
+    )?;
+    let c = cal.sphere.circle;
+    say!(
+        "chrome sphere ({}): centre ({:.2}, {:.2}) px, radius {:.2} px, ± ({:.2}, {:.2}, {:.2}) px, edge rms {:.2} px, {} edge points ({} outliers)",
+        match cal.sphere_source {
+            photostereo::calibrate::SphereSource::Mask => "from its mask",
+            photostereo::calibrate::SphereSource::Detected => "detected",
+        },
+        c.cx,
+        c.cy,
+        c.radius,
+        cal.sphere.std_err[0],
+        cal.sphere.std_err[1],
+        cal.sphere.std_err[2],
+        cal.sphere.rms_px,
+        cal.sphere.points,
+        cal.sphere.outliers
+    );
+    for w in &cal.warnings {
+        eprintln!("warning: {w}");
+    }
+    for o in &cal.lights {
+        match &o.result {
+            HighlightResult::Found(h) => {
+                say!(
+                    "  {:>3} {}: l = ({:+.4}, {:+.4}, {:+.4}), highlight ({:.2}, {:.2}), {} px, ±{:.2}°, confidence {:.2}",
+                    o.index,
+                    file_name(&o.image),
+                    h.direction.x,
+                    h.direction.y,
+                    h.direction.z,
+                    h.centroid[0],
+                    h.centroid[1],
+                    h.pixels,
+                    h.uncertainty_deg,
+                    h.confidence
+                );
+                for w in &h.warnings {
+                    eprintln!("warning: image {} ({}): {w}", o.index, file_name(&o.image));
+                }
+            }
+            HighlightResult::Missing(m) => {
+                eprintln!(
+                    "warning: image {} ({}): {}",
+                    o.index,
+                    file_name(&o.image),
+                    m.reason
+                );
+            }
+        }
+    }
+    let lights = cal.lights()?;
+    let directions = lights.directions();
+    let (lights, intensity) =
+        measure_intensities(&a, &stack, lights, &directions, transfer, progress)?;
+    let json = lights_file_json(&lights, &cal, intensity.as_ref());
+    let dir = match a.output.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let name = a
+        .output
+        .file_name()
+        .context("the output must be a file name")?
+        .to_string_lossy()
+        .into_owned();
+    let mut out = OutputDir::create(&dir)?;
+    out.stage_bytes(&name, json.as_bytes())?;
+    out.commit()?;
+    say!("wrote {} ({} lights)", a.output.display(), lights.len());
+    Ok(())
+}
+
+/// Relative intensities from the matte sphere or card, when one is given.
+fn measure_intensities(
+    a: &CalibrateArgs,
+    chrome: &photostereo::input::ImageStack,
+    lights: Lights,
+    directions: &[Vector3<f64>],
+    transfer: Transfer,
+    progress: &dyn Progress,
+) -> Result<(Lights, Option<IntensityCalibration>)> {
+    if a.matte.is_empty() && a.matte_mask.is_none() && a.card_mask.is_none() {
+        return Ok((lights, None));
+    }
+    let (matte_stack, list_mask) = if a.matte.is_empty() {
+        (None, None)
+    } else {
+        let (paths, mask) = expand(&a.matte)?;
+        if paths.len() != directions.len() {
+            bail!(
+                "{} matte images for {} chrome images: the references must be photographed under the same lights, in the same order",
+                paths.len(),
+                directions.len()
+            );
+        }
+        (
+            Some(load_reference_images(&paths, transfer, progress)?),
+            mask,
+        )
+    };
+    let stack = matte_stack.as_ref().unwrap_or(chrome);
+    let (intensities, report) = if let Some(card) = &a.card_mask {
+        let m = read_mask(card)?;
+        let n = Vector3::from(a.card_normal);
+        let e =
+            intensities_from_card(stack, &m, n, directions, MatteOptions::default().saturation)?;
+        (
+            e,
+            IntensityCalibration::GreyCard {
+                pixels: m.count(),
+                normal: a.card_normal,
+            },
+        )
+    } else {
+        let mask_path = a.matte_mask.clone().or(list_mask);
+        let mask = mask_path.as_deref().map(read_grey_mask).transpose()?;
+        let (sphere, sphere_source) = find_sphere(stack, mask.as_ref().zip(mask_path.as_deref()))?;
+        let fits =
+            intensities_from_sphere(stack, &sphere.circle, directions, &MatteOptions::default())?;
+        let c = sphere.circle;
+        say!(
+            "matte sphere: centre ({:.2}, {:.2}) px, radius {:.2} px",
+            c.cx,
+            c.cy,
+            c.radius
+        );
+        for (k, f) in fits.iter().enumerate() {
+            say!(
+                "  {k:>3}: intensity ({:.4}, {:.4}, {:.4}), shading direction {:.2}° from the chrome one, fit rms {:.1}%",
+                f.intensity[0],
+                f.intensity[1],
+                f.intensity[2],
+                f.angle_to_given_deg,
+                f.relative_rms * 100.0
+            );
+            if f.angle_to_given_deg > DISAGREEMENT_DEG {
+                eprintln!(
+                    "warning: light {k}: the matte sphere's shading points {:.1}° away from the chrome highlight's direction; check that both references saw the same light",
+                    f.angle_to_given_deg
+                );
+            }
+        }
+        (
+            fits.iter().map(|f| f.intensity).collect(),
+            IntensityCalibration::MatteSphere {
+                sphere,
+                sphere_source,
+                fits,
+            },
+        )
+    };
+    let lights = Lights::new(
+        lights
+            .lights()
+            .iter()
+            .zip(intensities)
+            .map(|(l, e)| Light {
+                intensity: e,
+                ..l.clone()
+            })
+            .collect(),
+    )?;
+    Ok((lights, Some(report)))
+}
+
+fn file_name(p: &Path) -> String {
+    p.file_name().map_or_else(
+        || p.display().to_string(),
+        |n| n.to_string_lossy().into_owned(),
+    )
+}

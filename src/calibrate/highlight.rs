@@ -1,0 +1,315 @@
+//! A light's direction from its highlight on a mirror sphere.
+//!
+//! Under the orthographic camera (view v = (0, 0, 1)) a mirror reflects a distant light l into
+//! the camera where the sphere's normal is the half vector, so l = 2(n·v)n − v. A real lamp has
+//! a size, so its highlight is a blob: every blob pixel reflects one direction of the lamp's
+//! disc. This module averages those reflected directions, weighted by brightness above the
+//! blob's threshold, instead of reflecting about the blob's pixel centroid. That is unbiased:
+//! under orthographic projection an image area dA maps to the solid angle 4 dA / R² of
+//! reflected directions whatever the normal (the 1/n_z of foreshortening cancels the 4 n_z of
+//! reflection), so equal pixels are equal solid angles, and the mean of the directions of a
+//! symmetric lamp is its centre — also for highlights near the rim, where the pixel centroid is
+//! pulled towards the centre of the sphere.
+
+use super::sphere::CircleFit;
+use crate::reflectance::reflect;
+use nalgebra::Vector3;
+use serde::Serialize;
+
+/// Options of [`find_highlight`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct HighlightOptions {
+    /// Blob threshold between the sphere's background level (0) and the peak (1).
+    pub level: f64,
+    /// Pixels within this fraction of the radius from the rim are ignored (the normal there is
+    /// ill-conditioned and the outline blends with the background).
+    pub rim_margin: f64,
+    /// A highlight must exceed the background by this many noise standard deviations.
+    pub min_snr: f64,
+    /// Below this share of the highlight energy the chosen blob is flagged ambiguous.
+    pub ambiguous_share: f64,
+}
+
+impl Default for HighlightOptions {
+    fn default() -> Self {
+        HighlightOptions {
+            level: 0.25,
+            rim_margin: 0.02,
+            min_snr: 10.0,
+            ambiguous_share: 0.8,
+        }
+    }
+}
+
+/// The highlight found in one image and the light direction it gives.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Highlight {
+    /// Unit light direction (camera frame, towards the light).
+    #[serde(serialize_with = "super::serialize_vector")]
+    pub direction: Vector3<f64>,
+    /// Weighted pixel centroid of the blob (column, row).
+    pub centroid: [f64; 2],
+    /// Pixels in the blob.
+    pub pixels: usize,
+    /// Peak value over the sphere's background level, in noise standard deviations.
+    pub snr: f64,
+    /// The blob's share of the energy of every blob above the threshold on the sphere (1: one
+    /// clean highlight; lower: secondary reflections compete).
+    pub share: f64,
+    /// Other blobs above the threshold (secondary reflections), rejected.
+    pub secondary: usize,
+    /// Estimated standard error of the direction in degrees: the blob's sampling by the pixel
+    /// grid (its centroid moves by √(B/12)/N px for B border pixels of N, a pixel turning the
+    /// light by 2/(R n_z) rad) and the circle's standard errors propagated, in quadrature.
+    pub uncertainty_deg: f64,
+    /// Confidence in [0, 1]: the energy share times 1/(1 + (uncertainty/1°)²).
+    pub confidence: f64,
+    /// What may be wrong with it.
+    pub warnings: Vec<String>,
+}
+
+/// Why no highlight was found.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Missing {
+    /// Peak over background in noise standard deviations (below the option's minimum).
+    pub snr: f64,
+    /// What to do.
+    pub reason: String,
+}
+
+/// Finds the light's highlight on the sphere in one grey image (`plane`, `width` columns,
+/// row-major) and the light direction l = 2(n·v)n − v it gives (see the module doc).
+///
+/// Steps: the sphere's pixels (inside the rim margin) give a background level (median) and a
+/// noise σ (1.4826 × MAD); pixels above background + level × (peak − background) form 8-connected
+/// blobs; the blob with the largest energy Σ(I − threshold) is the highlight, the others are
+/// secondary reflections.
+///
+/// Returns `Err(Missing)` when the peak is not [`HighlightOptions::min_snr`] σ above the
+/// background (no highlight, e.g. a light behind the sphere).
+pub fn find_highlight(
+    plane: &[f32],
+    width: usize,
+    sphere: &CircleFit,
+    options: &HighlightOptions,
+) -> Result<Highlight, Missing> {
+    let c = sphere.circle;
+    let inner = c.radius * (1.0 - options.rim_margin);
+    let height = plane.len() / width.max(1);
+    let x0 = ((c.cx - inner).floor().max(0.0)) as usize;
+    let x1 = ((c.cx + inner).ceil().max(0.0) as usize).min(width.saturating_sub(1));
+    let y0 = ((c.cy - inner).floor().max(0.0)) as usize;
+    let y1 = ((c.cy + inner).ceil().max(0.0) as usize).min(height.saturating_sub(1));
+    let inside = |x: usize, y: usize| (x as f64 - c.cx).hypot(y as f64 - c.cy) < inner;
+    let mut values = Vec::new();
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            let v = plane[y * width + x];
+            if inside(x, y) && v.is_finite() {
+                values.push(f64::from(v));
+            }
+        }
+    }
+    if values.is_empty() {
+        return Err(Missing {
+            snr: 0.0,
+            reason: "the sphere lies outside the image".into(),
+        });
+    }
+    let peak = values.iter().copied().fold(f64::MIN, f64::max);
+    let background = median(&mut values.clone());
+    let mut dev: Vec<f64> = values.iter().map(|v| (v - background).abs()).collect();
+    // Floor σ so that noise-free images do not divide by zero.
+    let sigma = (1.4826 * median(&mut dev))
+        .max(1e-6 * peak.abs())
+        .max(f64::MIN_POSITIVE);
+    let snr = (peak - background) / sigma;
+    if snr.is_nan() || snr < options.min_snr {
+        return Err(Missing {
+            snr,
+            reason: format!(
+                "no highlight on the sphere: its peak is {snr:.1} noise σ above the background (at least {} needed); is the light behind the sphere, or the image dark?",
+                options.min_snr
+            ),
+        });
+    }
+    let threshold = background + options.level * (peak - background);
+    // 8-connected blobs above the threshold.
+    let bw = x1 - x0 + 1;
+    let bh = y1 - y0 + 1;
+    let mut label = vec![u32::MAX; bw * bh];
+    let mut blobs: Vec<Blob> = Vec::new();
+    let mut stack = Vec::new();
+    let above = |x: usize, y: usize| {
+        let v = plane[y * width + x];
+        inside(x, y) && v.is_finite() && f64::from(v) >= threshold
+    };
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            let li = (y - y0) * bw + (x - x0);
+            if label[li] != u32::MAX || !above(x, y) {
+                continue;
+            }
+            let id = blobs.len() as u32;
+            let mut blob = Blob::default();
+            label[li] = id;
+            stack.push((x, y));
+            while let Some((px, py)) = stack.pop() {
+                let wgt = f64::from(plane[py * width + px]) - threshold;
+                // Equal-area pixels weigh equally in reflected-direction space (module doc).
+                if let Some(n) = c.normal_at(px as f64, py as f64) {
+                    let r = reflect(&Vector3::z(), &n);
+                    blob.add(px as f64, py as f64, r, wgt.max(f64::MIN_POSITIVE));
+                }
+                for dy in -1isize..=1 {
+                    for dx in -1isize..=1 {
+                        let (qx, qy) = (px as isize + dx, py as isize + dy);
+                        if qx < x0 as isize
+                            || qy < y0 as isize
+                            || qx > x1 as isize
+                            || qy > y1 as isize
+                        {
+                            continue;
+                        }
+                        let (qx, qy) = (qx as usize, qy as usize);
+                        let qi = (qy - y0) * bw + (qx - x0);
+                        if label[qi] == u32::MAX && above(qx, qy) {
+                            label[qi] = id;
+                            stack.push((qx, qy));
+                        }
+                    }
+                }
+            }
+            blobs.push(blob);
+        }
+    }
+    let total: f64 = blobs.iter().map(|b| b.energy).sum();
+    let Some(best) = blobs
+        .iter()
+        .filter(|b| b.pixels > 0)
+        .max_by(|a, b| a.energy.total_cmp(&b.energy))
+    else {
+        return Err(Missing {
+            snr,
+            reason: "no highlight blob inside the sphere".into(),
+        });
+    };
+    let direction = best.sum_r.normalize();
+    let share = best.energy / total;
+    let centroid = [best.sum_x / best.energy, best.sum_y / best.energy];
+    // Sampling: each of the blob's B border pixels is in or out by up to a pixel, a uniform
+    // error of variance 1/12, so the centroid moves by √(B/12)/N px; a pixel turns the light by
+    // up to 2/(R n_z) radians (reflection doubles the normal's turn, foreshortening divides by
+    // n_z).
+    let id = blobs
+        .iter()
+        .position(|b| std::ptr::eq(b, best))
+        .unwrap_or_default() as u32;
+    let border = (y0..=y1)
+        .flat_map(|y| (x0..=x1).map(move |x| (x, y)))
+        .filter(|&(x, y)| {
+            let at = |x: usize, y: usize| label[(y - y0) * bw + (x - x0)] == id;
+            at(x, y)
+                && (x == x0
+                    || x == x1
+                    || y == y0
+                    || y == y1
+                    || !at(x - 1, y)
+                    || !at(x + 1, y)
+                    || !at(x, y - 1)
+                    || !at(x, y + 1))
+        })
+        .count();
+    let nz = c
+        .normal_at(centroid[0], centroid[1])
+        .map_or(MIN_NZ, |n| n.z.max(MIN_NZ));
+    let sampling_px = (border as f64 / 12.0).sqrt() / best.pixels as f64;
+    let stat = (sampling_px * 2.0 / (c.radius * nz)).to_degrees();
+    // The circle's standard errors, propagated by re-reflecting at the perturbed circle.
+    let geom = circle_sensitivity(sphere, centroid, &direction);
+    let uncertainty_deg = stat.hypot(geom);
+    let mut warnings = Vec::new();
+    if share < options.ambiguous_share {
+        warnings.push(format!(
+            "ambiguous highlight: the chosen blob holds {:.0}% of the highlight energy on the sphere and {} other blob(s) the rest (secondary reflections?)",
+            share * 100.0,
+            blobs.len() - 1
+        ));
+    }
+    let rim = c.distance(centroid[0], centroid[1]).abs() / c.radius;
+    if rim < 3.0 * options.rim_margin {
+        warnings.push(format!(
+            "the highlight is at the rim ({:.1}% of the radius from it): the light is nearly behind the sphere and its direction is poorly determined",
+            rim * 100.0
+        ));
+    }
+    if best.pixels < 3 {
+        warnings.push(format!(
+            "the highlight covers only {} pixel(s): its position is not sub-pixel",
+            best.pixels
+        ));
+    }
+    Ok(Highlight {
+        direction,
+        centroid,
+        pixels: best.pixels,
+        snr,
+        share,
+        secondary: blobs.len() - 1,
+        uncertainty_deg,
+        confidence: share / (1.0 + uncertainty_deg * uncertainty_deg),
+        warnings,
+    })
+}
+
+/// Floor of n_z in the sensitivity of a highlight near the rim.
+const MIN_NZ: f64 = 0.1;
+
+/// Angle (degrees) by which the light moves when each circle parameter moves by its standard
+/// error, in quadrature.
+fn circle_sensitivity(sphere: &CircleFit, centroid: [f64; 2], direction: &Vector3<f64>) -> f64 {
+    let mut sum = 0.0;
+    for k in 0..3 {
+        let mut c = sphere.circle;
+        let d = sphere.std_err[k];
+        if !d.is_finite() || d == 0.0 {
+            continue;
+        }
+        match k {
+            0 => c.cx += d,
+            1 => c.cy += d,
+            _ => c.radius += d,
+        }
+        if let Some(n) = c.normal_at(centroid[0], centroid[1]) {
+            let l = reflect(&Vector3::z(), &n);
+            sum += l.dot(direction).clamp(-1.0, 1.0).acos().powi(2);
+        }
+    }
+    sum.sqrt().to_degrees()
+}
+
+/// Running sums of one blob.
+#[derive(Debug, Default)]
+struct Blob {
+    pixels: usize,
+    energy: f64,
+    sum_x: f64,
+    sum_y: f64,
+    sum_r: Vector3<f64>,
+}
+
+impl Blob {
+    fn add(&mut self, x: f64, y: f64, r: Vector3<f64>, w: f64) {
+        self.pixels += 1;
+        self.energy += w;
+        self.sum_x += w * x;
+        self.sum_y += w * y;
+        self.sum_r += w * r;
+    }
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    let k = v.len() / 2;
+    let (_, m, _) = v.select_nth_unstable_by(k, f64::total_cmp);
+    *m
+}

@@ -1,0 +1,547 @@
+//! The calibration sphere's outline in the image: a sub-pixel circle fitted to a mask's edge, or
+//! detected in the images when there is no mask.
+//!
+//! Coordinates are pixel coordinates: `x` the column, `y` the row (downwards), the centre of
+//! pixel `(c, r)` at `(c, r)`. Under the orthographic camera of the crate the sphere's normal at
+//! `(x, y)` is `((x − cx)/R, −(y − cy)/R, √(1 − …))` in the camera frame (y up).
+
+use crate::error::{Error, Result};
+use crate::grid::ScalarMap;
+use nalgebra::{Matrix3, Vector3};
+use rand::{RngExt, SeedableRng};
+use serde::Serialize;
+
+/// Gauss–Newton iterations of the geometric circle fit (it converges in 3–5 from Kåsa's).
+const GEOMETRIC_ITERATIONS: usize = 20;
+/// Robust refits: points farther than [`OUTLIER_SIGMAS`] robust σ from the circle are dropped.
+const ROBUST_ROUNDS: usize = 4;
+/// Outlier cut in robust standard deviations (1.4826 × median absolute residual).
+const OUTLIER_SIGMAS: f64 = 3.0;
+/// Floor of the outlier cut in pixels (a mask edge is never better than this).
+const OUTLIER_FLOOR_PX: f64 = 0.75;
+/// Angular bins used to measure how much of the circumference the edge points cover.
+const COVERAGE_BINS: usize = 72;
+/// Least fraction of the circumference a detected circle's edge points must cover.
+pub const MIN_COVERAGE: f64 = 0.5;
+/// RANSAC hypotheses tried by [`detect_circle`].
+const RANSAC_ITERATIONS: usize = 4000;
+/// Distance (pixels) within which an edge point supports a RANSAC circle.
+const RANSAC_TOLERANCE_PX: f64 = 1.5;
+/// An edge point supports a circle only if its gradient is within this angle of radial
+/// (cosine).
+const RADIAL_COSINE: f64 = 0.9;
+/// Edge points: gradient magnitude above this fraction of the 99.5th percentile magnitude.
+const EDGE_FRACTION: f32 = 0.15;
+/// Smallest radius [`detect_circle`] looks for, in pixels.
+const MIN_RADIUS_PX: f64 = 8.0;
+
+/// A circle in pixel coordinates (x the column, y the row).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Circle {
+    /// Centre column.
+    pub cx: f64,
+    /// Centre row.
+    pub cy: f64,
+    /// Radius in pixels.
+    pub radius: f64,
+}
+
+impl Circle {
+    /// The outward sphere normal seen at pixel `(x, y)` under an orthographic camera:
+    /// n = ((x − cx)/R, −(y − cy)/R, √(1 − n_x² − n_y²)); `None` outside the circle.
+    pub fn normal_at(&self, x: f64, y: f64) -> Option<Vector3<f64>> {
+        let nx = (x - self.cx) / self.radius;
+        let ny = -(y - self.cy) / self.radius;
+        let s = nx * nx + ny * ny;
+        (s < 1.0).then(|| Vector3::new(nx, ny, (1.0 - s).sqrt()))
+    }
+
+    /// Signed distance of `(x, y)` from the circle (positive outside).
+    pub fn distance(&self, x: f64, y: f64) -> f64 {
+        (x - self.cx).hypot(y - self.cy) - self.radius
+    }
+}
+
+/// A circle fitted to edge points, with what the fit says about its own accuracy.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct CircleFit {
+    /// The circle.
+    pub circle: Circle,
+    /// Standard errors of (cx, cy, R) in pixels, from the residuals and the fit's Jacobian.
+    pub std_err: [f64; 3],
+    /// Root-mean-square distance of the kept points from the circle, in pixels.
+    pub rms_px: f64,
+    /// Edge points kept by the robust fit.
+    pub points: usize,
+    /// Edge points rejected as outliers (e.g. a stand attached to the sphere's mask).
+    pub outliers: usize,
+    /// Fraction of the circumference covered by the kept points (1: the whole outline).
+    pub coverage: f64,
+}
+
+/// Least-squares circle through `points` by the geometric distance Σ(|p − c| − R)², started
+/// from Kåsa's algebraic fit (Kåsa 1976) and refined by Gauss–Newton; points farther than
+/// 3 robust σ are dropped and the fit repeated.
+///
+/// # Errors
+/// [`Error::InvalidParameter`] (`points`) with fewer than 3 points, or when they are collinear
+/// or not finite.
+pub fn fit_circle(points: &[[f64; 2]]) -> Result<CircleFit> {
+    if points.len() < 3 {
+        return Err(Error::param(
+            "points",
+            format!("{} edge points; a circle needs at least 3", points.len()),
+        ));
+    }
+    if points.iter().flatten().any(|v| !v.is_finite()) {
+        return Err(Error::param("points", "an edge point is not finite"));
+    }
+    let mut kept: Vec<[f64; 2]> = points.to_vec();
+    let mut circle = kasa(&kept)?;
+    let mut outliers = 0;
+    for _ in 0..ROBUST_ROUNDS {
+        circle = geometric(&kept, circle);
+        let mut abs: Vec<f64> = kept
+            .iter()
+            .map(|p| circle.distance(p[0], p[1]).abs())
+            .collect();
+        abs.sort_by(f64::total_cmp);
+        let sigma = 1.4826 * abs[abs.len() / 2];
+        let cut = (OUTLIER_SIGMAS * sigma).max(OUTLIER_FLOOR_PX);
+        let before = kept.len();
+        let next: Vec<[f64; 2]> = kept
+            .iter()
+            .copied()
+            .filter(|p| circle.distance(p[0], p[1]).abs() <= cut)
+            .collect();
+        if next.len() == before || next.len() < 3 {
+            break;
+        }
+        outliers += before - next.len();
+        kept = next;
+    }
+    circle = geometric(&kept, circle);
+    Ok(summarise(&kept, circle, outliers))
+}
+
+/// Standard errors, rms and coverage of `circle` over `points`.
+fn summarise(points: &[[f64; 2]], circle: Circle, outliers: usize) -> CircleFit {
+    let mut jtj = Matrix3::<f64>::zeros();
+    let mut ss = 0.0;
+    let mut bins = [false; COVERAGE_BINS];
+    for p in points {
+        let (dx, dy) = (p[0] - circle.cx, p[1] - circle.cy);
+        let d = dx.hypot(dy).max(f64::MIN_POSITIVE);
+        let j = Vector3::new(-dx / d, -dy / d, -1.0);
+        jtj += j * j.transpose();
+        ss += (d - circle.radius).powi(2);
+        let a = dy.atan2(dx) + std::f64::consts::PI;
+        let bin =
+            ((a / std::f64::consts::TAU * COVERAGE_BINS as f64) as usize).min(COVERAGE_BINS - 1);
+        bins[bin] = true;
+    }
+    let n = points.len();
+    let dof = n.saturating_sub(3).max(1) as f64;
+    let var = ss / dof;
+    let cov = jtj
+        .try_inverse()
+        .unwrap_or_else(|| Matrix3::from_element(f64::INFINITY));
+    CircleFit {
+        circle,
+        std_err: [
+            (cov[(0, 0)] * var).sqrt(),
+            (cov[(1, 1)] * var).sqrt(),
+            (cov[(2, 2)] * var).sqrt(),
+        ],
+        rms_px: (ss / n as f64).sqrt(),
+        points: n,
+        outliers,
+        coverage: bins.iter().filter(|b| **b).count() as f64 / COVERAGE_BINS as f64,
+    }
+}
+
+/// Kåsa's fit: x² + y² + D x + E y + F = 0 by linear least squares (centred for conditioning).
+fn kasa(points: &[[f64; 2]]) -> Result<Circle> {
+    let n = points.len() as f64;
+    let (mx, my) = points
+        .iter()
+        .fold((0.0, 0.0), |(a, b), p| (a + p[0] / n, b + p[1] / n));
+    let mut ata = Matrix3::<f64>::zeros();
+    let mut atb = Vector3::<f64>::zeros();
+    for p in points {
+        let (x, y) = (p[0] - mx, p[1] - my);
+        let row = Vector3::new(x, y, 1.0);
+        ata += row * row.transpose();
+        atb += row * -(x * x + y * y);
+    }
+    let sol = ata
+        .lu()
+        .solve(&atb)
+        .filter(|s| s.iter().all(|v| v.is_finite()))
+        .ok_or_else(|| Error::param("points", "the edge points are collinear"))?;
+    let (cx, cy) = (-sol.x / 2.0, -sol.y / 2.0);
+    let r2 = cx * cx + cy * cy - sol.z;
+    if r2 <= 0.0 || !r2.is_finite() {
+        return Err(Error::param("points", "the edge points fit no circle"));
+    }
+    Ok(Circle {
+        cx: cx + mx,
+        cy: cy + my,
+        radius: r2.sqrt(),
+    })
+}
+
+/// Gauss–Newton on the geometric distances from `start`.
+fn geometric(points: &[[f64; 2]], start: Circle) -> Circle {
+    let mut c = start;
+    for _ in 0..GEOMETRIC_ITERATIONS {
+        let mut jtj = Matrix3::<f64>::zeros();
+        let mut jtr = Vector3::<f64>::zeros();
+        for p in points {
+            let (dx, dy) = (p[0] - c.cx, p[1] - c.cy);
+            let d = dx.hypot(dy).max(f64::MIN_POSITIVE);
+            let j = Vector3::new(-dx / d, -dy / d, -1.0);
+            jtj += j * j.transpose();
+            jtr += j * (d - c.radius);
+        }
+        let Some(step) = jtj.lu().solve(&-jtr) else {
+            break;
+        };
+        if !step.iter().all(|v| v.is_finite()) {
+            break;
+        }
+        c = Circle {
+            cx: c.cx + step.x,
+            cy: c.cy + step.y,
+            radius: (c.radius + step.z).abs(),
+        };
+        if step.norm() < 1e-9 {
+            break;
+        }
+    }
+    c
+}
+
+/// Sub-pixel edge points of a mask: where the mask crosses half its maximum between two
+/// neighbouring pixels (linear interpolation, so an anti-aliased mask gives its true edge and a
+/// binary one the midpoints between inside and outside pixels).
+pub fn mask_edge_points(mask: &ScalarMap) -> Vec<[f64; 2]> {
+    let (w, h) = (mask.width(), mask.height());
+    let max = mask
+        .data()
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .fold(0.0f32, f32::max);
+    let level = f64::from(max) / 2.0;
+    let value = |x: usize, y: usize| {
+        let v = f64::from(*mask.at(x, y));
+        if v.is_finite() { v } else { 0.0 }
+    };
+    let mut points = Vec::new();
+    let crossing = |a: f64, b: f64| -> Option<f64> {
+        ((a >= level) != (b >= level)).then(|| ((level - a) / (b - a)).clamp(0.0, 1.0))
+    };
+    for y in 0..h {
+        for x in 0..w {
+            let v = value(x, y);
+            if x + 1 < w
+                && let Some(t) = crossing(v, value(x + 1, y))
+            {
+                points.push([x as f64 + t, y as f64]);
+            }
+            if y + 1 < h
+                && let Some(t) = crossing(v, value(x, y + 1))
+            {
+                points.push([x as f64, y as f64 + t]);
+            }
+        }
+    }
+    points
+}
+
+/// The sphere's circle from its mask (pixel values > 0 inside; anti-aliased masks are used at
+/// half their maximum): a robust sub-pixel fit to [`mask_edge_points`].
+///
+/// # Errors
+/// [`Error::Mask`] (naming `source`) when the mask has no edge or its edge is not a circle
+/// (covers less than [`MIN_COVERAGE`] of one).
+pub fn circle_from_mask(mask: &ScalarMap, source: &std::path::Path) -> Result<CircleFit> {
+    let points = mask_edge_points(mask);
+    let fit = fit_circle(&points).map_err(|e| Error::Mask {
+        path: source.to_path_buf(),
+        reason: format!("no circular outline: {e}"),
+    })?;
+    if fit.coverage < MIN_COVERAGE {
+        return Err(Error::Mask {
+            path: source.to_path_buf(),
+            reason: format!(
+                "the outline covers {:.0}% of a circle (at least {:.0}% is needed): is this a sphere's mask?",
+                fit.coverage * 100.0,
+                MIN_COVERAGE * 100.0
+            ),
+        });
+    }
+    Ok(fit)
+}
+
+/// An edge point of an image: sub-pixel position and unit gradient direction.
+#[derive(Debug, Clone, Copy)]
+struct Edge {
+    x: f64,
+    y: f64,
+    gx: f64,
+    gy: f64,
+}
+
+/// Finds the sphere in `evidence` (an image in which the sphere's outline shows, e.g. the mean
+/// of the calibration images): Sobel gradients, non-maximum suppression with a parabolic
+/// sub-pixel peak, then RANSAC (Fischler & Bolles 1981) over circles through three edge points
+/// whose support counts the edge points within 1.5 px whose gradient is radial, and finally
+/// [`fit_circle`] on the best circle's support. Deterministic (seeded).
+///
+/// # Errors
+/// [`Error::InvalidParameter`] (`images`) when no circle of radius ≥ 8 px whose edge covers at
+/// least half its circumference is found.
+pub fn detect_circle(evidence: &ScalarMap) -> Result<CircleFit> {
+    let edges = edge_points(evidence);
+    let not_found = |why: String| {
+        Error::param(
+            "images",
+            format!("no sphere outline found ({why}); give the sphere's mask with --mask"),
+        )
+    };
+    if edges.len() < 3 {
+        return Err(not_found(format!("{} edge points", edges.len())));
+    }
+    let (w, h) = (evidence.width() as f64, evidence.height() as f64);
+    let max_radius = 0.5 * w.max(h);
+    let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(0x5EED);
+    let mut best: Option<(usize, Circle)> = None;
+    for _ in 0..RANSAC_ITERATIONS {
+        let pick = [
+            edges[rng.random_range(0..edges.len())],
+            edges[rng.random_range(0..edges.len())],
+            edges[rng.random_range(0..edges.len())],
+        ];
+        let Ok(c) = kasa(&pick.map(|e| [e.x, e.y])) else {
+            continue;
+        };
+        if c.radius < MIN_RADIUS_PX || c.radius > max_radius || !radial_all(&pick, &c) {
+            continue;
+        }
+        let support = edges.iter().filter(|e| supports(e, &c)).count();
+        if best.is_none_or(|(s, _)| support > s) {
+            best = Some((support, c));
+        }
+    }
+    let Some((_, c)) = best else {
+        return Err(not_found("no three edge points lie on a circle".into()));
+    };
+    let inliers: Vec<[f64; 2]> = edges
+        .iter()
+        .filter(|e| supports(e, &c))
+        .map(|e| [e.x, e.y])
+        .collect();
+    let fit = fit_circle(&inliers)?;
+    if fit.coverage < MIN_COVERAGE {
+        return Err(not_found(format!(
+            "the best circle's edge covers {:.0}% of it",
+            fit.coverage * 100.0
+        )));
+    }
+    Ok(fit)
+}
+
+fn radial_all(edges: &[Edge], c: &Circle) -> bool {
+    edges.iter().all(|e| radial_cos(e, c) >= RADIAL_COSINE)
+}
+
+fn radial_cos(e: &Edge, c: &Circle) -> f64 {
+    let (dx, dy) = (e.x - c.cx, e.y - c.cy);
+    let d = dx.hypot(dy).max(f64::MIN_POSITIVE);
+    ((dx * e.gx + dy * e.gy) / d).abs()
+}
+
+fn supports(e: &Edge, c: &Circle) -> bool {
+    c.distance(e.x, e.y).abs() <= RANSAC_TOLERANCE_PX && radial_cos(e, c) >= RADIAL_COSINE
+}
+
+/// Edge points: Sobel gradient maxima along the gradient direction, above
+/// [`EDGE_FRACTION`] of the 99.5th-percentile magnitude, located to sub-pixel by a parabola.
+fn edge_points(img: &ScalarMap) -> Vec<Edge> {
+    let (w, h) = (img.width(), img.height());
+    if w < 3 || h < 3 {
+        return Vec::new();
+    }
+    let v = |x: usize, y: usize| {
+        let s = *img.at(x, y);
+        if s.is_finite() { s } else { 0.0 }
+    };
+    let mut gx = vec![0.0f32; w * h];
+    let mut gy = vec![0.0f32; w * h];
+    let mut mag = vec![0.0f32; w * h];
+    for y in 1..h - 1 {
+        for x in 1..w - 1 {
+            let sx = (v(x + 1, y - 1) + 2.0 * v(x + 1, y) + v(x + 1, y + 1))
+                - (v(x - 1, y - 1) + 2.0 * v(x - 1, y) + v(x - 1, y + 1));
+            let sy = (v(x - 1, y + 1) + 2.0 * v(x, y + 1) + v(x + 1, y + 1))
+                - (v(x - 1, y - 1) + 2.0 * v(x, y - 1) + v(x + 1, y - 1));
+            let i = y * w + x;
+            gx[i] = sx;
+            gy[i] = sy;
+            mag[i] = sx.hypot(sy);
+        }
+    }
+    let mut sorted: Vec<f32> = mag.iter().copied().filter(|m| *m > 0.0).collect();
+    if sorted.is_empty() {
+        return Vec::new();
+    }
+    let k = ((sorted.len() as f64 * 0.995) as usize).min(sorted.len() - 1);
+    let (_, top, _) = sorted.select_nth_unstable_by(k, f32::total_cmp);
+    let threshold = EDGE_FRACTION * *top;
+    let mut edges = Vec::new();
+    for y in 2..h - 2 {
+        for x in 2..w - 2 {
+            let i = y * w + x;
+            let m = mag[i];
+            if m <= threshold {
+                continue;
+            }
+            let (ux, uy) = (f64::from(gx[i] / m), f64::from(gy[i] / m));
+            // Step to the neighbour nearest the gradient direction.
+            let (sx, sy) = (ux.round() as isize, uy.round() as isize);
+            let at = |dx: isize, dy: isize| {
+                mag[(y as isize + dy) as usize * w + (x as isize + dx) as usize]
+            };
+            let (a, b) = (at(-sx, -sy), at(sx, sy));
+            if m < a || m <= b {
+                continue;
+            }
+            let denom = f64::from(a) - 2.0 * f64::from(m) + f64::from(b);
+            let t = if denom < 0.0 {
+                (0.5 * f64::from(a - b) / denom).clamp(-0.5, 0.5)
+            } else {
+                0.0
+            };
+            edges.push(Edge {
+                x: x as f64 + t * sx as f64,
+                y: y as f64 + t * sy as f64,
+                gx: ux,
+                gy: uy,
+            });
+        }
+    }
+    edges
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::Grid;
+
+    fn disc(w: usize, h: usize, c: Circle, samples: usize) -> ScalarMap {
+        // Area coverage by supersampling: an anti-aliased disc.
+        Grid::from_fn(w, h, |x, y| {
+            let mut inside = 0;
+            for i in 0..samples {
+                for j in 0..samples {
+                    let px = x as f64 - 0.5 + (i as f64 + 0.5) / samples as f64;
+                    let py = y as f64 - 0.5 + (j as f64 + 0.5) / samples as f64;
+                    if c.distance(px, py) < 0.0 {
+                        inside += 1;
+                    }
+                }
+            }
+            inside as f32 / (samples * samples) as f32
+        })
+    }
+
+    #[test]
+    fn fit_recovers_exact_circle_points() {
+        let c = Circle {
+            cx: 40.3,
+            cy: -12.7,
+            radius: 55.5,
+        };
+        let pts: Vec<[f64; 2]> = (0..40)
+            .map(|k| {
+                let a = k as f64 * 0.11;
+                [c.cx + c.radius * a.cos(), c.cy + c.radius * a.sin()]
+            })
+            .collect();
+        let f = fit_circle(&pts).unwrap();
+        assert!((f.circle.cx - c.cx).abs() < 1e-8);
+        assert!((f.circle.cy - c.cy).abs() < 1e-8);
+        assert!((f.circle.radius - c.radius).abs() < 1e-8);
+        assert!(f.rms_px < 1e-8);
+    }
+
+    #[test]
+    fn robust_fit_ignores_a_stand_below_the_sphere() {
+        let c = Circle {
+            cx: 60.0,
+            cy: 50.0,
+            radius: 30.0,
+        };
+        // Binary mask of a sphere on a stand (a bar below it).
+        let mask = Grid::from_fn(120, 110, |x, y| {
+            let (xf, yf) = (x as f64, y as f64);
+            let bar = (55.0..=65.0).contains(&xf) && yf > 70.0;
+            f32::from(u8::from(c.distance(xf, yf) < 0.0 || bar))
+        });
+        let f = circle_from_mask(&mask, std::path::Path::new("m.png")).unwrap();
+        assert!(f.outliers > 10, "{f:?}");
+        assert!((f.circle.cx - c.cx).abs() < 0.1, "{f:?}");
+        assert!((f.circle.cy - c.cy).abs() < 0.1, "{f:?}");
+        assert!((f.circle.radius - c.radius).abs() < 0.1, "{f:?}");
+    }
+
+    #[test]
+    fn anti_aliased_and_binary_masks_give_sub_pixel_circles() {
+        let c = Circle {
+            cx: 70.37,
+            cy: 64.81,
+            radius: 41.23,
+        };
+        for samples in [1, 8] {
+            let f =
+                circle_from_mask(&disc(150, 140, c, samples), std::path::Path::new("m")).unwrap();
+            let err = (f.circle.cx - c.cx)
+                .abs()
+                .max((f.circle.cy - c.cy).abs())
+                .max((f.circle.radius - c.radius).abs());
+            assert!(err < 0.05, "samples {samples}: {f:?}");
+            assert!(f.coverage > 0.99);
+        }
+    }
+
+    #[test]
+    fn detection_finds_a_faint_disc_among_clutter() {
+        let c = Circle {
+            cx: 81.6,
+            cy: 70.2,
+            radius: 47.9,
+        };
+        let d = disc(180, 150, c, 4);
+        // A faint disc, a brighter square elsewhere, a gradient background.
+        let img = Grid::from_fn(180, 150, |x, y| {
+            let sq = (5..30).contains(&x) && (100..140).contains(&y);
+            0.2 * *d.at(x, y) + if sq { 0.5 } else { 0.0 } + 0.0005 * x as f32
+        });
+        let f = detect_circle(&img).unwrap();
+        let err = (f.circle.cx - c.cx)
+            .abs()
+            .max((f.circle.cy - c.cy).abs())
+            .max((f.circle.radius - c.radius).abs());
+        assert!(err < 0.2, "{f:?}");
+        assert!(detect_circle(&Grid::new(50, 40, 0.3)).is_err());
+    }
+
+    #[test]
+    fn too_few_or_collinear_points_are_errors() {
+        assert!(fit_circle(&[[0.0, 0.0], [1.0, 1.0]]).is_err());
+        assert!(fit_circle(&[[0.0, 0.0], [1.0, 1.0], [2.0, 2.0], [3.0, 3.0]]).is_err());
+        assert!(fit_circle(&[[0.0, 0.0], [1.0, f64::NAN], [2.0, 2.0]]).is_err());
+    }
+}
