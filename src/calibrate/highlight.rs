@@ -12,6 +12,7 @@
 //! pulled towards the centre of the sphere.
 
 use super::sphere::CircleFit;
+use crate::metrics::median_by;
 use crate::reflectance::reflect;
 use nalgebra::Vector3;
 use serde::Serialize;
@@ -117,10 +118,10 @@ pub fn find_highlight(
         });
     }
     let peak = values.iter().copied().fold(f64::MIN, f64::max);
-    let background = median(&mut values.clone());
+    let background = median_by(&mut values.clone(), f64::total_cmp).unwrap_or(0.0);
     let mut dev: Vec<f64> = values.iter().map(|v| (v - background).abs()).collect();
     // Floor σ so that noise-free images do not divide by zero.
-    let sigma = (1.4826 * median(&mut dev))
+    let sigma = (1.4826 * median_by(&mut dev, f64::total_cmp).unwrap_or(0.0))
         .max(1e-6 * peak.abs())
         .max(f64::MIN_POSITIVE);
     let snr = (peak - background) / sigma;
@@ -306,10 +307,4 @@ impl Blob {
         self.sum_y += w * y;
         self.sum_r += w * r;
     }
-}
-
-fn median(v: &mut [f64]) -> f64 {
-    let k = v.len() / 2;
-    let (_, m, _) = v.select_nth_unstable_by(k, f64::total_cmp);
-    *m
 }

@@ -93,6 +93,7 @@ pub fn intensities_from_sphere(
     }
     debug_assert!(pixels.iter().all(|(p, _)| *p < w * h));
     let channels = stack.channels();
+    let mixed = stack.grey_mix();
     let mut out = Vec::with_capacity(directions.len());
     for (k, l) in directions.iter().enumerate() {
         let l = l.normalize();
@@ -143,15 +144,7 @@ pub fn intensities_from_sphere(
         if channels == 1 {
             intensity = [intensity[0]; 3];
         }
-        let (grey, used, rel) = fit_channel(&|p| {
-            if channels == 1 {
-                value(stack, stack.plane(k, 0), p)
-            } else {
-                (0..3)
-                    .map(|c| crate::input::GREY_WEIGHTS[c] * value(stack, stack.plane(k, c), p))
-                    .sum()
-            }
-        })?;
+        let (grey, used, rel) = fit_channel(&|p| value(&mixed, mixed.plane(k, 0), p))?;
         let b = grey;
         if b.norm() <= 0.0 {
             return Err(bad(stack, k, "the matte sphere is not lit".into()));

@@ -322,26 +322,17 @@ pub fn lights_file_json(
     serde_json::to_string_pretty(&doc).unwrap_or_default()
 }
 
-/// Full-image grey planes of a stack (BT.601 mix for colour; NaN outside its window).
+/// Full-image grey planes of a stack ([`ImageStack::grey_mix`]; NaN outside its window).
 fn grey_images(stack: &ImageStack) -> Vec<Vec<f32>> {
-    let (w, h) = (stack.width(), stack.height());
-    let win = stack.window();
-    (0..stack.count())
+    let grey = stack.grey_mix();
+    let (w, h) = (grey.width(), grey.height());
+    let win = grey.window();
+    (0..grey.count())
         .map(|k| {
+            let plane = grey.plane(k, 0);
             let mut out = vec![f32::NAN; w * h];
-            for y in win.y0..win.y1 {
-                for x in win.x0..win.x1 {
-                    let p = y * w + x;
-                    if let Some(i) = stack.local(p) {
-                        out[p] = if stack.channels() == 3 {
-                            (0..3)
-                                .map(|c| crate::input::GREY_WEIGHTS[c] * stack.plane(k, c)[i])
-                                .sum()
-                        } else {
-                            stack.plane(k, 0)[i]
-                        };
-                    }
-                }
+            for (y, row) in (win.y0..win.y1).zip(plane.chunks_exact(win.width().max(1))) {
+                out[y * w + win.x0..y * w + win.x1].copy_from_slice(row);
             }
             out
         })

@@ -7,6 +7,7 @@
 
 use crate::error::{Error, Result};
 use crate::grid::ScalarMap;
+use crate::metrics::median_by;
 use nalgebra::{Matrix3, Vector3};
 use rand::{RngExt, SeedableRng};
 use serde::Serialize;
@@ -105,8 +106,7 @@ pub fn fit_circle(points: &[[f64; 2]]) -> Result<CircleFit> {
             .iter()
             .map(|p| circle.distance(p[0], p[1]).abs())
             .collect();
-        abs.sort_by(f64::total_cmp);
-        let sigma = 1.4826 * abs[abs.len() / 2];
+        let sigma = 1.4826 * median_by(&mut abs, f64::total_cmp).unwrap_or(0.0);
         let cut = (OUTLIER_SIGMAS * sigma).max(OUTLIER_FLOOR_PX);
         let before = kept.len();
         let next: Vec<[f64; 2]> = kept
