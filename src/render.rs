@@ -392,19 +392,13 @@ pub fn render(scene: &Scene, lights: &Lights, options: &RenderOptions) -> Result
                         for (ch, v) in rgb.iter_mut().enumerate() {
                             *v += light.intensity[ch] * std::f64::consts::PI * f[ch] * cos_i;
                         }
-                        let covered = match mat.mirror() {
-                            None => 0.0,
-                            Some(_) if options.pixel_samples <= 1 => {
+                        if let Some(mirror) = mat.mirror() {
+                            let covered = if options.pixel_samples <= 1 {
                                 f64::from(u8::from(reflect(&view, &n).dot(&l) >= cos_radius))
-                            }
-                            Some(_) => {
+                            } else {
                                 let (x, y) = scene.pixel_xy(c, r);
                                 mirror_coverage(scene, x, y, &l, cos_radius, options.pixel_samples)
-                            }
-                        };
-                        if let Some(mirror) = mat.mirror()
-                            && covered > 0.0
-                        {
+                            };
                             let fr = covered * mirror.reflectance(n.dot(&view));
                             for (ch, v) in rgb.iter_mut().enumerate() {
                                 *v += light.intensity[ch]
