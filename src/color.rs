@@ -31,8 +31,8 @@ use crate::input::ImageStack;
 use crate::lights::Lights;
 use crate::progress::Progress;
 use crate::solve::{
-    PixelSolution, PixelStatus, Solution, SolveOptions, check_inputs, fit_with, fitter,
-    noise_and_gains,
+    ImageModel, PixelSolution, PixelStatus, Solution, SolveOptions, check_inputs, check_model,
+    fit_with, fitter, noise_and_gains,
 };
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
@@ -108,6 +108,64 @@ pub fn solve_shared_normal(
     check_inputs(stack, 0, lights, mask, options)?;
     let grey = stack.grey_mix();
     let (sigma, gains) = noise_and_gains(&grey, 0, lights, mask, options);
+    fit_shared(
+        stack,
+        &grey,
+        lights,
+        mask,
+        options,
+        ImageModel { sigma, gains },
+        progress,
+    )
+}
+
+/// [`solve_shared_normal`] with the per-image noise and gains given (estimated on the grey mix
+/// of the whole capture, see [`ImageModel`]): the solve of one part of a capture.
+///
+/// # Errors
+/// As [`solve_shared_normal`]; [`Error::InvalidParameter`] when the model's length differs
+/// from the image count.
+pub fn solve_shared_normal_with_model(
+    stack: &ImageStack,
+    lights: &Lights,
+    mask: &Mask,
+    options: &SolveOptions,
+    model: ImageModel,
+    progress: &dyn Progress,
+) -> Result<Vec<Solution>> {
+    if stack.channels() != 3 {
+        return Err(Error::param(
+            "stack",
+            format!(
+                "the shared-normal colour solve needs RGB images; the stack has {} channel(s)",
+                stack.channels()
+            ),
+        ));
+    }
+    check_inputs(stack, 0, lights, mask, options)?;
+    check_model(&model, stack.count())?;
+    fit_shared(
+        stack,
+        &stack.grey_mix(),
+        lights,
+        mask,
+        options,
+        model,
+        progress,
+    )
+}
+
+/// The per-pixel fits of the shared-normal solve, under `model`.
+fn fit_shared(
+    stack: &ImageStack,
+    grey: &ImageStack,
+    lights: &Lights,
+    mask: &Mask,
+    options: &SolveOptions,
+    model: ImageModel,
+    progress: &dyn Progress,
+) -> Result<Vec<Solution>> {
+    let ImageModel { sigma, gains } = model;
     let dirs = lights.directions();
     let k = stack.count();
     let pixels: Vec<usize> = (0..mask.len()).filter(|&i| mask.data()[i]).collect();

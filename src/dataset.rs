@@ -85,15 +85,7 @@ impl Capture {
         options: &LoadOptions,
         progress: &dyn Progress,
     ) -> Result<Self> {
-        let lights = Lights::from_file(lights_file)?.matched_to(images)?;
-        Capture::load(
-            images.to_vec(),
-            lights,
-            Some(lights_file),
-            mask_file,
-            options,
-            progress,
-        )
+        CaptureFiles::from_files(images, lights_file, mask_file)?.load(options, progress)
     }
 
     /// Loads a DiLiGenT-layout folder.
@@ -121,55 +113,7 @@ impl Capture {
         options: &LoadOptions,
         progress: &dyn Progress,
     ) -> Result<Self> {
-        let list = dir.join("filenames.txt");
-        let dirs_file = dir.join("light_directions.txt");
-        for f in [&list, &dirs_file] {
-            if !f.is_file() {
-                return Err(Error::Dataset {
-                    path: dir.to_path_buf(),
-                    reason: format!(
-                        "missing {}; a DiLiGenT folder has filenames.txt, light_directions.txt, optionally light_intensities.txt and mask.png",
-                        f.file_name()
-                            .map(|n| n.to_string_lossy())
-                            .unwrap_or_default()
-                    ),
-                });
-            }
-        }
-        let text = std::fs::read_to_string(&list).map_err(|e| Error::io(&list, e))?;
-        let images: Vec<PathBuf> = text
-            .lines()
-            .map(str::trim)
-            .filter(|l| !l.is_empty())
-            .map(|l| dir.join(l))
-            .collect();
-        let mut lights = Lights::from_file(&dirs_file)?;
-        let intens = dir.join("light_intensities.txt");
-        if intens.is_file() {
-            lights = lights.with_intensities_file(&intens)?;
-        }
-        if lights.len() != images.len() {
-            return Err(Error::Dataset {
-                path: dir.to_path_buf(),
-                reason: format!(
-                    "filenames.txt lists {} images but light_directions.txt has {} lights",
-                    images.len(),
-                    lights.len()
-                ),
-            });
-        }
-        let folder_mask = dir.join("mask.png");
-        let mask = mask
-            .map(Path::to_path_buf)
-            .or_else(|| folder_mask.is_file().then_some(folder_mask));
-        Capture::load(
-            images,
-            lights,
-            Some(&dirs_file),
-            mask.as_deref(),
-            options,
-            progress,
-        )
+        CaptureFiles::from_diligent(dir, mask)?.load(options, progress)
     }
 
     /// Replaces the mask by the one in `path`.
@@ -231,6 +175,110 @@ impl Capture {
             lights_source: lights_source.map(Path::to_path_buf),
             mask_source: mask_file.map(Path::to_path_buf),
         })
+    }
+}
+
+/// A capture's files, resolved (image list, lights matched to the images, mask file) but not
+/// decoded: what [`Capture`] loads into memory and [`crate::stream`] reads in row bands.
+#[derive(Debug, Clone)]
+pub struct CaptureFiles {
+    /// One image per light.
+    pub images: Vec<PathBuf>,
+    /// The lights, in image order.
+    pub lights: Lights,
+    /// The lights file.
+    pub lights_source: Option<PathBuf>,
+    /// The mask file, if any.
+    pub mask_source: Option<PathBuf>,
+}
+
+impl CaptureFiles {
+    /// `images` lit by the lights of `lights_file` (matched as [`Capture::from_files`] does),
+    /// with an optional mask file.
+    ///
+    /// # Errors
+    /// The errors of [`Lights::from_file`] and [`Lights::matched_to`].
+    pub fn from_files(
+        images: &[PathBuf],
+        lights_file: &Path,
+        mask_file: Option<&Path>,
+    ) -> Result<Self> {
+        Ok(CaptureFiles {
+            lights: Lights::from_file(lights_file)?.matched_to(images)?,
+            images: images.to_vec(),
+            lights_source: Some(lights_file.to_path_buf()),
+            mask_source: mask_file.map(Path::to_path_buf),
+        })
+    }
+
+    /// The files of a DiLiGenT-layout folder; `mask` replaces the folder's `mask.png`.
+    ///
+    /// # Errors
+    /// As [`Capture::from_diligent_masked`], before any image is decoded.
+    pub fn from_diligent(dir: &Path, mask: Option<&Path>) -> Result<Self> {
+        let list = dir.join("filenames.txt");
+        let dirs_file = dir.join("light_directions.txt");
+        for f in [&list, &dirs_file] {
+            if !f.is_file() {
+                return Err(Error::Dataset {
+                    path: dir.to_path_buf(),
+                    reason: format!(
+                        "missing {}; a DiLiGenT folder has filenames.txt, light_directions.txt, optionally light_intensities.txt and mask.png",
+                        f.file_name()
+                            .map(|n| n.to_string_lossy())
+                            .unwrap_or_default()
+                    ),
+                });
+            }
+        }
+        let text = std::fs::read_to_string(&list).map_err(|e| Error::io(&list, e))?;
+        let images: Vec<PathBuf> = text
+            .lines()
+            .map(str::trim)
+            .filter(|l| !l.is_empty())
+            .map(|l| dir.join(l))
+            .collect();
+        let mut lights = Lights::from_file(&dirs_file)?;
+        let intens = dir.join("light_intensities.txt");
+        if intens.is_file() {
+            lights = lights.with_intensities_file(&intens)?;
+        }
+        if lights.len() != images.len() {
+            return Err(Error::Dataset {
+                path: dir.to_path_buf(),
+                reason: format!(
+                    "filenames.txt lists {} images but light_directions.txt has {} lights",
+                    images.len(),
+                    lights.len()
+                ),
+            });
+        }
+        let folder_mask = dir.join("mask.png");
+        let mask = mask
+            .map(Path::to_path_buf)
+            .or_else(|| folder_mask.is_file().then_some(folder_mask));
+        Ok(CaptureFiles {
+            images,
+            lights,
+            lights_source: Some(dirs_file),
+            mask_source: mask,
+        })
+    }
+
+    /// Decodes the images into a [`Capture`] (only the window the mask spans is stored).
+    ///
+    /// # Errors
+    /// The errors of [`load_stack`] and [`read_mask`]; [`Error::Mask`] when the mask's size
+    /// differs from the images'.
+    pub fn load(&self, options: &LoadOptions, progress: &dyn Progress) -> Result<Capture> {
+        Capture::load(
+            self.images.clone(),
+            self.lights.clone(),
+            self.lights_source.as_deref(),
+            self.mask_source.as_deref(),
+            options,
+            progress,
+        )
     }
 }
 

@@ -82,7 +82,7 @@ pub struct LoadOptions {
 
 /// Samples of one decoded file, interleaved, as stored.
 #[derive(Debug, Clone)]
-enum Samples {
+pub(crate) enum Samples {
     U8(Vec<u8>),
     U16(Vec<u16>),
     /// 16-bit samples as big-endian byte pairs (PNG's layout), converted without a copy.
@@ -157,15 +157,15 @@ pub fn linear_to_srgb(v: f32) -> f32 {
     }
 }
 
-struct RawDecoded {
-    width: usize,
-    height: usize,
+pub(crate) struct RawDecoded {
+    pub(crate) width: usize,
+    pub(crate) height: usize,
     /// Channels kept (1 or 3).
-    channels: usize,
+    pub(crate) channels: usize,
     /// Interleaved stride in `samples` (may include alpha).
-    stride: usize,
-    format: SampleFormat,
-    samples: Samples,
+    pub(crate) stride: usize,
+    pub(crate) format: SampleFormat,
+    pub(crate) samples: Samples,
 }
 
 fn decode_raw(path: &Path, rows: Option<Range<usize>>) -> Result<RawDecoded> {
@@ -527,11 +527,11 @@ pub fn read_mask(path: &Path) -> Result<Mask> {
 }
 
 /// Per-image conversion parameters.
-struct Convert<'a> {
-    transfer: Transfer,
-    saturation: Option<f32>,
-    intensity: [f32; 3],
-    srgb_lut: &'a [f32; 256],
+pub(crate) struct Convert<'a> {
+    pub(crate) transfer: Transfer,
+    pub(crate) saturation: Option<f32>,
+    pub(crate) intensity: [f32; 3],
+    pub(crate) srgb_lut: &'a [f32; 256],
 }
 
 /// Tallies of one conversion.
@@ -604,7 +604,7 @@ fn combine_row<const STRIDE: usize, const CIN: usize, const COUT: usize>(
 
 /// Converts window `window` of `raw` into `out` (planes of the stack's layout, each
 /// `window.len()` long); saturation flags are indexed by whole-image pixel.
-fn convert_into(
+pub(crate) fn convert_into(
     raw: &RawDecoded,
     cv: &Convert,
     out: &mut [f32],
@@ -812,10 +812,7 @@ pub fn load_stack(
         ColorMode::Grey => 1,
         ColorMode::PerChannel => 3,
     };
-    let mut lut = [0f32; 256];
-    for (code, v) in lut.iter_mut().enumerate() {
-        *v = srgb_to_linear(code as f32 / 255.0);
-    }
+    let lut = srgb_lut();
     progress.begin("load", paths.len() as u64);
     let mut data = crate::buffer::zeroed_f32(paths.len() * channels * n);
     let results: Vec<Result<(Option<Vec<u64>>, ImageInfo)>> = data
@@ -922,7 +919,40 @@ pub fn load_stack(
     })
 }
 
+/// Linear value of each 8-bit sRGB code.
+pub(crate) fn srgb_lut() -> [f32; 256] {
+    let mut lut = [0f32; 256];
+    for (code, v) in lut.iter_mut().enumerate() {
+        *v = srgb_to_linear(code as f32 / 255.0);
+    }
+    lut
+}
+
 impl ImageStack {
+    /// A stack from converted planes (the layout of [`ImageStack`]) and what loading found: the
+    /// band stacks of [`crate::stream`].
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn from_parts(
+        width: usize,
+        height: usize,
+        channels: usize,
+        data: Vec<f32>,
+        saturated: Vec<Option<Vec<u64>>>,
+        info: Vec<ImageInfo>,
+        window: Window,
+    ) -> Self {
+        ImageStack {
+            width,
+            height,
+            count: info.len(),
+            channels,
+            data,
+            saturated,
+            info,
+            window,
+        }
+    }
+
     /// A stack from in-memory images (e.g. rendered ones): `images[k]` holds `channels` planes of
     /// `width * height` linear values, already divided by the light intensities.
     ///

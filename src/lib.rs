@@ -28,6 +28,7 @@
 //! ```
 #![deny(missing_docs)]
 
+mod bands;
 mod buffer;
 pub mod calibrate;
 pub mod camera;
@@ -55,6 +56,7 @@ pub mod robust;
 pub mod scene;
 pub mod sfs;
 pub mod solve;
+pub mod stream;
 
 pub use error::{Error, Result};
 /// The linear-algebra crate of the public API (normals are `nalgebra::Vector3<f32>`).

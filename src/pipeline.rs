@@ -183,7 +183,32 @@ pub fn reconstruct_normals(
                 .collect::<Result<_>>()?
         };
     let solve_s = t.elapsed().as_secs_f64();
+    let facts = InputFacts {
+        info: capture.stack.info(),
+        count: capture.stack.count(),
+        unmasked_files: capture.mask_source.is_none() && !capture.images.is_empty(),
+    };
+    Ok(assemble(solutions, solve_s, &facts, config))
+}
 
+/// What [`assemble`] needs to know of the input for its warnings.
+pub(crate) struct InputFacts<'a> {
+    /// Per image, what loading found.
+    pub info: &'a [crate::input::ImageInfo],
+    /// Number of images.
+    pub count: usize,
+    /// Files were loaded without a mask (the background counts as object then).
+    pub unmasked_files: bool,
+}
+
+/// From the per-channel solutions to a [`Reconstruction`] without depth: albedo, normals,
+/// the integrability check, per-pixel summaries, the model summary and the warnings.
+pub(crate) fn assemble(
+    solutions: Vec<Solution>,
+    solve_s: f64,
+    facts: &InputFacts,
+    config: &Config,
+) -> Reconstruction {
     let t = Instant::now();
     let (albedo, normals, status) = if solutions.len() == 1 {
         let (a, n) = albedo_and_normals(&solutions[0]);
@@ -239,7 +264,7 @@ pub fn reconstruct_normals(
             (residual, condition, samples, counts, robust)
         },
     );
-    let recalibrated = config.solve.recalibrates(capture.stack.count());
+    let recalibrated = config.solve.recalibrates(facts.count);
     let model = ModelSummary {
         method: config.solve.method.name(),
         robust_pixels: robust.count(),
@@ -263,13 +288,13 @@ pub fn reconstruct_normals(
     let normals_s = t.elapsed().as_secs_f64();
 
     let mut warnings = Vec::new();
-    let linearised = capture.stack.info().iter().filter(|i| i.linearised).count();
+    let linearised = facts.info.iter().filter(|i| i.linearised).count();
     if linearised > 0 {
         warnings.push(format!(
             "{linearised} 8-bit image(s) were decoded as sRGB-encoded (gamma) data; pass --linear if they hold linear radiance"
         ));
     }
-    let saturated: usize = capture.stack.info().iter().map(|i| i.saturated).sum();
+    let saturated: usize = facts.info.iter().map(|i| i.saturated).sum();
     if saturated > 0 {
         warnings.push(format!(
             "{saturated} saturated samples{}",
@@ -280,7 +305,7 @@ pub fn reconstruct_normals(
             }
         ));
     }
-    let non_finite: usize = capture.stack.info().iter().map(|i| i.non_finite).sum();
+    let non_finite: usize = facts.info.iter().map(|i| i.non_finite).sum();
     if non_finite > 0 {
         warnings.push(format!(
             "{non_finite} NaN or infinite samples were excluded"
@@ -288,7 +313,7 @@ pub fn reconstruct_normals(
     }
     let flagged = counts.too_few_samples + counts.ill_conditioned + counts.dark;
     if flagged > 0 {
-        let hint = if capture.mask_source.is_none() && !capture.images.is_empty() {
+        let hint = if facts.unmasked_files {
             " (no mask was given, so the background counts too: pass --mask)"
         } else {
             ""
@@ -352,7 +377,7 @@ pub fn reconstruct_normals(
             "{albedo_above_one} pixels have albedo > 1 although intensities were declared normalised: check the light intensities or exposure"
         ));
     }
-    Ok(Reconstruction {
+    Reconstruction {
         normals,
         albedo,
         residual,
@@ -375,7 +400,7 @@ pub fn reconstruct_normals(
             write: 0.0,
         },
         warnings,
-    })
+    }
 }
 
 /// Integrates the normals of `recon` as `config` says (`None` without integration or without
@@ -428,23 +453,45 @@ pub struct InputSummary {
 impl InputSummary {
     /// Summarises a capture.
     pub fn of(capture: &Capture) -> Self {
-        let info = capture.stack.info();
+        let mut s = Self::of_files(
+            &capture.images,
+            &capture.lights,
+            capture.lights_source.as_deref(),
+            capture.mask_source.as_deref(),
+            capture.stack.info(),
+        );
+        s.count = capture.stack.count();
+        s.width = capture.stack.width();
+        s.height = capture.stack.height();
+        s.color = if capture.stack.channels() == 3 {
+            ColorMode::PerChannel
+        } else {
+            ColorMode::Grey
+        };
+        s
+    }
+
+    /// Summarises the files of a capture and what loading found in them (`info`); the size is
+    /// left 0×0 and the colour mode grey for the caller to set.
+    pub fn of_files(
+        images: &[PathBuf],
+        lights: &crate::lights::Lights,
+        lights_source: Option<&Path>,
+        mask_source: Option<&Path>,
+        info: &[crate::input::ImageInfo],
+    ) -> Self {
         InputSummary {
-            images: capture.images.clone(),
-            count: capture.stack.count(),
-            width: capture.stack.width(),
-            height: capture.stack.height(),
-            lights: capture.lights_source.clone(),
-            mask: capture.mask_source.clone(),
-            light_condition_number: capture.lights.condition_number(),
+            images: images.to_vec(),
+            count: info.len(),
+            width: 0,
+            height: 0,
+            lights: lights_source.map(Path::to_path_buf),
+            mask: mask_source.map(Path::to_path_buf),
+            light_condition_number: lights.condition_number(),
             format: info.first().map(|i| i.format),
             linearised_images: info.iter().filter(|i| i.linearised).count(),
             saturated_samples: info.iter().map(|i| i.saturated).sum(),
-            color: if capture.stack.channels() == 3 {
-                ColorMode::PerChannel
-            } else {
-                ColorMode::Grey
-            },
+            color: ColorMode::Grey,
         }
     }
 }
@@ -505,6 +552,10 @@ pub struct Report {
     /// Errors against ground truth, when known (e.g. for the demo scene).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub evaluation: Option<serde_json::Value>,
+    /// How a run streamed in row bands used memory ([`crate::stream::StreamPlan`]); absent
+    /// for in-memory runs.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub streaming: Option<serde_json::Value>,
 }
 
 /// Names of the files [`write_outputs`] writes, in order.
@@ -535,10 +586,11 @@ pub fn write_outputs(
 ) -> Result<Report> {
     let t = Instant::now();
     let mut out = OutputDir::create(dir)?;
-    stage_maps(&mut out, recon, capture, config)?;
-    stage_depth(&mut out, recon, capture, config)?;
+    let source = Described::of(capture);
+    stage_maps(&mut out, recon, &source, config)?;
+    stage_depth(&mut out, recon, &source, config)?;
     recon.timings.write = t.elapsed().as_secs_f64();
-    commit_with_report(out, recon, capture, config, evaluation)
+    commit_with_report(out, recon, &source, config, evaluation)
 }
 
 /// [`reconstruct`] and [`write_outputs`] in one, with the integration running concurrently
@@ -564,12 +616,53 @@ pub fn reconstruct_and_write(
 ) -> Result<(Reconstruction, Report)> {
     let mut recon = reconstruct_normals(capture, config, progress)?;
     recon.timings.load = load_s;
+    integrate_and_write(
+        recon,
+        &Described::of(capture),
+        config,
+        dir,
+        progress,
+        evaluate,
+    )
+}
+
+/// The input as the outputs describe it: the lights (for the EXR headers) and the report's
+/// input section.
+pub(crate) struct Described<'a> {
+    /// One light per image.
+    pub lights: &'a crate::lights::Lights,
+    /// The report's `inputs`.
+    pub summary: InputSummary,
+    /// The report's `streaming` section (how a streamed run used memory).
+    pub streaming: Option<serde_json::Value>,
+}
+
+impl<'a> Described<'a> {
+    fn of(capture: &'a Capture) -> Self {
+        Described {
+            lights: &capture.lights,
+            summary: InputSummary::of(capture),
+            streaming: None,
+        }
+    }
+}
+
+/// The second half of [`reconstruct_and_write`]: integrates `recon` beside the writing of the
+/// maps that do not need depth, then writes depth and the report, atomically.
+pub(crate) fn integrate_and_write(
+    mut recon: Reconstruction,
+    source: &Described,
+    config: &Config,
+    dir: &Path,
+    progress: &dyn Progress,
+    evaluate: impl FnOnce(&Reconstruction) -> Result<Option<serde_json::Value>>,
+) -> Result<(Reconstruction, Report)> {
     let mut out = OutputDir::create(dir)?;
     let (integrated, staged) = rayon::join(
         || integrate_stage(&recon, config, progress),
         || {
             let t = Instant::now();
-            stage_maps(&mut out, &recon, capture, config).map(|()| t.elapsed().as_secs_f64())
+            stage_maps(&mut out, &recon, source, config).map(|()| t.elapsed().as_secs_f64())
         },
     );
     let (integration, integrate_s) = integrated?;
@@ -577,10 +670,10 @@ pub fn reconstruct_and_write(
     recon.integration = integration;
     recon.timings.integrate = integrate_s;
     let t = Instant::now();
-    stage_depth(&mut out, &recon, capture, config)?;
+    stage_depth(&mut out, &recon, source, config)?;
     recon.timings.write = maps_s + t.elapsed().as_secs_f64();
     let evaluation = evaluate(&recon)?;
-    let report = commit_with_report(out, &recon, capture, config, evaluation)?;
+    let report = commit_with_report(out, &recon, source, config, evaluation)?;
     Ok((recon, report))
 }
 
@@ -590,7 +683,7 @@ const ORTHOGRAPHIC_UNITS: &str =
 
 /// The string attributes of every EXR header: method, frame, units, light count and the light
 /// directions (a JSON list of [x, y, z] in the camera frame).
-fn exr_attributes(capture: &Capture, config: &Config) -> Vec<(&'static str, String)> {
+fn exr_attributes(source: &Described, config: &Config) -> Vec<(&'static str, String)> {
     vec![
         ("photostereo:method", config.solve.method.name().to_string()),
         (
@@ -598,11 +691,11 @@ fn exr_attributes(capture: &Capture, config: &Config) -> Vec<(&'static str, Stri
             "x right, y up, z towards the camera; row 0 at the top".to_string(),
         ),
         ("photostereo:units", ORTHOGRAPHIC_UNITS.to_string()),
-        ("photostereo:lights", capture.lights.len().to_string()),
+        ("photostereo:lights", source.lights.len().to_string()),
         (
             "photostereo:light_directions",
             serde_json::to_string(
-                &capture
+                &source
                     .lights
                     .directions()
                     .iter()
@@ -619,11 +712,11 @@ fn exr_attributes(capture: &Capture, config: &Config) -> Vec<(&'static str, Stri
 fn stage_maps(
     out: &mut OutputDir,
     recon: &Reconstruction,
-    capture: &Capture,
+    source: &Described,
     config: &Config,
 ) -> Result<()> {
     let (w, h) = (recon.normals.width(), recon.normals.height());
-    let attrs = exr_attributes(capture, config);
+    let attrs = exr_attributes(source, config);
     let [nx, ny, nz] = normal_planes(&recon.normals);
     out.stage_exr(
         "normal.exr",
@@ -706,7 +799,7 @@ fn stage_maps(
 fn stage_depth(
     out: &mut OutputDir,
     recon: &Reconstruction,
-    capture: &Capture,
+    source: &Described,
     config: &Config,
 ) -> Result<()> {
     let (w, h) = (recon.normals.width(), recon.normals.height());
@@ -720,7 +813,7 @@ fn stage_depth(
             depth_channels.push(("wv", wv.data()));
         }
     }
-    let mut depth_attrs = exr_attributes(capture, config);
+    let mut depth_attrs = exr_attributes(source, config);
     if let Some(options) = &config.integration {
         depth_attrs.push(("photostereo:integration", options.method.name().to_string()));
         depth_attrs[2].1 = match &options.camera {
@@ -747,7 +840,7 @@ fn stage_depth(
 fn commit_with_report(
     mut out: OutputDir,
     recon: &Reconstruction,
-    capture: &Capture,
+    source: &Described,
     config: &Config,
     evaluation: Option<serde_json::Value>,
 ) -> Result<Report> {
@@ -777,7 +870,7 @@ fn commit_with_report(
         });
     let report = Report {
         version: env!("CARGO_PKG_VERSION"),
-        inputs: InputSummary::of(capture),
+        inputs: source.summary.clone(),
         config: *config,
         pixels: recon.counts,
         model: recon.model.clone(),
@@ -789,6 +882,7 @@ fn commit_with_report(
         integration,
         outputs,
         evaluation,
+        streaming: source.streaming.clone(),
     };
     let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Encode {
         path: out.path().join("report.json"),

@@ -339,6 +339,32 @@ impl Solution {
         }
     }
 
+    /// Copies every row of `band` (a solution of the same width) into rows `y0..` of this one:
+    /// the assembly of a capture solved in row bands ([`crate::stream`]).
+    ///
+    /// # Errors
+    /// [`Error::DimensionMismatch`] when the widths differ or the band runs past the last row.
+    pub(crate) fn paste_rows(&mut self, band: &Solution, y0: usize) -> Result<()> {
+        let (w, h) = (self.g.width(), self.g.height());
+        if band.g.width() != w || y0 + band.g.height() > h {
+            return Err(Error::DimensionMismatch {
+                what: format!("solution band pasted at row {y0}"),
+                width: w,
+                height: h,
+                found_width: band.g.width(),
+                found_height: y0 + band.g.height(),
+            });
+        }
+        let r = y0 * w..(y0 + band.g.height()) * w;
+        self.g.data_mut()[r.clone()].copy_from_slice(band.g.data());
+        self.residual.data_mut()[r.clone()].copy_from_slice(band.residual.data());
+        self.samples.data_mut()[r.clone()].copy_from_slice(band.samples.data());
+        self.condition.data_mut()[r.clone()].copy_from_slice(band.condition.data());
+        self.status.data_mut()[r.clone()].copy_from_slice(band.status.data());
+        self.robust.data_mut()[r].copy_from_slice(band.robust.data());
+        Ok(())
+    }
+
     /// Records the outcome `px` of pixel `p` (row-major index).
     pub(crate) fn record(&mut self, p: usize, px: &PixelSolution) {
         self.g.data_mut()[p] = px.g.map(|v| v as f32);
@@ -1127,6 +1153,68 @@ pub(crate) fn noise_and_gains(
     (sigma, gains)
 }
 
+/// Checks that `model` has one entry per image.
+pub(crate) fn check_model(model: &ImageModel, count: usize) -> Result<()> {
+    if model.sigma.len() != count || model.gains.gains.len() != count {
+        return Err(Error::param(
+            "model",
+            format!(
+                "{} noise levels and {} gains for {count} images",
+                model.sigma.len(),
+                model.gains.gains.len()
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// What a solve estimates once over the whole capture before fitting pixels: each image's
+/// noise σ (for [`Method::Auto`]'s fit test) and its intensity gain (when
+/// [`SolveOptions::recalibrates`]). [`solve`] estimates it from the stack it is given; a solve
+/// of the capture in parts ([`crate::stream`]) estimates it once, from a sample of rows, and
+/// hands it to [`solve_with_model`] for every part, so that every part is fitted alike.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImageModel {
+    /// Noise σ per image (NaN when the method does not use it).
+    pub sigma: Vec<f32>,
+    /// Intensity gains per image (unit when not recalibrated).
+    pub gains: crate::intensities::GainEstimate,
+}
+
+impl ImageModel {
+    /// Estimates the model of channel `channel` of `stack` over `mask`: noise σ per image for
+    /// [`Method::Auto`] ([`crate::noise`]), intensity gains when `options` recalibrates
+    /// ([`crate::intensities`]); NaN and unit gains otherwise.
+    ///
+    /// # Errors
+    /// As [`solve`]: mismatched sizes or counts, invalid options.
+    pub fn estimate(
+        stack: &ImageStack,
+        channel: usize,
+        lights: &Lights,
+        mask: &Mask,
+        options: &SolveOptions,
+    ) -> Result<Self> {
+        check_inputs(stack, channel, lights, mask, options)?;
+        let (sigma, gains) = noise_and_gains(stack, channel, lights, mask, options);
+        Ok(ImageModel { sigma, gains })
+    }
+
+    /// Whether `options` needs a model estimated from the data for `count` images (otherwise
+    /// [`ImageModel::unit`] is exact).
+    pub fn needed(options: &SolveOptions, count: usize) -> bool {
+        options.method == Method::Auto || options.recalibrates(count)
+    }
+
+    /// The model that needs no data: NaN σ, unit gains, for `count` images.
+    pub fn unit(count: usize) -> Self {
+        ImageModel {
+            sigma: vec![f32::NAN; count],
+            gains: crate::intensities::GainEstimate::unit(count),
+        }
+    }
+}
+
 /// Estimates g = ρN for every masked pixel of channel `channel` of `stack`.
 ///
 /// # Errors
@@ -1156,10 +1244,31 @@ pub fn solve(
     options: &SolveOptions,
     progress: &dyn Progress,
 ) -> Result<Solution> {
+    let model = ImageModel::estimate(stack, channel, lights, mask, options)?;
+    solve_with_model(stack, channel, lights, mask, options, model, progress)
+}
+
+/// [`solve`] with the per-image noise and gains given instead of estimated from `stack`: the
+/// solve of one part of a capture whose model was estimated over the whole
+/// ([`crate::stream`]).
+///
+/// # Errors
+/// As [`solve`]; [`Error::InvalidParameter`] when the model's length differs from the image
+/// count.
+pub fn solve_with_model(
+    stack: &ImageStack,
+    channel: usize,
+    lights: &Lights,
+    mask: &Mask,
+    options: &SolveOptions,
+    model: ImageModel,
+    progress: &dyn Progress,
+) -> Result<Solution> {
     check_inputs(stack, channel, lights, mask, options)?;
+    check_model(&model, stack.count())?;
     let (w, h) = (stack.width(), stack.height());
     let dirs64 = lights.directions();
-    let (sigma, gains) = noise_and_gains(stack, channel, lights, mask, options);
+    let ImageModel { sigma, gains } = model;
     let per = PerImage {
         dirs: dirs64
             .iter()

@@ -85,6 +85,15 @@ pub struct RunArgs {
     /// How images are read.
     #[command(flatten)]
     pub load: LoadArgs,
+    /// Stream the images in row bands within this memory budget (e.g. 2G, 1536M) instead of
+    /// loading the whole stack: for stacks larger than memory (PNG without interlacing, TIFF,
+    /// EXR). Without it, a stack that would not fit in the available memory is streamed
+    /// within half of it.
+    #[arg(long, value_name = "SIZE")]
+    pub max_memory: Option<String>,
+    /// With streaming: rows per band (default: as many as the budget allows).
+    #[arg(long, value_name = "ROWS")]
+    pub band_rows: Option<usize>,
 }
 
 /// Solver options shared by the main command and the demo.
@@ -572,6 +581,10 @@ pub struct RunConfig {
     pub load: LoadOptions,
     /// What to compute.
     pub config: Config,
+    /// Stream in row bands within a memory budget (`--max-memory`).
+    pub stream: Option<photostereo::stream::StreamOptions>,
+    /// `--band-rows`, for a run that streams without `--max-memory`.
+    pub band_rows: Option<usize>,
 }
 
 impl RunArgs {
@@ -625,7 +638,18 @@ impl RunArgs {
                 }
             }
         };
+        let stream = self
+            .max_memory
+            .as_deref()
+            .map(photostereo::stream::parse_size)
+            .transpose()?
+            .map(|max_memory| photostereo::stream::StreamOptions {
+                max_memory,
+                band_rows: self.band_rows,
+            });
         Ok(RunConfig {
+            stream,
+            band_rows: self.band_rows,
             source,
             mask: self.mask.or(list_mask),
             output,

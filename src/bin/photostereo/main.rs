@@ -24,6 +24,7 @@ use anyhow::{Context, Result};
 use args::{Cli, Command, DemoArgs, DepthAlign, EvalArgs, IntegrateArgs, RunConfig, Source};
 use clap::Parser;
 use photostereo::dataset::Capture;
+use photostereo::dataset::CaptureFiles;
 use photostereo::demo;
 use photostereo::grid::Grid;
 use photostereo::grid::Mask;
@@ -34,6 +35,7 @@ use photostereo::metrics::{angular_errors, depth_errors, scaled_depth_errors};
 use photostereo::output::OutputDir;
 use photostereo::pipeline::{Config, Reconstruction, Report, reconstruct, reconstruct_and_write};
 use photostereo::progress::{Progress, Silent};
+use photostereo::stream::{StreamOptions, reconstruct_and_write_streamed};
 use std::path::Path;
 use std::time::Instant;
 
@@ -88,24 +90,79 @@ fn run(cli: Cli) -> Result<()> {
     }
 }
 
-/// Loads a capture as the configuration says; returns it with the load time.
-pub fn load_capture(rc: &RunConfig, progress: &dyn Progress) -> Result<(Capture, f64)> {
-    let t = Instant::now();
-    // A capture stores only the window its mask spans.
-    let capture = match &rc.source {
-        Source::Diligent(dir) => {
-            // A --mask replaces the folder's own mask (and chooses the window to load).
-            Capture::from_diligent_masked(dir, rc.mask.as_deref(), &rc.load, progress)?
-        }
+/// The capture's files, resolved without decoding.
+fn capture_files(rc: &RunConfig) -> Result<CaptureFiles> {
+    Ok(match &rc.source {
+        Source::Diligent(dir) => CaptureFiles::from_diligent(dir, rc.mask.as_deref())?,
         Source::Files { images, lights } => {
-            Capture::from_files(images, lights, rc.mask.as_deref(), &rc.load, progress)?
+            CaptureFiles::from_files(images, lights, rc.mask.as_deref())?
         }
+    })
+}
+
+/// Memory the system can still give (Linux `MemAvailable`), when known.
+fn available_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
+}
+
+/// Streaming options: `--max-memory` when given; otherwise streaming within half the available
+/// memory when the stack and outputs would need more than 80% of it, else `None`.
+fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOptions>> {
+    if rc.stream.is_some() {
+        return Ok(rc.stream);
+    }
+    let Some(available) = available_memory() else {
+        return Ok(None);
     };
-    Ok((capture, t.elapsed().as_secs_f64()))
+    let Some(first) = files.images.first() else {
+        return Ok(None);
+    };
+    let (w, h) = photostereo::input::image_size(first)?;
+    let channels: u64 = if rc.load.color == photostereo::input::ColorMode::PerChannel {
+        3
+    } else {
+        1
+    };
+    let stack = files.images.len() as u64 * channels * (w * h) as u64 * 4;
+    let resident = photostereo::stream::resident_bytes(w, h, channels as usize, w * h, &rc.config);
+    if (stack + resident) as f64 > 0.8 * available as f64 {
+        say!(
+            "the stack needs {} MiB in memory and {} MiB are available: streaming it in row bands within {} MiB (set the budget with --max-memory)",
+            stack >> 20,
+            available >> 20,
+            (available / 2) >> 20
+        );
+        return Ok(Some(StreamOptions {
+            max_memory: available / 2,
+            band_rows: rc.band_rows,
+        }));
+    }
+    Ok(None)
 }
 
 fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
-    let (capture, load_s) = load_capture(&rc, progress)?;
+    let files = capture_files(&rc)?;
+    if let Some(options) = streaming(&rc, &files)? {
+        let (recon, report, plan) = reconstruct_and_write_streamed(
+            &files, &rc.load, &rc.config, &options, &rc.output, progress,
+        )?;
+        say!(
+            "streamed {} bands of {} rows ({} MiB a band, {} MiB resident; the stack in memory would be {} MiB)",
+            plan.bands,
+            plan.band_rows,
+            plan.band_bytes >> 20,
+            plan.resident_bytes >> 20,
+            plan.in_memory_stack_bytes >> 20
+        );
+        print_summary(&recon, &report, &rc.config, &rc.output);
+        return Ok(());
+    }
+    let t = Instant::now();
+    let capture = files.load(&rc.load, progress)?;
+    let load_s = t.elapsed().as_secs_f64();
     // Integration runs beside the writing of the maps that do not need depth.
     let (recon, report) =
         reconstruct_and_write(&capture, &rc.config, &rc.output, load_s, progress, |_| {

@@ -1,0 +1,280 @@
+//! Out-of-core streaming (`photostereo::stream`, `--max-memory`): a capture solved in row bands
+//! must give what the in-memory pipeline gives, for every file format and band height.
+
+mod common;
+
+use photostereo::dataset::{CaptureFiles, ImageFormat, write_synthetic};
+use photostereo::input::{ColorMode, LoadOptions};
+use photostereo::lights::Lights;
+use photostereo::metrics::angular_errors;
+use photostereo::pipeline::{Config, reconstruct};
+use photostereo::progress::Silent;
+use photostereo::reflectance::Material;
+use photostereo::render::{RenderOptions, render};
+use photostereo::scene::Scene;
+use photostereo::solve::{Method, SolveOptions};
+use photostereo::stream::{StreamOptions, parse_size, reconstruct_streamed};
+use std::path::{Path, PathBuf};
+
+const SIZE: usize = 112;
+const LIGHTS: usize = 12;
+
+/// A sphere on a ground plane (attached and cast shadows, noise σ = 0.005) written in
+/// `format`; TIFF is the 16-bit PNG re-saved as 16-bit TIFF. Returns the capture's files and
+/// the true normals.
+fn scene(dir: &Path, format: &str) -> (CaptureFiles, photostereo::grid::NormalMap) {
+    let lights = Lights::fibonacci(LIGHTS, 30.0).unwrap();
+    let scene = Scene::sphere_on_ground(SIZE, Material::lambertian());
+    let options = RenderOptions {
+        noise_sigma: 0.005,
+        seed: 3,
+        ..RenderOptions::default()
+    };
+    let rendering = render(&scene, &lights, &options).unwrap();
+    let written = match format {
+        "exr" => ImageFormat::Exr,
+        _ => ImageFormat::Png16,
+    };
+    write_synthetic(&rendering, &lights, dir, written).unwrap();
+    let mut images: Vec<PathBuf> = (0..LIGHTS)
+        .map(|k| dir.join(format!("img_{k:03}.{}", written.extension())))
+        .collect();
+    if format == "tiff" {
+        images = images
+            .iter()
+            .map(|p| {
+                let t = p.with_extension("tiff");
+                image::open(p).unwrap().save(&t).unwrap();
+                t
+            })
+            .collect();
+    }
+    let files = CaptureFiles {
+        lights: Lights::from_file(&dir.join("lights.json"))
+            .unwrap()
+            .matched_to(&images)
+            .unwrap_or_else(|_| lights.clone()),
+        images,
+        lights_source: Some(dir.join("lights.json")),
+        mask_source: Some(dir.join("mask.png")),
+    };
+    (files, rendering.truth.normals)
+}
+
+fn config(method: Method) -> Config {
+    Config {
+        solve: SolveOptions::with_method(method),
+        integration: None,
+        ..Config::default()
+    }
+}
+
+fn streamed(
+    files: &CaptureFiles,
+    load: &LoadOptions,
+    config: &Config,
+    band_rows: Option<usize>,
+) -> photostereo::stream::Streamed {
+    let options = StreamOptions {
+        max_memory: 1 << 30,
+        band_rows,
+    };
+    reconstruct_streamed(files, load, config, &options, &Silent).unwrap()
+}
+
+#[test]
+fn bands_give_the_in_memory_result_for_png_tiff_and_exr() {
+    for format in ["png", "tiff", "exr"] {
+        let dir = tempfile::tempdir().unwrap();
+        let (files, _) = scene(dir.path(), format);
+        let load = LoadOptions::default();
+        let config = config(Method::Threshold);
+        let capture = files.load(&load, &Silent).unwrap();
+        let whole = reconstruct(&capture, &config, &Silent).unwrap();
+        // One row, a height that divides nothing, and the whole mask in one band.
+        for band_rows in [Some(1), Some(7), None] {
+            let s = streamed(&files, &load, &config, band_rows);
+            let e = angular_errors(&s.recon.normals, &whole.normals, &capture.mask).unwrap();
+            assert!(
+                e.mean_deg < 1e-4 && e.p95_deg < 1e-3,
+                "{format}, bands of {band_rows:?}: {e:?}"
+            );
+            assert_eq!(e.missing, 0, "{format}, bands of {band_rows:?}");
+            assert_eq!(s.recon.counts, whole.counts, "{format}, {band_rows:?}");
+            let (a, b) = (s.recon.albedo[0].data(), whole.albedo[0].data());
+            let worst = a
+                .iter()
+                .zip(b)
+                .filter(|(x, y)| x.is_finite() && y.is_finite())
+                .map(|(x, y)| (x - y).abs())
+                .fold(0f32, f32::max);
+            assert!(
+                worst < 1e-5,
+                "{format}, {band_rows:?}: albedo differs by {worst}"
+            );
+            assert_eq!(
+                s.summary.saturated_samples,
+                photostereo::pipeline::InputSummary::of(&capture).saturated_samples
+            );
+        }
+    }
+}
+
+#[test]
+fn the_auto_model_from_sampled_rows_fits_like_the_whole_stack() {
+    let dir = tempfile::tempdir().unwrap();
+    let (files, truth) = scene(dir.path(), "png");
+    let load = LoadOptions::default();
+    let config = config(Method::Auto);
+    let capture = files.load(&load, &Silent).unwrap();
+    let whole = reconstruct(&capture, &config, &Silent).unwrap();
+    let s = streamed(&files, &load, &config, Some(9));
+    let plan = s.plan;
+    assert!(plan.sample_rows > 0, "auto needs the model pass: {plan:?}");
+    let between = angular_errors(&s.recon.normals, &whole.normals, &capture.mask).unwrap();
+    let e_whole = angular_errors(&whole.normals, &truth, &capture.mask).unwrap();
+    let e_band = angular_errors(&s.recon.normals, &truth, &capture.mask).unwrap();
+    assert!(
+        between.mean_deg < 0.05,
+        "streamed vs in memory: {between:?}"
+    );
+    assert!(
+        (e_band.mean_deg - e_whole.mean_deg).abs() < 0.02,
+        "error against truth: streamed {} vs in memory {}",
+        e_band.mean_deg,
+        e_whole.mean_deg
+    );
+}
+
+#[test]
+fn colour_captures_stream_per_channel() {
+    let dir = tempfile::tempdir().unwrap();
+    let lights = Lights::fibonacci(LIGHTS, 30.0).unwrap();
+    let scene = Scene::sphere_on_ground(64, Material::lambertian());
+    let options = RenderOptions {
+        noise_sigma: 0.003,
+        color: true,
+        ..RenderOptions::default()
+    };
+    let rendering = render(&scene, &lights, &options).unwrap();
+    write_synthetic(&rendering, &lights, dir.path(), ImageFormat::Png16).unwrap();
+    let files = CaptureFiles::from_files(
+        &(0..LIGHTS)
+            .map(|k| dir.path().join(format!("img_{k:03}.png")))
+            .collect::<Vec<_>>(),
+        &dir.path().join("lights.json"),
+        Some(&dir.path().join("mask.png")),
+    )
+    .unwrap();
+    let load = LoadOptions {
+        color: ColorMode::PerChannel,
+        ..LoadOptions::default()
+    };
+    for color in [
+        photostereo::color::ColorSolve::PerChannel,
+        photostereo::color::ColorSolve::SharedNormal,
+    ] {
+        let config = Config {
+            color,
+            ..config(Method::Threshold)
+        };
+        let capture = files.load(&load, &Silent).unwrap();
+        let whole = reconstruct(&capture, &config, &Silent).unwrap();
+        let s = streamed(&files, &load, &config, Some(5));
+        assert_eq!(s.recon.albedo.len(), 3);
+        let e = angular_errors(&s.recon.normals, &whole.normals, &capture.mask).unwrap();
+        assert!(e.mean_deg < 1e-4, "{color:?}: {e:?}");
+    }
+}
+
+#[test]
+fn a_budget_too_small_is_refused_naming_max_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let (files, _) = scene(dir.path(), "png");
+    let options = StreamOptions {
+        max_memory: 1 << 20,
+        band_rows: None,
+    };
+    let err = reconstruct_streamed(
+        &files,
+        &LoadOptions::default(),
+        &Config::default(),
+        &options,
+        &Silent,
+    )
+    .unwrap_err();
+    let text = err.to_string();
+    assert!(text.contains("max-memory"), "{text}");
+}
+
+#[test]
+fn a_truncated_image_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let (files, _) = scene(dir.path(), "png");
+    let victim = &files.images[5];
+    let bytes = std::fs::read(victim).unwrap();
+    std::fs::write(victim, &bytes[..bytes.len() / 2]).unwrap();
+    let options = StreamOptions {
+        max_memory: 1 << 30,
+        band_rows: Some(16),
+    };
+    let err = reconstruct_streamed(
+        &files,
+        &LoadOptions::default(),
+        &config(Method::Threshold),
+        &options,
+        &Silent,
+    )
+    .unwrap_err();
+    assert!(
+        err.to_string().contains("img_005.png"),
+        "the error should name the file: {err}"
+    );
+}
+
+#[test]
+fn sizes_parse_with_binary_units() {
+    assert_eq!(parse_size("2G").unwrap(), 2 << 30);
+    assert_eq!(parse_size("1536MiB").unwrap(), 1536 << 20);
+    assert_eq!(parse_size("750m").unwrap(), 750 << 20);
+    assert_eq!(parse_size("4096").unwrap(), 4096);
+    assert_eq!(parse_size("1.5K").unwrap(), 1536);
+    for bad in ["", "G", "-1G", "two", "0"] {
+        let e = parse_size(bad).unwrap_err().to_string();
+        assert!(e.contains("max-memory"), "{bad:?}: {e}");
+    }
+}
+
+#[test]
+fn the_cli_streams_and_reports_the_plan() {
+    let dir = tempfile::tempdir().unwrap();
+    let (files, _) = scene(dir.path(), "png");
+    let out = dir.path().join("out");
+    let mut args: Vec<&std::ffi::OsStr> = files.images.iter().map(|p| p.as_os_str()).collect();
+    let lights = dir.path().join("lights.json");
+    let mask = dir.path().join("mask.png");
+    args.extend([
+        common::os("--lights"),
+        lights.as_os_str(),
+        common::os("--mask"),
+        mask.as_os_str(),
+        common::os("--max-memory"),
+        common::os("400M"),
+        common::os("--band-rows"),
+        common::os("10"),
+        common::os("-q"),
+        common::os("-o"),
+        out.as_os_str(),
+    ]);
+    let o = common::run(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    let plan = &report["streaming"];
+    assert_eq!(plan["band_rows"], 10, "{plan}");
+    assert!(plan["bands"].as_u64().unwrap() >= 2, "{plan}");
+    assert_eq!(plan["count"], LIGHTS);
+    for f in ["normal.exr", "albedo.exr", "depth.exr", "report.json"] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+}
