@@ -264,6 +264,32 @@ pub enum BenchCommand {
     /// Normal error of every estimator against specular strength on rendered Blinn–Phong and
     /// Torrance–Sparrow scenes with cast shadows.
     Specularity(SpecularityBenchArgs),
+    /// Wall time and peak memory of the in-memory and the streamed (`--max-memory`) run on
+    /// the same stack, as child processes, alternating.
+    Stream(StreamBenchArgs),
+}
+
+/// `bench stream` options.
+///
+/// Example: photostereo bench stream big/ --max-memory 2G (a folder written by
+/// `cargo run --release --example large_stack -- big/`).
+#[derive(Debug, Args)]
+pub struct StreamBenchArgs {
+    /// Folder with `img_*` images, `lights.json` and optionally `mask.png`.
+    #[arg(value_name = "DIR")]
+    pub dir: PathBuf,
+    /// Budget of the streamed run.
+    #[arg(long, default_value = "2G", value_name = "SIZE")]
+    pub max_memory: String,
+    /// Ignore the folder's mask.png (solve the whole frame).
+    #[arg(long)]
+    pub no_mask: bool,
+    /// Integration of both runs.
+    #[arg(long, value_enum, default_value_t = IntegrateArg::Poisson)]
+    pub integrate: IntegrateArg,
+    /// Runs of each; medians are reported.
+    #[arg(long, default_value_t = 1)]
+    pub repeat: usize,
 }
 
 /// `bench specularity` options.

@@ -378,3 +378,116 @@ pub fn specularity(a: crate::args::SpecularityBenchArgs) -> Result<()> {
     );
     Ok(())
 }
+
+/// Runs `cmd` to completion; returns its wall time in seconds and its peak resident memory in
+/// bytes (Linux: the child's `ru_maxrss` from `wait4`; elsewhere 0).
+fn run_measured(cmd: &mut Command) -> Result<(f64, u64)> {
+    let t = Instant::now();
+    let child = cmd
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .context("starting photostereo")?;
+    #[cfg(target_os = "linux")]
+    {
+        let pid = child.id() as libc::pid_t;
+        let mut status = 0;
+        // SAFETY: `rusage` is plain data that wait4 fills in; `pid` is our own child, waited
+        // for once (the Child handle is not waited on again).
+        let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+        let r = unsafe { libc::wait4(pid, &mut status, 0, &mut usage) };
+        let seconds = t.elapsed().as_secs_f64();
+        anyhow::ensure!(r == pid, "waiting for photostereo failed");
+        let mut stderr = String::new();
+        if let Some(mut e) = child.stderr {
+            use std::io::Read;
+            let _ = e.read_to_string(&mut stderr);
+        }
+        anyhow::ensure!(
+            libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0,
+            "photostereo failed: {stderr}"
+        );
+        // ru_maxrss is in KiB on Linux.
+        Ok((seconds, usage.ru_maxrss as u64 * 1024))
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        let o = child.wait_with_output()?;
+        anyhow::ensure!(
+            o.status.success(),
+            "photostereo failed: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        Ok((t.elapsed().as_secs_f64(), 0))
+    }
+}
+
+/// `bench stream`: the same stack solved in memory and streamed within `--max-memory`, as
+/// child processes (alternating, so machine load hits both alike); medians of wall time and
+/// peak resident memory, and their ratios, as JSON.
+pub fn stream(a: crate::args::StreamBenchArgs) -> Result<()> {
+    let budget = photostereo::stream::parse_size(&a.max_memory)?;
+    let mut images: Vec<std::path::PathBuf> = std::fs::read_dir(&a.dir)
+        .with_context(|| format!("reading {}", a.dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with("img_"))
+        })
+        .collect();
+    images.sort();
+    anyhow::ensure!(!images.is_empty(), "no img_* files in {}", a.dir.display());
+    let exe = std::env::current_exe().context("locating the photostereo executable")?;
+    let out = std::env::temp_dir().join(format!("photostereo-bench-stream-{}", std::process::id()));
+    let mask = a.dir.join("mask.png");
+    let integrate = clap::ValueEnum::to_possible_value(&a.integrate)
+        .map(|v| v.get_name().to_string())
+        .unwrap_or_else(|| "none".into());
+    let command = |streamed: bool| {
+        let mut c = Command::new(&exe);
+        c.args(&images)
+            .arg("--lights")
+            .arg(a.dir.join("lights.json"))
+            .args(["--integrate", &integrate, "-q", "--force", "-o"])
+            .arg(&out);
+        if !a.no_mask && mask.is_file() {
+            c.arg("--mask").arg(&mask);
+        }
+        if streamed {
+            c.args(["--max-memory", &a.max_memory]);
+        }
+        c
+    };
+    let (mut mem_t, mut mem_m, mut str_t, mut str_m) = (vec![], vec![], vec![], vec![]);
+    for _ in 0..a.repeat.max(1) {
+        let (t, m) = run_measured(&mut command(false))?;
+        mem_t.push(t);
+        mem_m.push(m as f64);
+        let (t, m) = run_measured(&mut command(true))?;
+        str_t.push(t);
+        str_m.push(m as f64);
+    }
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json"))?)?;
+    let _ = std::fs::remove_dir_all(&out);
+    let (mt, st) = (median(mem_t), median(str_t));
+    let (mm, sm) = (median(mem_m), median(str_m));
+    say!(
+        "{}",
+        serde_json::to_string_pretty(&json!({
+            "dir": a.dir,
+            "images": images.len(),
+            "threads": rayon::current_num_threads(),
+            "integrate": integrate,
+            "mask": !a.no_mask && mask.is_file(),
+            "max_memory_bytes": budget,
+            "plan": report["streaming"],
+            "in_memory": {"wall_s": mt, "peak_rss_bytes": mm},
+            "streamed": {"wall_s": st, "peak_rss_bytes": sm},
+            "time_ratio_streamed_over_in_memory": st / mt,
+            "peak_under_budget": sm <= budget as f64,
+        }))?
+    );
+    Ok(())
+}

@@ -86,6 +86,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench(args::BenchCommand::Diligent(a))) => bench::run(a),
         Some(Command::Bench(args::BenchCommand::Integration(a))) => bench::integration(a),
         Some(Command::Bench(args::BenchCommand::Specularity(a))) => bench::specularity(a),
+        Some(Command::Bench(args::BenchCommand::Stream(a))) => bench::stream(a),
         None => run_main(cli.run.validate()?, progress),
     }
 }
