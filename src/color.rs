@@ -96,16 +96,7 @@ pub fn solve_shared_normal(
     options: &SolveOptions,
     progress: &dyn Progress,
 ) -> Result<Vec<Solution>> {
-    if stack.channels() != 3 {
-        return Err(Error::param(
-            "stack",
-            format!(
-                "the shared-normal colour solve needs RGB images; the stack has {} channel(s)",
-                stack.channels()
-            ),
-        ));
-    }
-    check_inputs(stack, 0, lights, mask, options)?;
+    check_rgb_inputs(stack, lights, mask, options)?;
     let grey = stack.grey_mix();
     let (sigma, gains) = noise_and_gains(&grey, 0, lights, mask, options);
     fit_shared(
@@ -133,16 +124,7 @@ pub fn solve_shared_normal_with_model(
     model: ImageModel,
     progress: &dyn Progress,
 ) -> Result<Vec<Solution>> {
-    if stack.channels() != 3 {
-        return Err(Error::param(
-            "stack",
-            format!(
-                "the shared-normal colour solve needs RGB images; the stack has {} channel(s)",
-                stack.channels()
-            ),
-        ));
-    }
-    check_inputs(stack, 0, lights, mask, options)?;
+    check_rgb_inputs(stack, lights, mask, options)?;
     check_model(&model, stack.count())?;
     fit_shared(
         stack,
@@ -153,6 +135,25 @@ pub fn solve_shared_normal_with_model(
         model,
         progress,
     )
+}
+
+/// The checks of [`check_inputs`], and that the stack is RGB.
+fn check_rgb_inputs(
+    stack: &ImageStack,
+    lights: &Lights,
+    mask: &Mask,
+    options: &SolveOptions,
+) -> Result<()> {
+    if stack.channels() != 3 {
+        return Err(Error::param(
+            "stack",
+            format!(
+                "the shared-normal colour solve needs RGB images; the stack has {} channel(s)",
+                stack.channels()
+            ),
+        ));
+    }
+    check_inputs(stack, 0, lights, mask, options)
 }
 
 /// The per-pixel fits of the shared-normal solve, under `model`.
