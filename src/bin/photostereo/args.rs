@@ -267,6 +267,29 @@ pub enum BenchCommand {
     /// Wall time and peak memory of the in-memory and the streamed (`--max-memory`) run on
     /// the same stack, as child processes, alternating.
     Stream(StreamBenchArgs),
+    /// Solve time against pixels × lights per estimator on rendered spheres, with the fitted
+    /// log-log slope (1 = linear cost); JSON to standard output, CSV rows to `--csv`.
+    Scaling(ScalingBenchArgs),
+}
+
+/// `bench scaling` options.
+#[derive(Debug, Args)]
+pub struct ScalingBenchArgs {
+    /// Image sizes (square; the sphere fills 0.45 of it).
+    #[arg(long, num_args = 1.., default_values_t = [128usize, 256, 512, 1024])]
+    pub sizes: Vec<usize>,
+    /// Light counts (Fibonacci spiral, elevation ≥ 30°).
+    #[arg(long, num_args = 1.., default_values_t = [8usize, 24, 96])]
+    pub lights: Vec<usize>,
+    /// Estimators (default: ls, threshold, auto, trim, huber).
+    #[arg(long, value_enum, num_args = 1..)]
+    pub methods: Vec<MethodArg>,
+    /// Runs per point; medians are reported.
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    /// Also write the rows as CSV here.
+    #[arg(long, value_name = "FILE")]
+    pub csv: Option<PathBuf>,
 }
 
 /// `bench stream` options.

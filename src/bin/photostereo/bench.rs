@@ -491,3 +491,130 @@ pub fn stream(a: crate::args::StreamBenchArgs) -> Result<()> {
     );
     Ok(())
 }
+
+/// Least-squares slope and intercept of y against x.
+fn fit_line(x: &[f64], y: &[f64]) -> (f64, f64) {
+    let n = x.len() as f64;
+    let (mx, my) = (x.iter().sum::<f64>() / n, y.iter().sum::<f64>() / n);
+    let sxy: f64 = x.iter().zip(y).map(|(a, b)| (a - mx) * (b - my)).sum();
+    let sxx: f64 = x.iter().map(|a| (a - mx).powi(2)).sum();
+    let slope = sxy / sxx;
+    (slope, my - slope * mx)
+}
+
+/// `bench scaling`: per estimator, the solve time on a Lambertian sphere (noise σ = 0.005,
+/// attached shadows) for every size × light count, and the slope of log time against
+/// log(pixels × lights) fitted over them: 1 means cost linear in the samples.
+pub fn scaling(a: crate::args::ScalingBenchArgs) -> Result<()> {
+    use crate::args::MethodArg;
+    use photostereo::input::ColorMode;
+    use photostereo::lights::Lights;
+    use photostereo::render::{RenderOptions, render};
+    use photostereo::solve::{SolveOptions, solve};
+    let methods: Vec<MethodArg> = if a.methods.is_empty() {
+        vec![
+            MethodArg::Ls,
+            MethodArg::Threshold,
+            MethodArg::Auto,
+            MethodArg::Trim,
+            MethodArg::Huber,
+        ]
+    } else {
+        a.methods.clone()
+    };
+    anyhow::ensure!(
+        a.sizes.iter().all(|s| *s >= 16),
+        "--sizes: each at least 16"
+    );
+    anyhow::ensure!(
+        a.lights.iter().all(|l| *l >= 3),
+        "--lights: each at least 3"
+    );
+    let mut rows = Vec::new();
+    for &size in &a.sizes {
+        for &count in &a.lights {
+            let lights = Lights::fibonacci(count, 30.0)?;
+            let scene = Scene::sphere(size, 0.45 * size as f64, Albedo::Constant(0.6));
+            let options = RenderOptions {
+                noise_sigma: 0.005,
+                seed: 1,
+                ..RenderOptions::default()
+            };
+            let rendering = render(&scene, &lights, &options)?;
+            let stack = rendering.to_stack(&lights, ColorMode::Grey)?;
+            let mask = rendering.truth.mask.clone();
+            let samples = (mask.count() * count) as f64;
+            for m in &methods {
+                let o = SolveOptions::with_method(m.method());
+                let mut times = Vec::new();
+                for _ in 0..a.repeat.max(1) {
+                    let t = Instant::now();
+                    std::hint::black_box(solve(&stack, 0, &lights, &mask, &o, &Silent)?);
+                    times.push(t.elapsed().as_secs_f64());
+                }
+                let t = median(times);
+                rows.push(json!({
+                    "method": m.method().name(),
+                    "size": size,
+                    "pixels": mask.count(),
+                    "lights": count,
+                    "samples": samples,
+                    "solve_s": t,
+                    "ns_per_sample": 1e9 * t / samples,
+                }));
+            }
+        }
+    }
+    let mut slopes = Vec::new();
+    for m in &methods {
+        let name = m.method().name();
+        let pts: Vec<(f64, f64)> = rows
+            .iter()
+            .filter(|r| r["method"] == name)
+            .filter_map(|r| Some((r["samples"].as_f64()?.ln(), r["solve_s"].as_f64()?.ln())))
+            .collect();
+        let (x, y): (Vec<f64>, Vec<f64>) = pts.into_iter().unzip();
+        let (slope, _) = fit_line(&x, &y);
+        // At each light count, the slope against pixels alone.
+        let per_lights: Vec<serde_json::Value> = a
+            .lights
+            .iter()
+            .map(|&l| {
+                let (x, y): (Vec<f64>, Vec<f64>) = rows
+                    .iter()
+                    .filter(|r| r["method"] == name && r["lights"] == l)
+                    .filter_map(|r| Some((r["pixels"].as_f64()?.ln(), r["solve_s"].as_f64()?.ln())))
+                    .unzip();
+                json!({"lights": l, "loglog_slope_vs_pixels": fit_line(&x, &y).0})
+            })
+            .collect();
+        slopes.push(json!({"method": name, "loglog_slope_vs_samples": slope,
+            "per_light_count": per_lights}));
+    }
+    if let Some(path) = &a.csv {
+        let mut text = String::from("method,size,pixels,lights,samples,solve_s,ns_per_sample\n");
+        for r in &rows {
+            text += &format!(
+                "{},{},{},{},{},{:.6},{:.3}\n",
+                r["method"].as_str().unwrap_or(""),
+                r["size"],
+                r["pixels"],
+                r["lights"],
+                r["samples"],
+                r["solve_s"].as_f64().unwrap_or(f64::NAN),
+                r["ns_per_sample"].as_f64().unwrap_or(f64::NAN)
+            );
+        }
+        crate::write_file_atomic(path, text.as_bytes())?;
+    }
+    say!(
+        "{}",
+        serde_json::to_string_pretty(&json!({
+            "threads": rayon::current_num_threads(),
+            "repeat": a.repeat.max(1),
+            "slopes": slopes,
+            "rows": rows,
+        }))?
+    );
+    Ok(())
+}

@@ -1,7 +1,7 @@
 //! `photostereo calibrate`: lights from a chrome sphere (and a matte reference).
 
 use crate::args::CalibrateArgs;
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use photostereo::calibrate::intensity::{
     MatteOptions, intensities_from_card, intensities_from_sphere,
 };
@@ -13,7 +13,7 @@ use photostereo::dataset::{is_image_list, read_image_list};
 use photostereo::input::{Transfer, read_mask};
 use photostereo::lights::{Light, Lights};
 use photostereo::nalgebra::Vector3;
-use photostereo::output::{OutputDir, ensure_fresh_file};
+use photostereo::output::ensure_fresh_file;
 use photostereo::progress::Progress;
 use std::path::{Path, PathBuf};
 
@@ -105,19 +105,7 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
     let (lights, intensity) =
         measure_intensities(&a, &stack, lights, &directions, transfer, progress)?;
     let json = lights_file_json(&lights, &cal, intensity.as_ref());
-    let dir = match a.output.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let name = a
-        .output
-        .file_name()
-        .context("the output must be a file name")?
-        .to_string_lossy()
-        .into_owned();
-    let mut out = OutputDir::create(&dir)?;
-    out.stage_bytes(&name, json.as_bytes())?;
-    out.commit()?;
+    crate::write_file_atomic(&a.output, json.as_bytes())?;
     say!("wrote {} ({} lights)", a.output.display(), lights.len());
     Ok(())
 }

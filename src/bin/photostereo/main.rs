@@ -87,8 +87,26 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench(args::BenchCommand::Integration(a))) => bench::integration(a),
         Some(Command::Bench(args::BenchCommand::Specularity(a))) => bench::specularity(a),
         Some(Command::Bench(args::BenchCommand::Stream(a))) => bench::stream(a),
+        Some(Command::Bench(args::BenchCommand::Scaling(a))) => bench::scaling(a),
         None => run_main(cli.run.validate()?, progress),
     }
+}
+
+/// Writes `bytes` to the file `path` atomically (a temporary in the same folder, renamed).
+pub fn write_file_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => std::path::PathBuf::from("."),
+    };
+    let name = path
+        .file_name()
+        .with_context(|| format!("{}: not a file name", path.display()))?
+        .to_string_lossy()
+        .into_owned();
+    let mut out = photostereo::output::OutputDir::create(&dir)?;
+    out.stage_bytes(&name, bytes)?;
+    out.commit()?;
+    Ok(())
 }
 
 /// The capture's files, resolved without decoding.
