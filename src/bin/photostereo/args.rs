@@ -290,6 +290,10 @@ pub struct ScalingBenchArgs {
     /// Also write the rows as CSV here.
     #[arg(long, value_name = "FILE")]
     pub csv: Option<PathBuf>,
+    /// Also draw time against samples (log-log, slopes in the legend) as STEM.svg and
+    /// STEM.png.
+    #[arg(long, value_name = "STEM")]
+    pub chart: Option<PathBuf>,
 }
 
 /// `bench stream` options.

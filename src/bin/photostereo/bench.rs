@@ -566,6 +566,7 @@ pub fn scaling(a: crate::args::ScalingBenchArgs) -> Result<()> {
         }
     }
     let mut slopes = Vec::new();
+    let mut series = Vec::new();
     for m in &methods {
         let name = m.method().name();
         let pts: Vec<(f64, f64)> = rows
@@ -590,6 +591,30 @@ pub fn scaling(a: crate::args::ScalingBenchArgs) -> Result<()> {
             .collect();
         slopes.push(json!({"method": name, "loglog_slope_vs_samples": slope,
             "per_light_count": per_lights}));
+        let mut points: Vec<(f64, f64)> =
+            x.iter().zip(&y).map(|(a, b)| (a.exp(), b.exp())).collect();
+        points.sort_by(|a, b| a.0.total_cmp(&b.0));
+        series.push(crate::chart::Series {
+            name: format!("{name} (slope {slope:.2})"),
+            points,
+        });
+    }
+    if let Some(stem) = &a.chart {
+        crate::chart::write(
+            &crate::chart::Chart {
+                title: format!(
+                    "Solve time against samples ({} threads; sizes {:?}, lights {:?})",
+                    rayon::current_num_threads(),
+                    a.sizes,
+                    a.lights
+                ),
+                x_label: "samples = pixels in mask × lights".into(),
+                y_label: "solve time (s)".into(),
+                log: (true, true),
+                series: std::mem::take(&mut series),
+            },
+            stem,
+        )?;
     }
     if let Some(path) = &a.csv {
         let mut text = String::from("method,size,pixels,lights,samples,solve_s,ns_per_sample\n");

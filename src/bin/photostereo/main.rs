@@ -18,6 +18,7 @@ mod args;
 mod bar;
 mod bench;
 mod calibrate;
+mod chart;
 mod sfs;
 
 use anyhow::{Context, Result};
