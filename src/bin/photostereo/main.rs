@@ -93,8 +93,12 @@ fn run(cli: Cli) -> Result<()> {
     }
 }
 
-/// Writes `bytes` to the file `path` atomically (a temporary in the same folder, renamed).
-pub fn write_file_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
+/// Writes the one file `path` atomically: `stage` stages it under the name it is given in an
+/// output folder beside it, which is then committed (a temporary, renamed into place).
+pub fn write_staged(
+    path: &Path,
+    stage: impl FnOnce(&mut OutputDir, &str) -> photostereo::Result<()>,
+) -> Result<()> {
     let dir = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => std::path::PathBuf::from("."),
@@ -104,10 +108,15 @@ pub fn write_file_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
         .with_context(|| format!("{}: not a file name", path.display()))?
         .to_string_lossy()
         .into_owned();
-    let mut out = photostereo::output::OutputDir::create(&dir)?;
-    out.stage_bytes(&name, bytes)?;
+    let mut out = OutputDir::create(&dir)?;
+    stage(&mut out, &name)?;
     out.commit()?;
     Ok(())
+}
+
+/// Writes `bytes` to the file `path` atomically ([`write_staged`]).
+pub fn write_file_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_staged(path, |out, name| out.stage_bytes(name, bytes))
 }
 
 /// The capture's files, resolved without decoding.
@@ -418,28 +427,12 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
         ("photostereo:integration", method.name().to_string()),
         ("photostereo:units", units),
     ];
-    let write_one =
-        |path: &Path, f: &dyn Fn(&mut OutputDir, &str) -> photostereo::Result<()>| -> Result<()> {
-            let dir = match path.parent() {
-                Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-                _ => std::path::PathBuf::from("."),
-            };
-            let name = path
-                .file_name()
-                .with_context(|| format!("{}: not a file name", path.display()))?
-                .to_string_lossy()
-                .into_owned();
-            let mut out = OutputDir::create(&dir)?;
-            f(&mut out, &name)?;
-            out.commit()?;
-            Ok(())
-        };
-    write_one(&a.output, &|out, name| {
+    write_staged(&a.output, |out, name| {
         out.stage_exr(name, w, h, &channels, &attrs)
     })?;
     if let Some(ply) = &a.ply {
         let mesh = Mesh::from_depth(&r.depth, &normals, options.camera.as_ref())?;
-        write_one(ply, &|out, name| out.stage_bytes(name, &mesh.to_ply()))?;
+        write_file_atomic(ply, &mesh.to_ply())?;
     }
     let mean_res = photostereo::metrics::summarize(&r.residual).mean;
     say!(
