@@ -528,10 +528,28 @@ pub fn read_mask(path: &Path) -> Result<Mask> {
 
 /// Per-image conversion parameters.
 pub(crate) struct Convert<'a> {
-    pub(crate) transfer: Transfer,
-    pub(crate) saturation: Option<f32>,
-    pub(crate) intensity: [f32; 3],
-    pub(crate) srgb_lut: &'a [f32; 256],
+    transfer: Transfer,
+    saturation: Option<f32>,
+    intensity: [f32; 3],
+    srgb_lut: &'a [f32; 256],
+}
+
+impl<'a> Convert<'a> {
+    /// The conversion of image `index`: `options`' transfer function and saturation level,
+    /// divided by its light's intensity.
+    pub(crate) fn new(
+        options: &LoadOptions,
+        lights: &Lights,
+        index: usize,
+        srgb_lut: &'a [f32; 256],
+    ) -> Self {
+        Convert {
+            transfer: options.transfer,
+            saturation: options.saturation,
+            intensity: lights.lights()[index].intensity.map(|v| v as f32),
+            srgb_lut,
+        }
+    }
 }
 
 /// Tallies of one conversion.
@@ -840,12 +858,7 @@ pub fn load_stack(
                     ),
                 });
             }
-            let cv = Convert {
-                transfer: options.transfer,
-                saturation: options.saturation,
-                intensity: lights.lights()[index].intensity.map(|v| v as f32),
-                srgb_lut: &lut,
-            };
+            let cv = Convert::new(options, lights, index, &lut);
             let r = convert_into(&raw, &cv, out, path, window);
             progress.advance(1);
             // Where the verdicts below apply, for their messages.

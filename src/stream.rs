@@ -356,12 +356,7 @@ fn read_band(
         .map(|(index, (out, reader))| {
             let path = &files.images[index];
             let raw = reader.read(rows.clone())?;
-            let cv = Convert {
-                transfer: load.transfer,
-                saturation: load.saturation,
-                intensity: files.lights.lights()[index].intensity.map(|v| v as f32),
-                srgb_lut: lut,
-            };
+            let cv = Convert::new(load, &files.lights, index, lut);
             Ok(convert_into(&raw, &cv, out, path, band))
         })
         .collect();
