@@ -1,5 +1,5 @@
 //! Criterion benchmarks of the pipeline stages on crate-rendered data (and DiLiGenT cat when
-//! `../shared/data` is present). Run: `cargo bench --bench pipeline`.
+//! `../shared/data` is present), and of the streamed path against the in-memory one. Run: `cargo bench --bench pipeline`.
 //!
 //! Speed targets live here and in `photostereo bench`, not in timed tests.
 
@@ -92,5 +92,70 @@ fn bench_load_diligent(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench_solve, bench_integrate, bench_load_diligent);
+/// A 512² sphere under 24 lights as 16-bit PNGs: decoded whole and solved in memory, against
+/// streamed in bands of 64 rows (`photostereo::stream`), load included in both.
+fn bench_stream(c: &mut Criterion) {
+    use photostereo::dataset::{CaptureFiles, ImageFormat, write_synthetic};
+    use photostereo::input::{ColorMode, LoadOptions};
+    use photostereo::pipeline::{Config, reconstruct_normals};
+    use photostereo::render::render;
+    use photostereo::stream::{StreamOptions, reconstruct_streamed};
+    let dir = tempfile::tempdir().unwrap();
+    let scene = Scene::sphere(512, 240.0, Albedo::Constant(0.6));
+    let lights = Lights::fibonacci(24, 25.0).unwrap();
+    let opts = RenderOptions {
+        noise_sigma: 0.005,
+        ..RenderOptions::default()
+    };
+    let rendering = render(&scene, &lights, &opts).unwrap();
+    let written = write_synthetic(&rendering, &lights, dir.path(), ImageFormat::Png16).unwrap();
+    let images: Vec<_> = written
+        .into_iter()
+        .filter(|p| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with("img_"))
+        })
+        .collect();
+    let files = CaptureFiles::from_files(
+        &images,
+        &dir.path().join("lights.json"),
+        Some(&dir.path().join("mask.png")),
+    )
+    .unwrap();
+    let load = LoadOptions {
+        color: ColorMode::Grey,
+        ..LoadOptions::default()
+    };
+    let config = Config {
+        integration: None,
+        ..Config::default()
+    };
+    let mut g = c.benchmark_group("stream_512x512_24_png");
+    g.sample_size(10);
+    g.bench_function("in_memory", |b| {
+        b.iter(|| {
+            let capture = files.load(&load, &Silent).unwrap();
+            black_box(reconstruct_normals(&capture, &config, &Silent).unwrap())
+        })
+    });
+    let stream = StreamOptions {
+        max_memory: 1 << 30,
+        band_rows: Some(64),
+    };
+    g.bench_function("streamed_64_rows", |b| {
+        b.iter(|| {
+            black_box(reconstruct_streamed(&files, &load, &config, &stream, &Silent).unwrap())
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(
+    benches,
+    bench_solve,
+    bench_integrate,
+    bench_load_diligent,
+    bench_stream
+);
 criterion_main!(benches);

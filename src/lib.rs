@@ -11,7 +11,8 @@
 //! sphere (directions) and a matte reference (intensities). Beside it: [`reflectance`] holds the BRDF models,
 //! [`scene`] and [`render`] make synthetic data with ground truth, [`reflectance_map`] gives
 //! brightness as a function of the surface gradient and [`sfs`] inverts it for one image (shape
-//! from shading), [`metrics`] measures errors,
+//! from shading), [`metrics`] measures errors, [`sweep`] measures error and time over noise,
+//! lights and specularity, [`stream`] solves stacks larger than memory in row bands,
 //! [`demo`] is the built-in default scene.
 //!
 //! Conventions: camera frame x right, y up, z towards the camera; image row 0 is the top; light
@@ -57,6 +58,7 @@ pub mod scene;
 pub mod sfs;
 pub mod solve;
 pub mod stream;
+pub mod sweep;
 
 pub use error::{Error, Result};
 /// The linear-algebra crate of the public API (normals are `nalgebra::Vector3<f32>`).

@@ -213,6 +213,41 @@ pub fn depth_errors(est: &ScalarMap, gt: &ScalarMap, mask: &Mask) -> Result<Dept
     })
 }
 
+/// Depth RMSE with the mean offset removed separately on each part labelled in `parts` (for
+/// example [`crate::scene::HeightField::object`]), over `mask`. Normals do not tell the height
+/// of a depth discontinuity, so an object seen over another is only known up to its own
+/// offset. This measures the shape of each part and not where the parts sit.
+///
+/// # Errors
+/// [`Error::DimensionMismatch`] when sizes differ; [`Error::Mask`] when no pixel can be compared.
+pub fn depth_rmse_per_part(
+    est: &ScalarMap,
+    gt: &ScalarMap,
+    mask: &Mask,
+    parts: &crate::grid::Grid<u32>,
+) -> Result<f64> {
+    est.check_same_size(parts, "depth vs parts")?;
+    // Checks the other sizes and that something can be compared.
+    depth_pairs(est, gt, mask, |_| true)?;
+    // Per part: count, Σd, Σd² of d = est − gt; the offset-free sum of squares is
+    // Σd² − (Σd)²/n.
+    let mut sums: std::collections::HashMap<u32, (f64, f64, f64)> = Default::default();
+    for i in 0..est.len() {
+        let (e, g) = (est.data()[i], gt.data()[i]);
+        if mask.data()[i] && e.is_finite() && g.is_finite() {
+            let d = f64::from(e) - f64::from(g);
+            let s = sums.entry(parts.data()[i]).or_default();
+            s.0 += 1.0;
+            s.1 += d;
+            s.2 += d * d;
+        }
+    }
+    let (n, ss) = sums.values().fold((0.0, 0.0), |(n, ss), (c, s, s2)| {
+        (n + c, ss + (s2 - s * s / c).max(0.0))
+    });
+    Ok((ss / n).sqrt())
+}
+
 /// Depth error after a global scale fit, for depth known up to scale (perspective integration):
 /// the estimate is multiplied by median(z_gt / z) over the compared pixels, then compared (the
 /// metric of the bilateral-normal-integration benchmark on DiLiGenT).

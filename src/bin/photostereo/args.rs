@@ -270,6 +270,55 @@ pub enum BenchCommand {
     /// Solve time against pixels × lights per estimator on rendered spheres, with the fitted
     /// log-log slope (1 = linear cost); JSON to standard output, CSV rows to `--csv`.
     Scaling(ScalingBenchArgs),
+    /// Error and time of every estimator, shape-from-shading method and integrator against
+    /// image noise, light count and specularity on rendered scenes: CSV, JSON and charts
+    /// (Pareto fronts included) in `--out`.
+    Sweep(SweepBenchArgs),
+    /// Everything that feeds `docs/bench` in one run: the sweeps, solver scaling, integrator
+    /// timing beside numpy, and DiLiGenT beside the numpy peer when the data is present;
+    /// tables, charts and a generated README.md in `--out`.
+    All(AllBenchArgs),
+}
+
+/// `bench all` options.
+#[derive(Debug, Args)]
+pub struct AllBenchArgs {
+    /// Folder for every table, chart and the generated README.md.
+    #[arg(long, short, value_name = "DIR", default_value = "docs/bench")]
+    pub out: PathBuf,
+    /// Folder of the real data (DiLiGenT cat and bear under `diligent/`); their part is
+    /// skipped, with a message, when absent.
+    #[arg(long, value_name = "DIR", default_value = "../shared/data")]
+    pub data: PathBuf,
+    /// The numpy peer.
+    #[command(flatten)]
+    pub peer: PeerArgs,
+    /// Small sizes and single runs: a smoke run of the whole chain (not for committing).
+    #[arg(long)]
+    pub quick: bool,
+}
+
+/// `bench sweep` options.
+#[derive(Debug, Args)]
+pub struct SweepBenchArgs {
+    /// Image size (square) of the normal and depth sweeps.
+    #[arg(long, default_value_t = photostereo::sweep::DEFAULT_SIZE)]
+    pub size: usize,
+    /// Image size (square) of the shape-from-shading sweep.
+    #[arg(long, default_value_t = photostereo::sweep::DEFAULT_SFS_SIZE)]
+    pub sfs_size: usize,
+    /// Timed runs per point; medians are reported.
+    #[arg(long, default_value_t = 3)]
+    pub repeat: usize,
+    /// Estimators (default: all).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub methods: Vec<MethodArg>,
+    /// Folder for the tables and charts.
+    #[arg(long, short, value_name = "DIR", default_value = "docs/bench")]
+    pub out: PathBuf,
+    /// A 64² image and a few levels of each axis: a smoke run of a few seconds.
+    #[arg(long)]
+    pub quick: bool,
 }
 
 /// `bench scaling` options.
@@ -357,6 +406,13 @@ pub struct IntegrationBenchArgs {
     /// The numpy peer.
     #[command(flatten)]
     pub peer: PeerArgs,
+    /// Also write the rows as CSV here.
+    #[arg(long, value_name = "FILE")]
+    pub csv: Option<PathBuf>,
+    /// Also draw time against pixels (log-log, fitted slopes in the legend) as STEM.svg and
+    /// STEM.png.
+    #[arg(long, value_name = "STEM")]
+    pub chart: Option<PathBuf>,
 }
 
 /// The numpy peer a benchmark runs beside photostereo.

@@ -33,8 +33,9 @@ fn median(mut v: Vec<f64>) -> f64 {
     }
 }
 
-/// Runs the benchmark and prints JSON.
-pub fn run(a: BenchArgs) -> Result<()> {
+/// Runs the benchmark; JSON with in-process stage times, whole-process times beside the peer's,
+/// and the peer's time over ours per stage (load, solve) and per process.
+pub fn run(a: &BenchArgs) -> Result<serde_json::Value> {
     let config = a.method.config()?;
     let repeat = a.repeat.max(1);
     let tmp = std::env::temp_dir().join(format!("photostereo-bench-{}", std::process::id()));
@@ -86,7 +87,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
     let method = config.solve.method.name();
     let integrate = config.integration.map_or("none", |o| o.method.name());
     let peer = a.peer.script.is_file();
-    let (mut ours_wall, mut peer_wall, mut peer_internal) = (vec![], vec![], vec![]);
+    let (mut ours_wall, mut peer_wall) = (vec![], vec![]);
+    let (mut peer_load, mut peer_solve) = (vec![], vec![]);
     for _ in 0..repeat {
         let t = Instant::now();
         let o = Command::new(&exe)
@@ -126,35 +128,48 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 String::from_utf8_lossy(&o.stderr)
             );
             let v: serde_json::Value = serde_json::from_slice(&o.stdout)?;
-            peer_internal.push(
-                v["load_s"].as_f64().unwrap_or(f64::NAN)
-                    + v["solve_s"].as_f64().unwrap_or(f64::NAN),
-            );
+            peer_load.push(v["load_s"].as_f64().unwrap_or(f64::NAN));
+            peer_solve.push(v["solve_s"].as_f64().unwrap_or(f64::NAN));
         }
     }
     let _ = std::fs::remove_dir_all(&tmp);
     let ours_process = median(ours_wall);
     out["photostereo"]["process_wall_s"] = json!(ours_process);
     if peer {
-        let (pw, pi) = (median(peer_wall), median(peer_internal));
+        let pw = median(peer_wall);
+        let (pl, ps) = (median(peer_load), median(peer_solve));
         out["peer"] = json!({
             "script": a.peer.script,
+            "method": "ls",
             "process_wall_s": pw,
-            "load_plus_solve_s": pi,
+            "load_s": pl,
+            "solve_s": ps,
+            "load_plus_solve_s": pl + ps,
+        });
+        // Peer time over ours: above 1, photostereo is faster. The solve ratio compares like
+        // with like only for --method ls (the peer's method).
+        let (ol, os) = (
+            out["photostereo"]["load_s"].as_f64().unwrap_or(f64::NAN),
+            out["photostereo"]["solve_s"].as_f64().unwrap_or(f64::NAN),
+        );
+        out["speedup_per_stage"] = json!({
+            "load": pl / ol,
+            "solve": ps / os,
+            "load_plus_solve": (pl + ps) / (ol + os),
+            "solve_methods": format!("{method} vs ls"),
         });
         out["speedup_process_vs_process"] = json!(pw / ours_process);
-        out["speedup_vs_peer_load_plus_solve"] = json!(pi / ours_process);
+        out["speedup_vs_peer_load_plus_solve"] = json!((pl + ps) / ours_process);
     } else {
         out["peer"] = json!(format!("not found: {}", a.peer.script.display()));
     }
-    say!("{}", serde_json::to_string_pretty(&out)?);
-    Ok(())
+    Ok(out)
 }
 
 /// Time and accuracy of each integrator on a sphere (radius 0.45 N on an N×N image, disk mask)
 /// per size, and DCT Poisson beside `numpy_ps.py poisson N` on the peer's own field (MATLAB's
 /// peaks on the full N×N grid).
-pub fn integration(a: IntegrationBenchArgs) -> Result<()> {
+pub fn integration(a: &IntegrationBenchArgs) -> Result<serde_json::Value> {
     let methods: Vec<Integrator> = if a.methods.is_empty() {
         Integrator::ALL.to_vec()
     } else {
@@ -234,10 +249,69 @@ pub fn integration(a: IntegrationBenchArgs) -> Result<()> {
             peer_rows.push(json!({"size": n, "photostereo_poisson_s": o, "numpy_dct_poisson_s": t, "speedup": t / o}));
         }
     }
-    let out = json!({"threads": rayon::current_num_threads(), "integrators": rows, "poisson_vs_numpy": peer_rows});
-    say!("{}", serde_json::to_string_pretty(&out)?);
-    say!("{table}");
-    Ok(())
+    let mut slopes = Vec::new();
+    let mut series = Vec::new();
+    for (k, m) in methods.iter().enumerate() {
+        let (x, y): (Vec<f64>, Vec<f64>) = rows
+            .iter()
+            .filter(|r| r["method"] == m.name())
+            .filter_map(|r| Some((r["pixels"].as_f64()?, r["time_s"].as_f64()?)))
+            .unzip();
+        let (lx, ly): (Vec<f64>, Vec<f64>) = (
+            x.iter().map(|v| v.ln()).collect(),
+            y.iter().map(|v| v.ln()).collect(),
+        );
+        let (slope, intercept) = fit_line(&lx, &ly);
+        slopes.push(json!({"method": m.name(), "loglog_slope_vs_pixels": slope}));
+        let (name, pts) = (
+            format!("{} (slope {slope:.2})", m.name()),
+            x.iter().copied().zip(y.iter().copied()).collect(),
+        );
+        series.push(crate::chart::Series::line(name, pts, k).styled(crate::chart::Style::Markers));
+        series.push(power_law_fit(&lx, slope, intercept, k));
+    }
+    if let Some(stem) = &a.chart {
+        crate::chart::write(
+            &crate::chart::Chart {
+                title: format!(
+                    "Integration time vs pixels (sphere, disk mask, {} threads)",
+                    rayon::current_num_threads()
+                ),
+                x_label: "pixels in mask".into(),
+                y_label: "integration time (s)".into(),
+                log: (true, true),
+                series,
+                legend: crate::chart::Legend::UpperLeft,
+            },
+            stem,
+        )?;
+    }
+    if let Some(path) = &a.csv {
+        let text = crate::sweep::csv(
+            &rows,
+            &["method", "size", "pixels", "time_s", "rmse_over_range"],
+        );
+        crate::write_file_atomic(path, text.as_bytes())?;
+    }
+    Ok(
+        json!({"threads": rayon::current_num_threads(), "integrators": rows,
+        "slopes": slopes, "poisson_vs_numpy": peer_rows, "table": table}),
+    )
+}
+
+/// The fitted power law exp(intercept)·x^slope over the span of the logs `lx`, as a line in
+/// palette colour `color`.
+fn power_law_fit(lx: &[f64], slope: f64, intercept: f64, color: usize) -> crate::chart::Series {
+    let (lo, hi) = lx
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+            (a.min(*v), b.max(*v))
+        });
+    let fit = [lo, hi]
+        .iter()
+        .map(|v| (v.exp(), (intercept + slope * v).exp()))
+        .collect();
+    crate::chart::Series::line("", fit, color).styled(crate::chart::Style::Fit)
 }
 
 /// The peer's test field: forward differences of MATLAB's peaks on [−3, 3]², converted to our
@@ -505,7 +579,7 @@ fn fit_line(x: &[f64], y: &[f64]) -> (f64, f64) {
 /// `bench scaling`: per estimator, the solve time on a Lambertian sphere (noise σ = 0.005,
 /// attached shadows) for every size × light count, and the slope of log time against
 /// log(pixels × lights) fitted over them: 1 means cost linear in the samples.
-pub fn scaling(a: crate::args::ScalingBenchArgs) -> Result<()> {
+pub fn scaling(a: &crate::args::ScalingBenchArgs) -> Result<serde_json::Value> {
     use crate::args::MethodArg;
     use photostereo::input::ColorMode;
     use photostereo::lights::Lights;
@@ -567,7 +641,7 @@ pub fn scaling(a: crate::args::ScalingBenchArgs) -> Result<()> {
     }
     let mut slopes = Vec::new();
     let mut series = Vec::new();
-    for m in &methods {
+    for (k, m) in methods.iter().enumerate() {
         let name = m.method().name();
         let pts: Vec<(f64, f64)> = rows
             .iter()
@@ -575,7 +649,7 @@ pub fn scaling(a: crate::args::ScalingBenchArgs) -> Result<()> {
             .filter_map(|r| Some((r["samples"].as_f64()?.ln(), r["solve_s"].as_f64()?.ln())))
             .collect();
         let (x, y): (Vec<f64>, Vec<f64>) = pts.into_iter().unzip();
-        let (slope, _) = fit_line(&x, &y);
+        let (slope, intercept) = fit_line(&x, &y);
         // At each light count, the slope against pixels alone.
         let per_lights: Vec<serde_json::Value> = a
             .lights
@@ -591,13 +665,13 @@ pub fn scaling(a: crate::args::ScalingBenchArgs) -> Result<()> {
             .collect();
         slopes.push(json!({"method": name, "loglog_slope_vs_samples": slope,
             "per_light_count": per_lights}));
-        let mut points: Vec<(f64, f64)> =
-            x.iter().zip(&y).map(|(a, b)| (a.exp(), b.exp())).collect();
-        points.sort_by(|a, b| a.0.total_cmp(&b.0));
-        series.push(crate::chart::Series {
-            name: format!("{name} (slope {slope:.2})"),
-            points,
-        });
+        // Measurements as markers, the fitted power law as a line of the same colour.
+        let points: Vec<(f64, f64)> = x.iter().zip(&y).map(|(a, b)| (a.exp(), b.exp())).collect();
+        series.push(
+            crate::chart::Series::line(format!("{name} (slope {slope:.2})"), points, k)
+                .styled(crate::chart::Style::Markers),
+        );
+        series.push(power_law_fit(&x, slope, intercept, k));
     }
     if let Some(stem) = &a.chart {
         crate::chart::write(
@@ -612,6 +686,7 @@ pub fn scaling(a: crate::args::ScalingBenchArgs) -> Result<()> {
                 y_label: "solve time (s)".into(),
                 log: (true, true),
                 series: std::mem::take(&mut series),
+                legend: crate::chart::Legend::UpperLeft,
             },
             stem,
         )?;
@@ -632,14 +707,10 @@ pub fn scaling(a: crate::args::ScalingBenchArgs) -> Result<()> {
         }
         crate::write_file_atomic(path, text.as_bytes())?;
     }
-    say!(
-        "{}",
-        serde_json::to_string_pretty(&json!({
-            "threads": rayon::current_num_threads(),
-            "repeat": a.repeat.max(1),
-            "slopes": slopes,
-            "rows": rows,
-        }))?
-    );
-    Ok(())
+    Ok(json!({
+        "threads": rayon::current_num_threads(),
+        "repeat": a.repeat.max(1),
+        "slopes": slopes,
+        "rows": rows,
+    }))
 }

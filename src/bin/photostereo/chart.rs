@@ -11,12 +11,69 @@ const FONT: &[u8] = include_bytes!("../../../assets/fonts/DejaVuSans.ttf");
 /// Chart size in pixels (PNG) and user units (SVG).
 const SIZE: (u32, u32) = (900, 600);
 
-/// One named line of points.
+/// How a series is drawn.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub enum Style {
+    /// Markers joined by a line, in the points' order.
+    Line,
+    /// Markers only.
+    Markers,
+    /// A thin line without markers (a fitted model).
+    Fit,
+    /// The Pareto front: a black line through hollow rings.
+    Front,
+}
+
+/// One named set of points.
 pub struct Series {
-    /// Legend text.
+    /// Legend text (empty: not in the legend).
     pub name: String,
     /// (x, y) points, in drawing order.
     pub points: Vec<(f64, f64)>,
+    /// How it is drawn.
+    pub style: Style,
+    /// Palette index of its colour (series with the same index share a colour).
+    pub color: usize,
+    /// Text beside each point (empty: none).
+    pub labels: Vec<String>,
+}
+
+impl Series {
+    /// Markers joined by a line, in palette colour `color`.
+    pub fn line(name: impl Into<String>, points: Vec<(f64, f64)>, color: usize) -> Self {
+        Series {
+            name: name.into(),
+            points,
+            style: Style::Line,
+            color,
+            labels: Vec::new(),
+        }
+    }
+
+    /// The same series drawn as `style`.
+    pub fn styled(mut self, style: Style) -> Self {
+        self.style = style;
+        self
+    }
+
+    /// The same series with a text beside each point.
+    pub fn labelled(mut self, labels: Vec<String>) -> Self {
+        self.labels = labels;
+        self
+    }
+}
+
+/// Where the legend goes.
+#[derive(Clone, Copy)]
+pub enum Legend {
+    /// Top left corner.
+    UpperLeft,
+    /// Top right corner.
+    UpperRight,
+    /// Bottom left corner.
+    LowerLeft,
+    /// Bottom right corner.
+    LowerRight,
 }
 
 /// A chart: title, axis labels, series, and whether each axis is logarithmic.
@@ -31,6 +88,8 @@ pub struct Chart {
     pub log: (bool, bool),
     /// The lines.
     pub series: Vec<Series>,
+    /// Where the legend goes.
+    pub legend: Legend,
 }
 
 fn register_font() -> Result<()> {
@@ -89,6 +148,38 @@ fn range(values: impl Iterator<Item = f64>, log: bool) -> std::ops::Range<f64> {
     }
 }
 
+/// Tick values of a logarithmic axis over `r`: 1, 2 and 5 times each power of ten, thinned
+/// to 1 and 3 when the range spans more than three decades and to powers of ten beyond six.
+fn log_ticks(r: &std::ops::Range<f64>) -> Vec<f64> {
+    if !(r.start > 0.0 && r.end > r.start) {
+        return Vec::new();
+    }
+    let (lo, hi) = (r.start.log10().floor() as i32, r.end.log10().ceil() as i32);
+    let steps: &[f64] = match hi - lo {
+        0..=3 => &[1.0, 2.0, 5.0],
+        4..=6 => &[1.0, 3.0],
+        _ => &[1.0],
+    };
+    (lo..=hi)
+        .flat_map(|e| steps.iter().map(move |m| m * 10f64.powi(e)))
+        .filter(|v| r.contains(v))
+        .collect()
+}
+
+/// `v` with two significant digits at most, without trailing zeros (axis labels).
+fn short(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v}");
+    }
+    let decimals = (1 - v.abs().log10().floor() as i32).max(0) as usize;
+    let s = format!("{v:.decimals$}");
+    if s.contains('.') {
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        s
+    }
+}
+
 fn draw<DB: DrawingBackend>(chart: &Chart, root: DrawingArea<DB, Shift>) -> Result<()>
 where
     DB::ErrorType: 'static,
@@ -111,7 +202,7 @@ where
     );
     let mut builder = ChartBuilder::on(&root);
     builder
-        .caption(&chart.title, ("sans-serif", 22))
+        .caption(&chart.title, ("sans-serif", 18))
         .margin(16)
         .x_label_area_size(48)
         .y_label_area_size(72);
@@ -120,39 +211,92 @@ where
         ($x:expr, $y:expr) => {{
             let mut c = builder.build_cartesian_2d($x, $y).map_err(err)?;
             c.configure_mesh()
+                .max_light_lines(2)
+                .x_label_formatter(&|v| short(*v))
+                .y_label_formatter(&|v| short(*v))
                 .x_desc(chart.x_label.as_str())
                 .y_desc(chart.y_label.as_str())
                 .label_style(("sans-serif", 14))
                 .axis_desc_style(("sans-serif", 16))
                 .draw()
                 .map_err(err)?;
-            for (i, s) in chart.series.iter().enumerate() {
-                let color = Palette99::pick(i).to_rgba();
-                c.draw_series(LineSeries::new(
-                    s.points.iter().copied(),
-                    color.stroke_width(2),
-                ))
-                .map_err(err)?
-                .label(s.name.as_str())
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
-                });
-                c.draw_series(s.points.iter().map(|p| Circle::new(*p, 3, color.filled())))
+            for s in &chart.series {
+                let color = if s.style == Style::Front {
+                    BLACK.to_rgba()
+                } else {
+                    Palette99::pick(s.color).to_rgba()
+                };
+                let width = if s.style == Style::Fit { 1 } else { 2 };
+                if s.style != Style::Markers {
+                    let drawn = c
+                        .draw_series(LineSeries::new(
+                            s.points.iter().copied(),
+                            color.stroke_width(width),
+                        ))
+                        .map_err(err)?;
+                    if !s.name.is_empty() {
+                        drawn.label(s.name.as_str()).legend(move |(x, y)| {
+                            PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+                        });
+                    }
+                }
+                match s.style {
+                    Style::Fit => {}
+                    Style::Front => {
+                        c.draw_series(
+                            s.points
+                                .iter()
+                                .map(|p| Circle::new(*p, 7, color.stroke_width(1))),
+                        )
+                        .map_err(err)?;
+                    }
+                    Style::Line | Style::Markers => {
+                        let drawn = c
+                            .draw_series(
+                                s.points.iter().map(|p| Circle::new(*p, 3, color.filled())),
+                            )
+                            .map_err(err)?;
+                        if s.style == Style::Markers && !s.name.is_empty() {
+                            drawn
+                                .label(s.name.as_str())
+                                .legend(move |(x, y)| Circle::new((x + 10, y), 4, color.filled()));
+                        }
+                    }
+                }
+                if !s.labels.is_empty() {
+                    c.draw_series(s.points.iter().zip(&s.labels).map(|(p, t)| {
+                        EmptyElement::at(*p)
+                            + Text::new(
+                                t.clone(),
+                                (6, -14),
+                                ("sans-serif", 11).into_font().color(&color),
+                            )
+                    }))
                     .map_err(err)?;
+                }
             }
             c.configure_series_labels()
                 .label_font(("sans-serif", 14))
                 .background_style(WHITE.mix(0.85))
                 .border_style(BLACK)
-                .position(SeriesLabelPosition::UpperLeft)
+                .position(match chart.legend {
+                    Legend::UpperLeft => SeriesLabelPosition::UpperLeft,
+                    Legend::UpperRight => SeriesLabelPosition::UpperRight,
+                    Legend::LowerRight => SeriesLabelPosition::LowerRight,
+                    Legend::LowerLeft => SeriesLabelPosition::LowerLeft,
+                })
                 .draw()
                 .map_err(err)?;
         }};
     }
+    let (kx, ky) = (log_ticks(&xs), log_ticks(&ys));
     match chart.log {
-        (true, true) => plot!(xs.log_scale(), ys.log_scale()),
-        (true, false) => plot!(xs.log_scale(), ys),
-        (false, true) => plot!(xs, ys.log_scale()),
+        (true, true) => plot!(
+            xs.log_scale().with_key_points(kx),
+            ys.log_scale().with_key_points(ky)
+        ),
+        (true, false) => plot!(xs.log_scale().with_key_points(kx), ys),
+        (false, true) => plot!(xs, ys.log_scale().with_key_points(ky)),
         (false, false) => plot!(xs, ys),
     }
     root.present().map_err(err)?;

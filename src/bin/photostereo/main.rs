@@ -17,9 +17,11 @@ macro_rules! say {
 mod args;
 mod bar;
 mod bench;
+mod bench_all;
 mod calibrate;
 mod chart;
 mod sfs;
+mod sweep;
 
 use anyhow::{Context, Result};
 use args::{Cli, Command, DemoArgs, DepthAlign, EvalArgs, IntegrateArgs, RunConfig, Source};
@@ -84,11 +86,42 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Integrate(a)) => run_integrate(a, progress),
         Some(Command::Sfs(a)) => sfs::run(a),
         Some(Command::Calibrate(a)) => calibrate::run(a, progress),
-        Some(Command::Bench(args::BenchCommand::Diligent(a))) => bench::run(a),
-        Some(Command::Bench(args::BenchCommand::Integration(a))) => bench::integration(a),
+        Some(Command::Bench(args::BenchCommand::Diligent(a))) => {
+            say!("{}", serde_json::to_string_pretty(&bench::run(&a)?)?);
+            Ok(())
+        }
+        Some(Command::Bench(args::BenchCommand::Integration(a))) => {
+            let mut out = bench::integration(&a)?;
+            let table = out["table"].take();
+            say!("{}", serde_json::to_string_pretty(&out)?);
+            say!("{}", table.as_str().unwrap_or(""));
+            Ok(())
+        }
         Some(Command::Bench(args::BenchCommand::Specularity(a))) => bench::specularity(a),
         Some(Command::Bench(args::BenchCommand::Stream(a))) => bench::stream(a),
-        Some(Command::Bench(args::BenchCommand::Scaling(a))) => bench::scaling(a),
+        Some(Command::Bench(args::BenchCommand::Scaling(a))) => {
+            say!("{}", serde_json::to_string_pretty(&bench::scaling(&a)?)?);
+            Ok(())
+        }
+        Some(Command::Bench(args::BenchCommand::All(a))) => {
+            say!(
+                "{}",
+                serde_json::to_string_pretty(&bench_all::run(&a, progress)?)?
+            );
+            Ok(())
+        }
+        Some(Command::Bench(args::BenchCommand::Sweep(a))) => {
+            let summary = sweep::run(&a, progress)?;
+            say!(
+                "{}",
+                serde_json::to_string_pretty(&serde_json::json!({
+                    "out": a.out,
+                    "threads": summary["threads"],
+                    "normals_pareto_front": summary["normals_pareto_front"],
+                }))?
+            );
+            Ok(())
+        }
         None => run_main(cli.run.validate()?, progress),
     }
 }

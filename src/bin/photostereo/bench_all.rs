@@ -1,0 +1,593 @@
+//! `photostereo bench all`: every benchmark that feeds `docs/bench`, in one run. It writes
+//! their tables (CSV, JSON) and charts (SVG, PNG), and a generated `README.md` that gathers
+//! the numbers.
+//!
+//! The parts:
+//! - the speed–accuracy sweeps (`bench sweep`);
+//! - solver scaling (`bench scaling`);
+//! - integrator timing and DCT Poisson beside numpy (`bench integration`);
+//! - on DiLiGenT cat and bear, when `--data` holds them: every estimator's error and time, and
+//!   the load and solve stages beside the numpy peer (`bench diligent --method ls`).
+//!
+//! Each part runs through the same command-line parser as the command of the same name, so it
+//! uses the same defaults.
+
+use crate::args::{AllBenchArgs, BenchCommand, Cli, Command};
+use anyhow::{Context, Result, bail};
+use clap::Parser;
+use photostereo::dataset::Capture;
+use photostereo::input::{LoadOptions, read_normal_map};
+use photostereo::metrics::angular_errors;
+use photostereo::pipeline::{Config, reconstruct};
+use photostereo::progress::{Progress, Silent};
+use photostereo::solve::{Method, SolveOptions};
+use photostereo::sweep::pareto_front;
+use serde_json::{Value, json};
+use std::ffi::OsString;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The DiLiGenT objects of `../shared/data`.
+const DILIGENT_OBJECTS: [&str; 2] = ["cat", "bear"];
+
+/// The bench subcommand that `photostereo bench <args…>` would run.
+fn parse(args: &[OsString]) -> Result<BenchCommand> {
+    let argv = ["photostereo".into(), "bench".into()]
+        .into_iter()
+        .chain(args.iter().cloned());
+    match Cli::try_parse_from(argv)?.command {
+        Some(Command::Bench(b)) => Ok(b),
+        _ => bail!("internal: not a bench command"),
+    }
+}
+
+fn argv(parts: &[&str]) -> Vec<OsString> {
+    parts.iter().map(OsString::from).collect()
+}
+
+fn write_json(path: &Path, v: &Value) -> Result<()> {
+    crate::write_file_atomic(path, serde_json::to_string_pretty(v)?.as_bytes())
+}
+
+/// Every estimator on one DiLiGenT folder: mean angular error against `normal_gt.exr` and the
+/// median solve + normals time of `repeat` runs.
+fn diligent_methods(dir: &Path, object: &str, repeat: usize) -> Result<Vec<Value>> {
+    let capture = Capture::from_diligent(dir, &LoadOptions::default(), &Silent)?;
+    let gt = read_normal_map(&dir.join("normal_gt.exr"))?;
+    let mut rows = Vec::new();
+    for m in Method::ALL {
+        let config = Config {
+            solve: SolveOptions::with_method(m),
+            integration: None,
+            ..Config::default()
+        };
+        let mut times = Vec::new();
+        let mut error = None;
+        for _ in 0..repeat.max(1) {
+            let t = Instant::now();
+            let recon = reconstruct(&capture, &config, &Silent)?;
+            times.push(t.elapsed().as_secs_f64());
+            error = Some(angular_errors(&recon.normals, &gt, &capture.mask)?);
+        }
+        times.sort_by(f64::total_cmp);
+        let e = error.context("no run")?;
+        rows.push(json!({
+            "object": object,
+            "method": m.name(),
+            "mean_deg": e.mean_deg,
+            "median_deg": e.median_deg,
+            "p95_deg": e.p95_deg,
+            "seconds": times[times.len() / 2],
+        }));
+    }
+    Ok(rows)
+}
+
+/// Error against time per estimator on each object, with each object's Pareto front.
+fn diligent_chart(rows: &[Value], out: &Path) -> Result<()> {
+    use crate::chart::{Chart, Legend, Series, Style};
+    let mut series = Vec::new();
+    for (k, object) in DILIGENT_OBJECTS.iter().enumerate() {
+        let of: Vec<&Value> = rows.iter().filter(|r| r["object"] == *object).collect();
+        if of.is_empty() {
+            continue;
+        }
+        let pts: Vec<(f64, f64)> = of
+            .iter()
+            .map(|r| {
+                (
+                    r["seconds"].as_f64().unwrap_or(f64::NAN),
+                    r["mean_deg"].as_f64().unwrap_or(f64::NAN),
+                )
+            })
+            .collect();
+        let front = pareto_front(&pts);
+        series.push(
+            Series::line(*object, pts.clone(), k)
+                .styled(Style::Markers)
+                .labelled(
+                    of.iter()
+                        .map(|r| r["method"].as_str().unwrap_or("").to_string())
+                        .collect(),
+                ),
+        );
+        series.push(
+            Series::line(
+                if k == 0 { "Pareto front" } else { "" },
+                front.iter().map(|&i| pts[i]).collect(),
+                k,
+            )
+            .styled(Style::Front),
+        );
+    }
+    crate::chart::write(
+        &Chart {
+            title: format!(
+                "DiLiGenT: error vs time per estimator (96 images, {} threads)",
+                rayon::current_num_threads()
+            ),
+            x_label: "solve + normals time (s)".into(),
+            y_label: "mean angular error (°)".into(),
+            log: (true, false),
+            series,
+            legend: Legend::UpperRight,
+        },
+        &out.join("diligent_pareto"),
+    )
+}
+
+/// A Markdown table.
+fn table(header: &[&str], rows: &[Vec<String>]) -> String {
+    let mut s = format!(
+        "| {} |\n|{}\n",
+        header.join(" | "),
+        " --- |".repeat(header.len())
+    );
+    for r in rows {
+        let _ = writeln!(s, "| {} |", r.join(" | "));
+    }
+    s
+}
+
+fn num(v: &Value, digits: usize) -> String {
+    v.as_f64()
+        .map_or_else(|| "–".into(), |x| format!("{x:.digits$}"))
+}
+
+/// Methods × levels of `axis` from the sweep's normal rows: mean error (and coverage when
+/// below 100%).
+fn sweep_table(rows: &[Value], axis: &str, key: &str, label: &str) -> String {
+    let picked: Vec<&Value> = rows.iter().filter(|r| r["axis"] == axis).collect();
+    let mut levels: Vec<&Value> = Vec::new();
+    let mut methods: Vec<&str> = Vec::new();
+    for r in &picked {
+        if !levels.contains(&&r[key]) {
+            levels.push(&r[key]);
+        }
+        let m = r["method"].as_str().unwrap_or("");
+        if !methods.contains(&m) {
+            methods.push(m);
+        }
+    }
+    let header: Vec<String> = std::iter::once(format!("method \\ {label}"))
+        .chain(levels.iter().map(|l| {
+            let v = format!("{:.3}", l.as_f64().unwrap_or(f64::NAN));
+            v.trim_end_matches('0').trim_end_matches('.').to_string()
+        }))
+        .collect();
+    let body: Vec<Vec<String>> = methods
+        .iter()
+        .map(|m| {
+            std::iter::once(m.to_string())
+                .chain(levels.iter().map(|l| {
+                    picked
+                        .iter()
+                        .find(|r| r["method"] == *m && &r[key] == *l)
+                        .map_or("–".into(), |r| {
+                            let c = r["coverage"].as_f64().unwrap_or(1.0);
+                            if c < 0.999 {
+                                format!("{} ({:.0}%)", num(&r["mean_deg"], 2), 100.0 * c)
+                            } else {
+                                num(&r["mean_deg"], 2)
+                            }
+                        })
+                }))
+                .collect()
+        })
+        .collect();
+    let h: Vec<&str> = header.iter().map(String::as_str).collect();
+    table(&h, &body)
+}
+
+/// The generated `README.md` of the bench folder.
+fn summary(
+    sweep: &Value,
+    scaling: &Value,
+    integration: &Value,
+    diligent: &[(String, Value)],
+    methods: &[Value],
+) -> String {
+    let mut s = String::from(
+        "# Benchmarks\n\nGenerated by `photostereo bench all --out docs/bench`; do not edit. \
+         Every chart is here as SVG and PNG beside its CSV/JSON table. Times are medians on \
+         the machine that ran it",
+    );
+    let _ = writeln!(
+        s,
+        " ({} threads); they are for ratios, not absolutes.\n",
+        sweep["threads"]
+    );
+    let normals = sweep["normals"].as_array().cloned().unwrap_or_default();
+    let _ = writeln!(
+        s,
+        "## Normals (`sweep_normals.csv`)\n\nScene: sphere on a ground plane beside a pyramid, \
+         {0}×{0}, attached and cast shadows, Lambertian unless k_s > 0. Mean angular error in \
+         degrees over the solved pixels; the percentage of pixels solved is given where it is \
+         below 100%.\n\n### Against image noise σ ({1} lights)\n\n{2}\n### Against light \
+         count (σ = {3})\n\n{4}\n### Against specular strength k_s (Blinn–Phong n = 50, {1} \
+         lights, σ = {3})\n\n{5}",
+        sweep["size"],
+        sweep["reference_lights"],
+        sweep_table(&normals, "noise", "noise", "σ"),
+        sweep["reference_noise"],
+        sweep_table(&normals, "lights", "images", "lights"),
+        sweep_table(&normals, "specularity", "ks", "k_s"),
+    );
+    let front: Vec<Vec<String>> = sweep["normals_pareto_front"]
+        .as_array()
+        .map(|a| {
+            a.iter()
+                .map(|r| {
+                    vec![
+                        r["method"].as_str().unwrap_or("").to_string(),
+                        r["images"].to_string(),
+                        format!("{:.2}", 1e3 * r["seconds"].as_f64().unwrap_or(f64::NAN)),
+                        num(&r["mean_deg"], 2),
+                    ]
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    let _ = writeln!(
+        s,
+        "### Pareto front over the light counts\n\n{}",
+        table(&["method", "lights", "time (ms)", "mean error (°)"], &front)
+    );
+    let sfs = sweep["sfs"].as_array().cloned().unwrap_or_default();
+    let sfs_rows: Vec<Vec<String>> = sfs
+        .iter()
+        .filter(|r| {
+            [0.0, 0.01, 0.05]
+                .iter()
+                .any(|n| (r["noise"].as_f64().unwrap_or(-1.0) - n).abs() < 1e-6)
+        })
+        .map(|r| {
+            vec![
+                r["method"].as_str().unwrap_or("").to_string(),
+                r["images"].to_string(),
+                r["light_slant_deg"]
+                    .as_f64()
+                    .map_or("–".into(), |v| format!("{v:.0}°")),
+                format!("{:.3}", r["noise"].as_f64().unwrap_or(f64::NAN)),
+                num(&r["mean_deg"], 2),
+                format!("{:.0}%", 100.0 * r["coverage"].as_f64().unwrap_or(f64::NAN)),
+                format!("{:.1}", 1e3 * r["seconds"].as_f64().unwrap_or(f64::NAN)),
+            ]
+        })
+        .collect();
+    let _ = writeln!(
+        s,
+        "## Shape from shading beside photometric stereo (`sweep_sfs.csv`)\n\nA Lambertian \
+         sphere with known albedo.\n\n{}",
+        table(
+            &[
+                "method",
+                "images",
+                "light slant",
+                "σ",
+                "mean error (°)",
+                "solved",
+                "time (ms)"
+            ],
+            &sfs_rows
+        )
+    );
+    let depth = sweep["depth"].as_array().cloned().unwrap_or_default();
+    let depth_rows: Vec<Vec<String>> = depth
+        .iter()
+        .filter(|r| {
+            [0.0, 0.05]
+                .iter()
+                .any(|n| (r["normal_noise"].as_f64().unwrap_or(-1.0) - n).abs() < 1e-9)
+        })
+        .map(|r| {
+            vec![
+                r["scene"].as_str().unwrap_or("").to_string(),
+                r["method"].as_str().unwrap_or("").to_string(),
+                format!("{:.2}°", r["normal_error_deg"].as_f64().unwrap_or(f64::NAN)),
+                format!(
+                    "{:.2}%",
+                    100.0 * r["rmse_over_range"].as_f64().unwrap_or(f64::NAN)
+                ),
+                format!(
+                    "{:.2}%",
+                    100.0 * r["shape_rmse_over_range"].as_f64().unwrap_or(f64::NAN)
+                ),
+                format!("{:.1}", 1e3 * r["seconds"].as_f64().unwrap_or(f64::NAN)),
+            ]
+        })
+        .collect();
+    let _ = writeln!(
+        s,
+        "## Integrators (`sweep_depth.csv`)\n\nTrue normals with noise added. Depth RMSE over \
+         the depth range, after removing one offset, and after removing one offset per object \
+         (the height of a discontinuity is not in the normals).\n\n{}",
+        table(
+            &[
+                "scene",
+                "method",
+                "normal error",
+                "RMSE / range",
+                "per object",
+                "time (ms)"
+            ],
+            &depth_rows
+        )
+    );
+    let slopes = |v: &Value, key: &str| -> Vec<Vec<String>> {
+        v["slopes"]
+            .as_array()
+            .map(|a| {
+                a.iter()
+                    .map(|r| {
+                        vec![
+                            r["method"].as_str().unwrap_or("").to_string(),
+                            num(&r[key], 2),
+                        ]
+                    })
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    let _ = writeln!(
+        s,
+        "## Cost against size\n\nLog-log slopes of time: 1 is linear.\n\nSolvers, against \
+         pixels × lights (`scaling.csv`):\n\n{}\nIntegrators, against pixels in the mask \
+         (`integration.csv`):\n\n{}",
+        table(
+            &["estimator", "slope"],
+            &slopes(scaling, "loglog_slope_vs_samples")
+        ),
+        table(
+            &["integrator", "slope"],
+            &slopes(integration, "loglog_slope_vs_pixels")
+        ),
+    );
+    if let Some(t) = integration["table"].as_str() {
+        let _ = writeln!(s, "{t}");
+    }
+    let peer: Vec<Vec<String>> = integration["poisson_vs_numpy"]
+        .as_array()
+        .map(|a| {
+            a.iter()
+                .map(|r| {
+                    vec![
+                        format!("{}²", r["size"]),
+                        format!(
+                            "{:.1}",
+                            1e3 * r["photostereo_poisson_s"].as_f64().unwrap_or(f64::NAN)
+                        ),
+                        format!(
+                            "{:.1}",
+                            1e3 * r["numpy_dct_poisson_s"].as_f64().unwrap_or(f64::NAN)
+                        ),
+                        format!("{:.1}×", r["speedup"].as_f64().unwrap_or(f64::NAN)),
+                    ]
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    if !peer.is_empty() {
+        let _ = writeln!(
+            s,
+            "DCT Poisson beside `numpy_ps.py poisson N` (scipy's DCT):\n\n{}",
+            table(
+                &["size", "photostereo (ms)", "numpy (ms)", "speed-up"],
+                &peer
+            )
+        );
+    }
+    if diligent.is_empty() {
+        let _ = writeln!(
+            s,
+            "## DiLiGenT\n\nNot run: the data folder was absent when this was generated.\n"
+        );
+        return s;
+    }
+    let stage: Vec<Vec<String>> = diligent
+        .iter()
+        .map(|(o, v)| {
+            vec![
+                o.clone(),
+                format!(
+                    "{:.3}",
+                    v["photostereo"]["load_s"].as_f64().unwrap_or(f64::NAN)
+                ),
+                num(&v["peer"]["load_s"], 3),
+                format!(
+                    "{:.1}×",
+                    v["speedup_per_stage"]["load"].as_f64().unwrap_or(f64::NAN)
+                ),
+                format!(
+                    "{:.3}",
+                    v["photostereo"]["solve_s"].as_f64().unwrap_or(f64::NAN)
+                ),
+                num(&v["peer"]["solve_s"], 3),
+                format!(
+                    "{:.1}×",
+                    v["speedup_per_stage"]["solve"].as_f64().unwrap_or(f64::NAN)
+                ),
+                format!(
+                    "{:.1}×",
+                    v["speedup_process_vs_process"].as_f64().unwrap_or(f64::NAN)
+                ),
+            ]
+        })
+        .collect();
+    let _ = writeln!(
+        s,
+        "## DiLiGenT beside the numpy peer (`diligent_<object>.json`)\n\nBoth solve plain \
+         least squares (`--method ls`) over 96 images of 612×512. Load: read, divide by the \
+         light intensities, grey. Speed-up: the peer's time over ours, same run.\n\n{}",
+        table(
+            &[
+                "object",
+                "load (s)",
+                "peer load (s)",
+                "load speed-up",
+                "solve (s)",
+                "peer solve (s)",
+                "solve speed-up",
+                "whole process"
+            ],
+            &stage
+        )
+    );
+    let m: Vec<Vec<String>> = methods
+        .iter()
+        .map(|r| {
+            vec![
+                r["object"].as_str().unwrap_or("").to_string(),
+                r["method"].as_str().unwrap_or("").to_string(),
+                num(&r["mean_deg"], 2),
+                num(&r["median_deg"], 2),
+                format!("{:.3}", r["seconds"].as_f64().unwrap_or(f64::NAN)),
+            ]
+        })
+        .collect();
+    let _ = writeln!(
+        s,
+        "### Every estimator on DiLiGenT (`diligent_methods.csv`)\n\n{}",
+        table(
+            &["object", "method", "mean (°)", "median (°)", "time (s)"],
+            &m
+        )
+    );
+    s
+}
+
+/// Runs every part and writes `docs/bench` (or `--out`).
+pub fn run(a: &AllBenchArgs, progress: &dyn Progress) -> Result<Value> {
+    let out = &a.out;
+    let peer: Vec<OsString> = vec![
+        "--peer".into(),
+        a.peer.script.clone().into(),
+        "--python".into(),
+        a.peer.python.clone().into(),
+    ];
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    // 1. The sweeps.
+    eprintln!("bench all: sweeps");
+    let mut args = argv(&["sweep", "--out"]);
+    args.push(out.into());
+    if a.quick {
+        args.push("--quick".into());
+    }
+    let sweep = match parse(&args)? {
+        BenchCommand::Sweep(s) => crate::sweep::run(&s, progress)?,
+        _ => bail!("internal: sweep"),
+    };
+    // 2. Solver scaling.
+    eprintln!("bench all: solver scaling");
+    let mut args = argv(&["scaling", "--csv"]);
+    args.extend([
+        out.join("scaling.csv").into(),
+        "--chart".into(),
+        out.join("scaling").into(),
+    ]);
+    if a.quick {
+        args.extend(argv(&["--sizes", "64", "128", "--repeat", "1"]));
+    }
+    let scaling = match parse(&args)? {
+        BenchCommand::Scaling(s) => crate::bench::scaling(&s)?,
+        _ => bail!("internal: scaling"),
+    };
+    write_json(&out.join("scaling.json"), &scaling)?;
+    // 3. Integrators.
+    eprintln!("bench all: integrators");
+    let mut args = argv(&["integration", "--csv"]);
+    args.extend([
+        out.join("integration.csv").into(),
+        "--chart".into(),
+        out.join("integration_time").into(),
+    ]);
+    args.extend(peer.iter().cloned());
+    if a.quick {
+        args.extend(argv(&["--sizes", "64,128", "--repeat", "1"]));
+    }
+    let integration = match parse(&args)? {
+        BenchCommand::Integration(s) => crate::bench::integration(&s)?,
+        _ => bail!("internal: integration"),
+    };
+    write_json(&out.join("integration.json"), &integration)?;
+    // 4. Real data.
+    let mut diligent = Vec::new();
+    let mut methods = Vec::new();
+    let repeat = if a.quick { "1" } else { "3" };
+    for object in DILIGENT_OBJECTS {
+        let dir: PathBuf = a.data.join("diligent").join(format!("{object}PNG"));
+        if !photostereo::dataset::is_diligent_dir(&dir) {
+            eprintln!(
+                "bench all: skipping DiLiGenT {object}: {} is absent",
+                dir.display()
+            );
+            continue;
+        }
+        eprintln!("bench all: DiLiGenT {object}");
+        let mut args = argv(&["diligent"]);
+        args.push(dir.clone().into());
+        args.extend(argv(&[
+            "--method",
+            "ls",
+            "--integrate",
+            "none",
+            "--repeat",
+            repeat,
+        ]));
+        args.extend(peer.iter().cloned());
+        let v = match parse(&args)? {
+            BenchCommand::Diligent(s) => crate::bench::run(&s)?,
+            _ => bail!("internal: diligent"),
+        };
+        write_json(&out.join(format!("diligent_{object}.json")), &v)?;
+        diligent.push((object.to_string(), v));
+        methods.extend(diligent_methods(&dir, object, repeat.parse().unwrap_or(1))?);
+    }
+    if !methods.is_empty() {
+        crate::write_file_atomic(
+            &out.join("diligent_methods.csv"),
+            crate::sweep::csv(
+                &methods,
+                &[
+                    "object",
+                    "method",
+                    "mean_deg",
+                    "median_deg",
+                    "p95_deg",
+                    "seconds",
+                ],
+            )
+            .as_bytes(),
+        )?;
+        diligent_chart(&methods, out)?;
+    }
+    let text = summary(&sweep, &scaling, &integration, &diligent, &methods);
+    crate::write_file_atomic(&out.join("README.md"), text.as_bytes())?;
+    Ok(json!({
+        "out": out,
+        "threads": rayon::current_num_threads(),
+        "diligent_objects": diligent.iter().map(|(o, _)| o.clone()).collect::<Vec<_>>(),
+        "normals_pareto_front": sweep["normals_pareto_front"],
+    }))
+}
