@@ -150,9 +150,15 @@ fn table(header: &[&str], rows: &[Vec<String>]) -> String {
     s
 }
 
-fn num(v: &Value, digits: usize) -> String {
+/// `v` × `scale` with `digits` decimals and `unit`, or a dash when `v` is not a number.
+fn cell(v: &Value, scale: f64, digits: usize, unit: &str) -> String {
     v.as_f64()
-        .map_or_else(|| "–".into(), |x| format!("{x:.digits$}"))
+        .map_or_else(|| "–".into(), |x| format!("{:.digits$}{unit}", x * scale))
+}
+
+/// `v` with `digits` decimals, or a dash.
+fn num(v: &Value, digits: usize) -> String {
+    cell(v, 1.0, digits, "")
 }
 
 /// Methods × levels of `axis` from the sweep's normal rows: mean error (and coverage when
@@ -242,7 +248,7 @@ fn summary(
                     vec![
                         r["method"].as_str().unwrap_or("").to_string(),
                         r["images"].to_string(),
-                        format!("{:.2}", 1e3 * r["seconds"].as_f64().unwrap_or(f64::NAN)),
+                        cell(&r["seconds"], 1e3, 2, ""),
                         num(&r["mean_deg"], 2),
                     ]
                 })
@@ -269,10 +275,10 @@ fn summary(
                 r["light_slant_deg"]
                     .as_f64()
                     .map_or("–".into(), |v| format!("{v:.0}°")),
-                format!("{:.3}", r["noise"].as_f64().unwrap_or(f64::NAN)),
+                cell(&r["noise"], 1.0, 3, ""),
                 num(&r["mean_deg"], 2),
-                format!("{:.0}%", 100.0 * r["coverage"].as_f64().unwrap_or(f64::NAN)),
-                format!("{:.1}", 1e3 * r["seconds"].as_f64().unwrap_or(f64::NAN)),
+                cell(&r["coverage"], 100.0, 0, "%"),
+                cell(&r["seconds"], 1e3, 1, ""),
             ]
         })
         .collect();
@@ -305,16 +311,10 @@ fn summary(
             vec![
                 r["scene"].as_str().unwrap_or("").to_string(),
                 r["method"].as_str().unwrap_or("").to_string(),
-                format!("{:.2}°", r["normal_error_deg"].as_f64().unwrap_or(f64::NAN)),
-                format!(
-                    "{:.2}%",
-                    100.0 * r["rmse_over_range"].as_f64().unwrap_or(f64::NAN)
-                ),
-                format!(
-                    "{:.2}%",
-                    100.0 * r["shape_rmse_over_range"].as_f64().unwrap_or(f64::NAN)
-                ),
-                format!("{:.1}", 1e3 * r["seconds"].as_f64().unwrap_or(f64::NAN)),
+                cell(&r["normal_error_deg"], 1.0, 2, "°"),
+                cell(&r["rmse_over_range"], 100.0, 2, "%"),
+                cell(&r["shape_rmse_over_range"], 100.0, 2, "%"),
+                cell(&r["seconds"], 1e3, 1, ""),
             ]
         })
         .collect();
@@ -374,15 +374,9 @@ fn summary(
                 .map(|r| {
                     vec![
                         format!("{}²", r["size"]),
-                        format!(
-                            "{:.1}",
-                            1e3 * r["photostereo_poisson_s"].as_f64().unwrap_or(f64::NAN)
-                        ),
-                        format!(
-                            "{:.1}",
-                            1e3 * r["numpy_dct_poisson_s"].as_f64().unwrap_or(f64::NAN)
-                        ),
-                        format!("{:.1}×", r["speedup"].as_f64().unwrap_or(f64::NAN)),
+                        cell(&r["photostereo_poisson_s"], 1e3, 1, ""),
+                        cell(&r["numpy_dct_poisson_s"], 1e3, 1, ""),
+                        cell(&r["speedup"], 1.0, 1, "×"),
                     ]
                 })
                 .collect()
@@ -410,28 +404,13 @@ fn summary(
         .map(|(o, v)| {
             vec![
                 o.clone(),
-                format!(
-                    "{:.3}",
-                    v["photostereo"]["load_s"].as_f64().unwrap_or(f64::NAN)
-                ),
+                cell(&v["photostereo"]["load_s"], 1.0, 3, ""),
                 num(&v["peer"]["load_s"], 3),
-                format!(
-                    "{:.1}×",
-                    v["speedup_per_stage"]["load"].as_f64().unwrap_or(f64::NAN)
-                ),
-                format!(
-                    "{:.3}",
-                    v["photostereo"]["solve_s"].as_f64().unwrap_or(f64::NAN)
-                ),
+                cell(&v["speedup_per_stage"]["load"], 1.0, 1, "×"),
+                cell(&v["photostereo"]["solve_s"], 1.0, 3, ""),
                 num(&v["peer"]["solve_s"], 3),
-                format!(
-                    "{:.1}×",
-                    v["speedup_per_stage"]["solve"].as_f64().unwrap_or(f64::NAN)
-                ),
-                format!(
-                    "{:.1}×",
-                    v["speedup_process_vs_process"].as_f64().unwrap_or(f64::NAN)
-                ),
+                cell(&v["speedup_per_stage"]["solve"], 1.0, 1, "×"),
+                cell(&v["speedup_process_vs_process"], 1.0, 1, "×"),
             ]
         })
         .collect();
@@ -462,7 +441,7 @@ fn summary(
                 r["method"].as_str().unwrap_or("").to_string(),
                 num(&r["mean_deg"], 2),
                 num(&r["median_deg"], 2),
-                format!("{:.3}", r["seconds"].as_f64().unwrap_or(f64::NAN)),
+                cell(&r["seconds"], 1.0, 3, ""),
             ]
         })
         .collect();
