@@ -278,3 +278,38 @@ fn the_cli_streams_and_reports_the_plan() {
         assert!(out.join(f).is_file(), "{f} missing");
     }
 }
+
+/// `--band-rows` alone streams (it is not silently ignored) and says so.
+#[test]
+fn band_rows_alone_streams() {
+    let dir = tempfile::tempdir().unwrap();
+    let (files, _) = scene(dir.path(), "png");
+    let out = dir.path().join("out");
+    let mut args: Vec<&std::ffi::OsStr> = files.images.iter().map(|p| p.as_os_str()).collect();
+    let lights = dir.path().join("lights.json");
+    args.extend([
+        common::os("--lights"),
+        lights.as_os_str(),
+        common::os("--band-rows"),
+        common::os("9"),
+        common::os("--integrate"),
+        common::os("poisson"),
+        common::os("-q"),
+        common::os("-o"),
+        out.as_os_str(),
+    ]);
+    let o = common::run(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        stdout.contains("--band-rows 9 without --max-memory"),
+        "{stdout}"
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    assert_eq!(
+        report["streaming"]["band_rows"], 9,
+        "{}",
+        report["streaming"]
+    );
+}

@@ -91,7 +91,8 @@ pub struct RunArgs {
     /// within half of it.
     #[arg(long, value_name = "SIZE")]
     pub max_memory: Option<String>,
-    /// With streaming: rows per band (default: as many as the budget allows).
+    /// Stream in bands of this many rows (default: as many as the budget allows). Alone, it
+    /// streams within half the available memory.
     #[arg(long, value_name = "ROWS")]
     pub band_rows: Option<usize>,
 }

@@ -170,13 +170,29 @@ fn available_memory() -> Option<u64> {
     Some(kib * 1024)
 }
 
-/// Streaming options: `--max-memory` when given; otherwise streaming within half the available
-/// memory when the stack and outputs would need more than 80% of it, else `None`.
+/// Streaming options: `--max-memory` when given; `--band-rows` alone streams within half the
+/// available memory (or without a cap where that is unknown); otherwise streaming within half
+/// the available memory when the stack and outputs would need more than 80% of it, else `None`.
 fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOptions>> {
     if rc.stream.is_some() {
         return Ok(rc.stream);
     }
-    let Some(available) = available_memory() else {
+    let available = available_memory();
+    if let Some(rows) = rc.band_rows {
+        let max_memory = available.map_or(u64::MAX, |a| a / 2);
+        say!(
+            "--band-rows {rows} without --max-memory: streaming within {}",
+            available.map_or("no memory cap".to_string(), |a| format!(
+                "{} MiB (half the available memory)",
+                (a / 2) >> 20
+            ))
+        );
+        return Ok(Some(StreamOptions {
+            max_memory,
+            band_rows: Some(rows),
+        }));
+    }
+    let Some(available) = available else {
         return Ok(None);
     };
     let Some(first) = files.images.first() else {
