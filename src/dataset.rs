@@ -37,6 +37,33 @@ pub fn is_diligent_dir(dir: &Path) -> bool {
 }
 
 impl Capture {
+    /// The capture of images `images` only (indices, in the order given), with their lights
+    /// and the same mask: for measuring what fewer lights give ([`ImageStack::select`]).
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] (`images`) when the list is empty or an index is out of
+    /// range.
+    pub fn select(&self, images: &[usize]) -> Result<Capture> {
+        let stack = self.stack.select(images)?;
+        let lights = Lights::new(
+            images
+                .iter()
+                .map(|&k| self.lights.lights()[k].clone())
+                .collect(),
+        )?;
+        Ok(Capture {
+            stack,
+            lights,
+            mask: self.mask.clone(),
+            images: images
+                .iter()
+                .filter_map(|&k| self.images.get(k).cloned())
+                .collect(),
+            lights_source: self.lights_source.clone(),
+            mask_source: self.mask_source.clone(),
+        })
+    }
+
     /// A capture from an in-memory stack.
     ///
     /// # Errors

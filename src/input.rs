@@ -1066,6 +1066,39 @@ impl ImageStack {
         &self.data[start..start + n]
     }
 
+    /// The stack of images `images` (indices into this one, in the order given; repeats
+    /// allowed), with their saturation flags and load records: for asking what fewer lights
+    /// would have given.
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] (`images`) when the list is empty or an index is out of
+    /// range.
+    pub fn select(&self, images: &[usize]) -> Result<ImageStack> {
+        if images.is_empty() {
+            return Err(Error::param("images", "no image selected"));
+        }
+        if let Some(k) = images.iter().find(|k| **k >= self.count) {
+            return Err(Error::param(
+                "images",
+                format!("index {k} is out of range for a stack of {}", self.count),
+            ));
+        }
+        let n = self.window.len() * self.channels;
+        let mut data = Vec::with_capacity(n * images.len());
+        for &k in images {
+            data.extend_from_slice(&self.data[k * n..(k + 1) * n]);
+        }
+        Ok(ImageStack::from_parts(
+            self.width,
+            self.height,
+            self.channels,
+            data,
+            images.iter().map(|&k| self.saturated[k].clone()).collect(),
+            images.iter().map(|&k| self.info[k].clone()).collect(),
+            self.window,
+        ))
+    }
+
     /// Index in [`ImageStack::plane`] of pixel `pixel` of the image; `None` outside the window.
     pub fn local(&self, pixel: usize) -> Option<usize> {
         self.window.local(self.width, pixel)

@@ -279,6 +279,64 @@ impl Lights {
         self.lights.get(index)
     }
 
+    /// Indices of `count` well-spread lights, by greedy farthest-point selection: first the
+    /// light nearest the mean direction, then each time the light whose smallest angle to
+    /// those chosen is largest (ties to the lower index). The indices are returned sorted.
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] (`count`) when it is 0 or more than there are lights.
+    ///
+    /// # Example
+    /// ```
+    /// use photostereo::lights::Lights;
+    /// let lights = Lights::fibonacci(40, 20.0)?;
+    /// let pick = lights.spread(4)?;
+    /// assert_eq!(pick.len(), 4);
+    /// // Four spread lights are far better conditioned than four neighbours.
+    /// let near = Lights::new(lights.lights()[..4].to_vec())?;
+    /// let spread = Lights::new(pick.iter().map(|&k| lights.lights()[k].clone()).collect())?;
+    /// assert!(spread.condition_number() < near.condition_number());
+    /// # Ok::<(), photostereo::Error>(())
+    /// ```
+    pub fn spread(&self, count: usize) -> Result<Vec<usize>> {
+        let n = self.lights.len();
+        if count == 0 || count > n {
+            return Err(Error::param(
+                "count",
+                format!("{count} lights asked of {n}"),
+            ));
+        }
+        let dirs: Vec<Vector3<f64>> = self
+            .lights
+            .iter()
+            .map(|l| l.direction.normalize())
+            .collect();
+        let mean = dirs.iter().sum::<Vector3<f64>>();
+        let first = (0..n)
+            .max_by(|&a, &b| {
+                dirs[a]
+                    .dot(&mean)
+                    .total_cmp(&dirs[b].dot(&mean))
+                    .then(b.cmp(&a))
+            })
+            .unwrap_or(0);
+        let mut chosen = vec![first];
+        // Cosine of the nearest chosen light, per light (larger is nearer).
+        let mut nearest: Vec<f64> = dirs.iter().map(|d| d.dot(&dirs[first])).collect();
+        while chosen.len() < count {
+            let next = (0..n)
+                .filter(|k| !chosen.contains(k))
+                .min_by(|&a, &b| nearest[a].total_cmp(&nearest[b]).then(a.cmp(&b)))
+                .unwrap_or(0);
+            chosen.push(next);
+            for (c, d) in nearest.iter_mut().zip(&dirs) {
+                *c = c.max(d.dot(&dirs[next]));
+            }
+        }
+        chosen.sort_unstable();
+        Ok(chosen)
+    }
+
     /// Unit directions in order.
     pub fn directions(&self) -> Vec<Vector3<f64>> {
         self.lights.iter().map(|l| l.direction).collect()

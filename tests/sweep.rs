@@ -457,3 +457,207 @@ fn bench_diligent_reports_per_stage_ratios() {
         );
     }
 }
+
+/// Smallest angle between two of `dirs`, in degrees.
+fn min_angle(dirs: &[photostereo::nalgebra::Vector3<f64>]) -> f64 {
+    let mut best = f64::INFINITY;
+    for i in 0..dirs.len() {
+        for j in i + 1..dirs.len() {
+            best = best.min(
+                dirs[i]
+                    .normalize()
+                    .dot(&dirs[j].normalize())
+                    .clamp(-1.0, 1.0)
+                    .acos(),
+            );
+        }
+    }
+    best.to_degrees()
+}
+
+/// Well-spread subsets: distinct sorted indices, every light at the full count, and a larger
+/// smallest separation than the first or every k-th lights of a spiral.
+#[test]
+fn spread_lights_are_well_separated() {
+    let lights = photostereo::lights::Lights::fibonacci(96, 20.0).unwrap();
+    let dirs = lights.directions();
+    for count in [3usize, 6, 12, 24] {
+        let pick = lights.spread(count).unwrap();
+        assert_eq!(pick.len(), count);
+        assert!(pick.windows(2).all(|w| w[0] < w[1]), "{pick:?}");
+        let chosen: Vec<_> = pick.iter().map(|&k| dirs[k]).collect();
+        let first: Vec<_> = dirs[..count].to_vec();
+        let strided: Vec<_> = (0..count).map(|i| dirs[i * 96 / count]).collect();
+        let (a, b, c) = (min_angle(&chosen), min_angle(&first), min_angle(&strided));
+        assert!(
+            a > b && a >= c * 0.9,
+            "{count}: spread {a:.1}° first {b:.1}° strided {c:.1}°"
+        );
+    }
+    assert_eq!(lights.spread(96).unwrap(), (0..96).collect::<Vec<_>>());
+    assert!(lights.spread(0).is_err());
+    assert!(lights.spread(97).unwrap_err().to_string().contains("count"));
+}
+
+/// A selected capture is the capture those lights would have given: solving it matches the
+/// truth as well as a capture rendered under those lights alone, and indices are checked.
+#[test]
+fn a_selected_capture_matches_one_rendered_with_those_lights() {
+    use photostereo::input::ColorMode;
+    use photostereo::pipeline::{Config, reconstruct};
+    use photostereo::render::{RenderOptions, render};
+    use photostereo::solve::SolveOptions;
+    let scene = Scene::sphere(64, 26.0, Albedo::Constant(0.6));
+    let all = photostereo::lights::Lights::fibonacci(48, 30.0).unwrap();
+    let render_capture = |lights: &photostereo::lights::Lights| {
+        let r = render(&scene, lights, &RenderOptions::default()).unwrap();
+        let stack = r.to_stack(lights, ColorMode::Grey).unwrap();
+        (
+            photostereo::dataset::Capture::from_stack(
+                stack,
+                lights.clone(),
+                Some(r.truth.mask.clone()),
+            )
+            .unwrap(),
+            r.truth,
+        )
+    };
+    let (capture, truth) = render_capture(&all);
+    let pick = all.spread(6).unwrap();
+    let sub = capture.select(&pick).unwrap();
+    assert_eq!(sub.lights.len(), 6);
+    assert_eq!(sub.stack.count(), 6);
+    let direct =
+        photostereo::lights::Lights::new(pick.iter().map(|&k| all.lights()[k].clone()).collect())
+            .unwrap();
+    let (rendered, _) = render_capture(&direct);
+    for k in 0..6 {
+        assert_eq!(
+            sub.stack.plane(k, 0),
+            rendered.stack.plane(k, 0),
+            "image {k}"
+        );
+    }
+    let config = Config {
+        solve: SolveOptions::with_method(Method::Threshold),
+        integration: None,
+        ..Config::default()
+    };
+    let e = angular_errors(
+        &reconstruct(&sub, &config, &photostereo::progress::Silent)
+            .unwrap()
+            .normals,
+        &truth.normals,
+        &truth.mask,
+    )
+    .unwrap();
+    assert!(e.mean_deg < 0.01, "{}", e.mean_deg);
+    assert!(capture.select(&[]).is_err());
+    assert!(
+        capture
+            .select(&[0, 48])
+            .unwrap_err()
+            .to_string()
+            .contains("48")
+    );
+}
+
+/// `bench all --quick` on the shared DiLiGenT data: the per-stage peer comparison, every
+/// estimator's error (plain least squares reproduces the benchmark's 8.41° and 8.39°), and the
+/// light-count sweep on well-spread subsets, as tables and charts.
+#[test]
+fn bench_all_on_real_data() {
+    let data = require_shared!("diligent/catPNG");
+    let data = data
+        .parent()
+        .and_then(|p| p.parent())
+        .unwrap()
+        .to_path_buf();
+    let peer =
+        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/peers/numpy_ps.py");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("bench");
+    let o = common::run(&[
+        common::os("bench"),
+        common::os("all"),
+        common::os("--quick"),
+        common::os("-q"),
+        common::os("--out"),
+        out.as_os_str(),
+        common::os("--data"),
+        data.as_os_str(),
+        common::os("--peer"),
+        peer.as_os_str(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let read = |f: &str| std::fs::read_to_string(out.join(f)).unwrap();
+    let rows = |f: &str| -> Vec<std::collections::HashMap<String, String>> {
+        let text = read(f);
+        let mut lines = text.lines();
+        let header: Vec<String> = lines.next().unwrap().split(',').map(String::from).collect();
+        lines
+            .map(|l| {
+                header
+                    .iter()
+                    .cloned()
+                    .zip(l.split(',').map(String::from))
+                    .collect()
+            })
+            .collect()
+    };
+    let value =
+        |r: &std::collections::HashMap<String, String>, k: &str| -> f64 { r[k].parse().unwrap() };
+    let methods = rows("diligent_methods.csv");
+    assert_eq!(methods.len(), 2 * Method::ALL.len());
+    for (object, reference) in [("cat", 8.41), ("bear", 8.39)] {
+        let of = |m: &str| {
+            methods
+                .iter()
+                .find(|r| r["object"] == object && r["method"] == m)
+                .unwrap()
+        };
+        let ls = value(of("ls"), "mean_deg");
+        assert!((ls - reference).abs() < 0.02, "{object}: ls {ls}");
+        assert!(value(of("auto"), "mean_deg") < ls - 2.0, "{object}");
+        let stage: serde_json::Value =
+            serde_json::from_str(&read(&format!("diligent_{object}.json"))).unwrap();
+        if stage["peer"].is_object() {
+            assert!(stage["speedup_per_stage"]["load"].as_f64().unwrap() > 0.0);
+        }
+    }
+    let lights = rows("diligent_lights.csv");
+    assert_eq!(lights.len(), 2 * 7 * Method::ALL.len());
+    for r in &lights {
+        let c = value(r, "coverage");
+        assert!(
+            (0.0..=1.0).contains(&c) && value(r, "mean_deg").is_finite(),
+            "{r:?}"
+        );
+    }
+    // All 96 lights: the same numbers as the per-method table.
+    for r in lights.iter().filter(|r| r["lights"] == "96") {
+        let m = methods
+            .iter()
+            .find(|m| m["object"] == r["object"] && m["method"] == r["method"])
+            .unwrap();
+        assert!(
+            (value(r, "mean_deg") - value(m, "mean_deg")).abs() < 1e-4,
+            "{r:?}"
+        );
+    }
+    for stem in [
+        "diligent_pareto",
+        "diligent_lights_cat",
+        "diligent_lights_bear",
+    ] {
+        assert!(
+            out.join(format!("{stem}.png")).is_file() && out.join(format!("{stem}.svg")).is_file(),
+            "{stem}"
+        );
+    }
+    let readme = read("README.md");
+    assert!(
+        readme.contains("## DiLiGenT beside the numpy peer")
+            && readme.contains("against light count")
+    );
+}
