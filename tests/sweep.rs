@@ -327,13 +327,13 @@ fn bad_sweep_options_name_the_parameter() {
     }
 }
 
-/// `bench all --quick` without data or peer: every sweep table and chart, the scaling and
-/// integration parts, DiLiGenT skipped with a message, and a generated README.
-#[test]
-fn bench_all_writes_every_table_and_chart() {
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("bench");
-    let o = common::run(&[
+/// Runs `photostereo bench all --quick -q` into `out` with `data` and `peer`.
+fn bench_all_quick(
+    out: &std::path::Path,
+    data: &std::path::Path,
+    peer: &std::path::Path,
+) -> std::process::Output {
+    common::run(&[
         common::os("bench"),
         common::os("all"),
         common::os("--quick"),
@@ -341,10 +341,23 @@ fn bench_all_writes_every_table_and_chart() {
         common::os("--out"),
         out.as_os_str(),
         common::os("--data"),
-        dir.path().join("no-data").as_os_str(),
+        data.as_os_str(),
         common::os("--peer"),
-        dir.path().join("no-peer.py").as_os_str(),
-    ]);
+        peer.as_os_str(),
+    ])
+}
+
+/// `bench all --quick` without data or peer: every sweep table and chart, the scaling and
+/// integration parts, DiLiGenT skipped with a message, and a generated README.
+#[test]
+fn bench_all_writes_every_table_and_chart() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("bench");
+    let o = bench_all_quick(
+        &out,
+        &dir.path().join("no-data"),
+        &dir.path().join("no-peer.py"),
+    );
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
     assert!(stderr.contains("skipping DiLiGenT cat"), "{stderr}");
@@ -577,18 +590,7 @@ fn bench_all_on_real_data() {
         std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/peers/numpy_ps.py");
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("bench");
-    let o = common::run(&[
-        common::os("bench"),
-        common::os("all"),
-        common::os("--quick"),
-        common::os("-q"),
-        common::os("--out"),
-        out.as_os_str(),
-        common::os("--data"),
-        data.as_os_str(),
-        common::os("--peer"),
-        peer.as_os_str(),
-    ]);
+    let o = bench_all_quick(&out, &data, &peer);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let read = |f: &str| std::fs::read_to_string(out.join(f)).unwrap();
     let rows = |f: &str| -> Vec<std::collections::HashMap<String, String>> {

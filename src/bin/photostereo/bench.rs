@@ -287,11 +287,11 @@ pub fn integration(a: &IntegrationBenchArgs) -> Result<serde_json::Value> {
         )?;
     }
     if let Some(path) = &a.csv {
-        let text = crate::sweep::csv(
+        crate::sweep::write_csv(
+            path,
             &rows,
             &["method", "size", "pixels", "time_s", "rmse_over_range"],
-        );
-        crate::write_file_atomic(path, text.as_bytes())?;
+        )?;
     }
     Ok(
         json!({"threads": rayon::current_num_threads(), "integrators": rows,
@@ -692,20 +692,19 @@ pub fn scaling(a: &crate::args::ScalingBenchArgs) -> Result<serde_json::Value> {
         )?;
     }
     if let Some(path) = &a.csv {
-        let mut text = String::from("method,size,pixels,lights,samples,solve_s,ns_per_sample\n");
-        for r in &rows {
-            text += &format!(
-                "{},{},{},{},{},{:.6},{:.3}\n",
-                r["method"].as_str().unwrap_or(""),
-                r["size"],
-                r["pixels"],
-                r["lights"],
-                r["samples"],
-                r["solve_s"].as_f64().unwrap_or(f64::NAN),
-                r["ns_per_sample"].as_f64().unwrap_or(f64::NAN)
-            );
-        }
-        crate::write_file_atomic(path, text.as_bytes())?;
+        crate::sweep::write_csv(
+            path,
+            &rows,
+            &[
+                "method",
+                "size",
+                "pixels",
+                "lights",
+                "samples",
+                "solve_s",
+                "ns_per_sample",
+            ],
+        )?;
     }
     Ok(json!({
         "threads": rayon::current_num_threads(),

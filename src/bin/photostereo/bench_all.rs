@@ -651,39 +651,33 @@ pub fn run(a: &AllBenchArgs, progress: &dyn Progress) -> Result<Value> {
         lights.extend(diligent_lights(&capture, &gt, object)?);
     }
     if !lights.is_empty() {
-        crate::write_file_atomic(
+        crate::sweep::write_csv(
             &out.join("diligent_lights.csv"),
-            crate::sweep::csv(
-                &lights,
-                &[
-                    "object",
-                    "method",
-                    "lights",
-                    "mean_deg",
-                    "median_deg",
-                    "coverage",
-                    "seconds",
-                ],
-            )
-            .as_bytes(),
+            &lights,
+            &[
+                "object",
+                "method",
+                "lights",
+                "mean_deg",
+                "median_deg",
+                "coverage",
+                "seconds",
+            ],
         )?;
         diligent_lights_charts(&lights, out)?;
     }
     if !methods.is_empty() {
-        crate::write_file_atomic(
+        crate::sweep::write_csv(
             &out.join("diligent_methods.csv"),
-            crate::sweep::csv(
-                &methods,
-                &[
-                    "object",
-                    "method",
-                    "mean_deg",
-                    "median_deg",
-                    "p95_deg",
-                    "seconds",
-                ],
-            )
-            .as_bytes(),
+            &methods,
+            &[
+                "object",
+                "method",
+                "mean_deg",
+                "median_deg",
+                "p95_deg",
+                "seconds",
+            ],
         )?;
         diligent_chart(&methods, out)?;
     }

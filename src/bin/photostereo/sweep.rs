@@ -29,8 +29,13 @@ fn quick(mut o: SweepOptions) -> SweepOptions {
     o
 }
 
+/// Writes `rows` as CSV with `columns` to `path`, atomically.
+pub fn write_csv(path: &Path, rows: &[Value], columns: &[&str]) -> Result<()> {
+    crate::write_file_atomic(path, csv(rows, columns).as_bytes())
+}
+
 /// `rows` as CSV with `columns` (JSON strings unquoted, null as empty).
-pub fn csv(rows: &[Value], columns: &[&str]) -> String {
+fn csv(rows: &[Value], columns: &[&str]) -> String {
     let mut out = columns.join(",") + "\n";
     for r in rows {
         let cells: Vec<String> = columns
@@ -385,30 +390,21 @@ pub fn run(a: &SweepBenchArgs, progress: &dyn Progress) -> Result<Value> {
         "coverage",
         "seconds",
     ];
-    crate::write_file_atomic(
-        &a.out.join("sweep_normals.csv"),
-        csv(&nv, &normal_columns).as_bytes(),
-    )?;
-    crate::write_file_atomic(
-        &a.out.join("sweep_sfs.csv"),
-        csv(&sv, &normal_columns).as_bytes(),
-    )?;
-    crate::write_file_atomic(
+    write_csv(&a.out.join("sweep_normals.csv"), &nv, &normal_columns)?;
+    write_csv(&a.out.join("sweep_sfs.csv"), &sv, &normal_columns)?;
+    write_csv(
         &a.out.join("sweep_depth.csv"),
-        csv(
-            &dv,
-            &[
-                "scene",
-                "method",
-                "normal_noise",
-                "normal_error_deg",
-                "rmse_over_range",
-                "shape_rmse_over_range",
-                "pixels",
-                "seconds",
-            ],
-        )
-        .as_bytes(),
+        &dv,
+        &[
+            "scene",
+            "method",
+            "normal_noise",
+            "normal_error_deg",
+            "rmse_over_range",
+            "shape_rmse_over_range",
+            "pixels",
+            "seconds",
+        ],
     )?;
     normal_charts(&normals, &o, &a.out)?;
     sfs_chart(&sfs, &o, &a.out)?;
