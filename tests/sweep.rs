@@ -662,4 +662,30 @@ fn bench_all_on_real_data() {
         readme.contains("## DiLiGenT beside the numpy peer")
             && readme.contains("against light count")
     );
+
+    // Every integrator on the shared depth data: cat and bear with K, the vase exact and
+    // noisy.
+    let depth = rows("integration_real.csv");
+    assert_eq!(
+        depth.len(),
+        4 * photostereo::integrate::Integrator::ALL.len()
+    );
+    for r in &depth {
+        assert!(
+            value(r, "error") > 0.0 && value(r, "seconds") > 0.0,
+            "{r:?}"
+        );
+    }
+    let made = |object: &str, m: &str| {
+        value(
+            depth
+                .iter()
+                .find(|r| r["dataset"] == object && r["method"] == m)
+                .unwrap(),
+            "error",
+        )
+    };
+    // Cat's occlusion edges: the discontinuity-preserving method is far better.
+    assert!(made("cat", "bilateral") < 0.2 * made("cat", "masked-ls"));
+    assert!(out.join("integration_diligent.png").is_file());
 }

@@ -41,6 +41,10 @@ fn csv(rows: &[Value], columns: &[&str]) -> String {
         let cells: Vec<String> = columns
             .iter()
             .map(|c| match &r[*c] {
+                // RFC 4180: a field holding a comma, quote or line break is quoted.
+                Value::String(s) if s.contains([',', '"', '\n']) => {
+                    format!("\"{}\"", s.replace('"', "\"\""))
+                }
                 Value::String(s) => s.clone(),
                 Value::Null => String::new(),
                 Value::Number(n) => match n.as_f64() {
