@@ -93,13 +93,17 @@ fn bench_load_diligent(c: &mut Criterion) {
 }
 
 /// A 512² sphere under 24 lights as 16-bit PNGs: decoded whole and solved in memory, against
-/// streamed in bands of 64 rows (`photostereo::stream`), load included in both.
+/// streamed in bands of 64 rows (`photostereo::stream`), load included in both; then the same
+/// with the outputs written (Poisson integration), in memory against band by band.
 fn bench_stream(c: &mut Criterion) {
     use photostereo::dataset::{CaptureFiles, ImageFormat, write_synthetic};
     use photostereo::input::{ColorMode, LoadOptions};
-    use photostereo::pipeline::{Config, reconstruct_normals};
+    use photostereo::integrate::{IntegrationOptions, Integrator};
+    use photostereo::pipeline::{Config, reconstruct_and_write, reconstruct_normals};
     use photostereo::render::render;
-    use photostereo::stream::{StreamOptions, reconstruct_streamed};
+    use photostereo::stream::{
+        StreamOptions, reconstruct_and_write_streamed, reconstruct_streamed,
+    };
     let dir = tempfile::tempdir().unwrap();
     let scene = Scene::sphere(512, 240.0, Albedo::Constant(0.6));
     let lights = Lights::fibonacci(24, 25.0).unwrap();
@@ -146,6 +150,31 @@ fn bench_stream(c: &mut Criterion) {
     g.bench_function("streamed_64_rows", |b| {
         b.iter(|| {
             black_box(reconstruct_streamed(&files, &load, &config, &stream, &Silent).unwrap())
+        })
+    });
+    let written = Config {
+        integration: Some(IntegrationOptions {
+            method: Integrator::Poisson,
+            ..IntegrationOptions::default()
+        }),
+        ..Config::default()
+    };
+    let out = dir.path().join("out");
+    g.bench_function("in_memory_written", |b| {
+        b.iter(|| {
+            let capture = files.load(&load, &Silent).unwrap();
+            black_box(
+                reconstruct_and_write(&capture, &written, &out, 0.0, &Silent, |_| Ok(None))
+                    .unwrap(),
+            )
+        })
+    });
+    g.bench_function("streamed_64_rows_written", |b| {
+        b.iter(|| {
+            black_box(
+                reconstruct_and_write_streamed(&files, &load, &written, &stream, &out, &Silent)
+                    .unwrap(),
+            )
         })
     });
     g.finish();

@@ -90,6 +90,11 @@ impl<T> Grid<T> {
         self.data.is_empty()
     }
 
+    /// The row-major values, taken out of the grid.
+    pub fn into_data(self) -> Vec<T> {
+        self.data
+    }
+
     /// The element at column `x`, row `y`.
     ///
     /// # Panics

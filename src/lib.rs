@@ -29,6 +29,7 @@
 //! ```
 #![deny(missing_docs)]
 
+mod band_output;
 mod bands;
 mod buffer;
 pub mod calibrate;
@@ -36,6 +37,7 @@ pub mod camera;
 pub mod color;
 pub mod dataset;
 pub mod demo;
+mod encode;
 pub mod error;
 pub mod grid;
 pub mod input;

@@ -123,7 +123,18 @@ pub(crate) fn finite_sorted(map: &ScalarMap) -> Vec<f64> {
 
 /// Mean and median of the finite values of `map` (NaN for both when there are none).
 pub fn summarize(map: &ScalarMap) -> MapSummary {
-    let v = finite_sorted(map);
+    summarize_values(map.data().iter().copied())
+}
+
+/// [`summarize`] of values gathered in any order (e.g. band by band): mean and median of the
+/// finite ones, summed in sorted order so that the result does not depend on the order.
+pub fn summarize_values(values: impl IntoIterator<Item = f32>) -> MapSummary {
+    let mut v: Vec<f64> = values
+        .into_iter()
+        .filter(|v| v.is_finite())
+        .map(f64::from)
+        .collect();
+    v.sort_by(f64::total_cmp);
     if v.is_empty() {
         return MapSummary {
             mean: f64::NAN,

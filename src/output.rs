@@ -7,6 +7,7 @@
 //! cannot create unnamed files, it is a hidden `.NAME.tmp-PID` beside the destination, removed
 //! when the [`OutputDir`] is dropped uncommitted (a killed process can leave those).
 
+use crate::encode::{encode_exr, encode_png8};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
 use crate::input::linear_to_srgb;
@@ -38,6 +39,48 @@ enum Temp {
     Anonymous(File),
     /// A hidden file beside the destination.
     Named(PathBuf),
+}
+
+/// A file of an [`OutputDir`] being written ([`OutputDir::begin`]): a temporary that becomes
+/// the file only when staged ([`OutputDir::add`]) and committed. Dropped before that, it leaves
+/// nothing behind.
+#[derive(Debug)]
+pub struct PendingFile {
+    file: File,
+    /// The hidden name of the temporary, where it has one.
+    named: Option<NamedTemp>,
+    dest: PathBuf,
+}
+
+impl PendingFile {
+    /// The temporary to write to.
+    pub fn file_mut(&mut self) -> &mut File {
+        &mut self.file
+    }
+
+    /// The path the file will have, to name in errors.
+    pub fn path(&self) -> &Path {
+        &self.dest
+    }
+}
+
+/// A named temporary, removed when dropped unless kept.
+#[derive(Debug)]
+struct NamedTemp(PathBuf);
+
+impl NamedTemp {
+    /// The path, no longer removed on drop.
+    fn keep(mut self) -> PathBuf {
+        std::mem::take(&mut self.0)
+    }
+}
+
+impl Drop for NamedTemp {
+    fn drop(&mut self) {
+        if !self.0.as_os_str().is_empty() {
+            let _ = std::fs::remove_file(&self.0);
+        }
+    }
 }
 
 /// An unnamed file in folder `dir`, or `None` where the platform or file system cannot make
@@ -196,37 +239,57 @@ impl OutputDir {
         &self.dir
     }
 
-    /// Writes `name` (a file name, or a relative path whose folders are created) to a
-    /// temporary with `write` (given the file and the path to name in errors), to be put in
-    /// place by [`OutputDir::commit`].
+    /// Opens a temporary for the file `name` (a file name, or a relative path whose folders
+    /// are created), to be written and then staged with [`OutputDir::add`]; dropped instead, it
+    /// leaves nothing behind.
+    ///
+    /// # Errors
+    /// [`Error::Io`] when the folder or the temporary cannot be created.
+    pub fn begin(&self, name: &str) -> Result<PendingFile> {
+        let dest = self.dir.join(name);
+        let parent = dest.parent().unwrap_or(&self.dir);
+        std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
+        if let Some(file) = self.anonymous.then(|| anonymous_file(parent)).flatten() {
+            return Ok(PendingFile {
+                file,
+                named: None,
+                dest,
+            });
+        }
+        let tmp = temp_path(&dest);
+        let file = File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
+        Ok(PendingFile {
+            file,
+            named: Some(NamedTemp(tmp)),
+            dest,
+        })
+    }
+
+    /// Stages a file opened with [`OutputDir::begin`] and written: it is put in place by
+    /// [`OutputDir::commit`].
+    pub fn add(&mut self, file: PendingFile) {
+        let PendingFile { file, named, dest } = file;
+        let temp = match named {
+            Some(n) => {
+                drop(file);
+                Temp::Named(n.keep())
+            }
+            None => Temp::Anonymous(file),
+        };
+        self.staged.push(Staged { temp, dest });
+    }
+
+    /// Writes `name` to a temporary with `write` (given the file and the path to name in
+    /// errors), to be put in place by [`OutputDir::commit`].
     fn stage(
         &mut self,
         name: &str,
         write: impl FnOnce(&mut File, &Path) -> Result<()>,
     ) -> Result<()> {
-        let dest = self.dir.join(name);
-        let parent = dest.parent().unwrap_or(&self.dir);
-        std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
-        if let Some(mut file) = self.anonymous.then(|| anonymous_file(parent)).flatten() {
-            write(&mut file, &dest)?;
-            self.staged.push(Staged {
-                temp: Temp::Anonymous(file),
-                dest,
-            });
-            return Ok(());
-        }
-        let tmp = temp_path(&dest);
-        let result = File::create(&tmp)
-            .map_err(|e| Error::io(&tmp, e))
-            .and_then(|mut file| write(&mut file, &tmp));
-        if result.is_err() {
-            let _ = std::fs::remove_file(&tmp);
-            return result;
-        }
-        self.staged.push(Staged {
-            temp: Temp::Named(tmp),
-            dest,
-        });
+        let mut file = self.begin(name)?;
+        let dest = file.dest.clone();
+        write(file.file_mut(), &dest)?;
+        self.add(file);
         Ok(())
     }
 
@@ -364,59 +427,6 @@ pub fn write_exr(
     encode_exr(&mut file, path, width, height, channels, attributes)
 }
 
-/// Encodes a float32 EXR (ZIP) into `file`; `path` names it in errors.
-fn encode_exr(
-    file: &mut File,
-    path: &Path,
-    width: usize,
-    height: usize,
-    channels: &[ExrChannel],
-    attributes: &[(&str, String)],
-) -> Result<()> {
-    use exr::prelude::*;
-    let n = width * height;
-    let mut list = SmallVec::new();
-    for (cname, data) in channels {
-        if data.len() != n {
-            return Err(crate::Error::param(
-                "channel",
-                format!(
-                    "channel {cname} has {} values for {width}x{height}",
-                    data.len()
-                ),
-            ));
-        }
-        let text = Text::new_or_none(cname).ok_or_else(|| {
-            crate::Error::param("channel", format!("channel name {cname:?} is not Latin-1"))
-        })?;
-        list.push(AnyChannel::new(text, FlatSamples::F32(data.to_vec())));
-    }
-    let mut attrs = LayerAttributes::default();
-    for (key, value) in attributes {
-        if let (Some(k), Some(v)) = (Text::new_or_none(key), Text::new_or_none(value)) {
-            attrs.other.insert(k, AttributeValue::Text(v));
-        }
-    }
-    let layer = Layer::new(
-        (width, height),
-        attrs,
-        Encoding::SMALL_LOSSLESS,
-        AnyChannels::sort(list),
-    );
-    let mut out = BufWriter::new(file);
-    Image::from_layer(layer)
-        .write()
-        .to_buffered(&mut out)
-        .map_err(|e| match e {
-            exr::error::Error::Io(io) => crate::Error::io(path, io),
-            other => crate::Error::Encode {
-                path: path.to_path_buf(),
-                reason: other.to_string(),
-            },
-        })?;
-    out.flush().map_err(|e| crate::Error::io(path, e))
-}
-
 fn encode_err(path: &Path, e: image::ImageError) -> Error {
     match e {
         image::ImageError::IoError(io) => Error::io(path, io),
@@ -440,33 +450,6 @@ pub fn write_png8(
 ) -> Result<()> {
     let mut file = File::create(path).map_err(|e| Error::io(path, e))?;
     encode_png8(&mut file, path, width, height, channels, data)
-}
-
-/// Encodes an 8-bit PNG into `file`; `path` names it in errors.
-fn encode_png8(
-    file: &mut File,
-    path: &Path,
-    width: usize,
-    height: usize,
-    channels: usize,
-    data: &[u8],
-) -> Result<()> {
-    use image::ImageEncoder;
-    let color = match channels {
-        1 => image::ExtendedColorType::L8,
-        3 => image::ExtendedColorType::Rgb8,
-        _ => {
-            return Err(Error::param(
-                "channels",
-                format!("{channels}: 1 or 3 expected"),
-            ));
-        }
-    };
-    let mut w = BufWriter::new(file);
-    image::codecs::png::PngEncoder::new(&mut w)
-        .write_image(data, width as u32, height as u32, color)
-        .map_err(|e| encode_err(path, e))?;
-    w.flush().map_err(|e| Error::io(path, e))
 }
 
 /// Writes a 16-bit PNG with 1 or 3 interleaved channels.

@@ -15,7 +15,7 @@ use crate::normals::{
     IntegrabilitySummary, albedo_and_normals, combine_channels, gradients, integrability,
 };
 use crate::output::{
-    OutputDir, depth_preview, mask_bytes, nan_outside, normal_planes, normal_preview,
+    ExrChannel, OutputDir, depth_preview, mask_bytes, nan_outside, normal_planes, normal_preview,
     scalar_preview,
 };
 use crate::progress::Progress;
@@ -201,6 +201,184 @@ pub(crate) struct InputFacts<'a> {
     pub unmasked_files: bool,
 }
 
+/// The per-pixel maps of a solve, over a whole image or a band of rows: what every pixel's
+/// outputs are made of.
+pub(crate) struct PixelMaps {
+    /// Unit normals; NaN where not solved.
+    pub normals: NormalMap,
+    /// Albedo per channel.
+    pub albedo: Vec<ScalarMap>,
+    /// RMS residual (largest over channels).
+    pub residual: ScalarMap,
+    /// Samples used (fewest over channels).
+    pub samples: Grid<u16>,
+    /// Condition number (largest over channels).
+    pub condition: ScalarMap,
+    /// Outcome per pixel.
+    pub status: Grid<PixelStatus>,
+    /// Pixels with a normal.
+    pub solved: Mask,
+    /// Solved pixels fitted by a robust estimator (any channel).
+    pub robust: Mask,
+}
+
+/// Albedo, normals and status of the per-channel solutions (one channel taken as it is).
+fn albedo_normals_status(solutions: &[Solution]) -> (Vec<ScalarMap>, NormalMap, Grid<PixelStatus>) {
+    match solutions {
+        [one] => {
+            let (a, n) = albedo_and_normals(one);
+            (vec![a], n, one.status.clone())
+        }
+        _ => combine_channels(solutions),
+    }
+}
+
+/// Residual, condition, samples and the robust flag per pixel: the worst channel.
+fn per_pixel(solutions: &[Solution], solved: &Mask) -> (ScalarMap, ScalarMap, Grid<u16>, Mask) {
+    let (w, h) = (solved.width(), solved.height());
+    let fold = |f: &dyn Fn(&Solution) -> &ScalarMap, pick: fn(f32, f32) -> f32| match solutions {
+        [one] => f(one).clone(),
+        _ => Grid::from_fn(w, h, |x, y| {
+            solutions
+                .iter()
+                .map(|s| *f(s).at(x, y))
+                .reduce(pick)
+                .unwrap_or(f32::NAN)
+        }),
+    };
+    let residual = fold(&|s| &s.residual, f32::max);
+    let condition = fold(&|s| &s.condition, f32::max);
+    let samples = match solutions {
+        [one] => one.samples.clone(),
+        _ => Grid::from_fn(w, h, |x, y| {
+            solutions
+                .iter()
+                .map(|s| *s.samples.at(x, y))
+                .min()
+                .unwrap_or(0)
+        }),
+    };
+    let robust = Grid::from_fn(w, h, |x, y| {
+        *solved.at(x, y) && solutions.iter().any(|s| *s.robust.at(x, y))
+    });
+    (residual, condition, samples, robust)
+}
+
+/// The per-pixel maps of per-channel solutions of equal size (a whole image or a band).
+pub(crate) fn pixel_maps(solutions: &[Solution]) -> PixelMaps {
+    let (albedo, normals, status) = albedo_normals_status(solutions);
+    let solved = status.map(|s| *s == PixelStatus::Solved);
+    let (residual, condition, samples, robust) = per_pixel(solutions, &solved);
+    PixelMaps {
+        normals,
+        albedo,
+        residual,
+        samples,
+        condition,
+        status,
+        solved,
+        robust,
+    }
+}
+
+/// Pixels whose albedo is above 1 in any channel.
+pub(crate) fn albedo_above_one(albedo: &[ScalarMap]) -> usize {
+    let n = albedo.first().map_or(0, |a| a.len());
+    (0..n)
+        .filter(|&i| albedo.iter().any(|a| a.data()[i] > 1.0))
+        .count()
+}
+
+/// What the solve of one channel assumed over the whole image: its intensity gains and the
+/// fit test's per-image noise.
+#[derive(Debug, Clone)]
+pub(crate) struct ChannelModel {
+    /// The intensity gains, estimated or not.
+    pub gains: crate::intensities::GainEstimate,
+    /// Per-image noise σ (`auto` only; empty otherwise).
+    pub noise: Vec<f32>,
+}
+
+impl ChannelModel {
+    /// The model of each solution.
+    pub(crate) fn of(solutions: &[Solution]) -> Vec<Self> {
+        solutions
+            .iter()
+            .map(|s| ChannelModel {
+                gains: s.gains.clone(),
+                noise: s.noise.clone(),
+            })
+            .collect()
+    }
+}
+
+/// Whole-image tallies of the per-pixel maps.
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct Tallies {
+    /// Pixel outcome counts.
+    pub counts: StatusCounts,
+    /// Solved pixels fitted by a robust estimator.
+    pub robust: usize,
+    /// Pixels with albedo above 1.
+    pub albedo_above_one: usize,
+}
+
+impl Tallies {
+    /// The tallies of `maps`.
+    pub(crate) fn of(maps: &PixelMaps) -> Self {
+        Tallies {
+            counts: StatusCounts::from_grid(&maps.status),
+            robust: maps.robust.count(),
+            albedo_above_one: albedo_above_one(&maps.albedo),
+        }
+    }
+
+    /// Adds the tallies of another band.
+    pub(crate) fn add(&mut self, other: &Tallies) {
+        self.counts.add(&other.counts);
+        self.robust += other.robust;
+        self.albedo_above_one += other.albedo_above_one;
+    }
+}
+
+/// The model summary of a run from its channel models and tallies.
+pub(crate) fn model_summary(
+    models: &[ChannelModel],
+    tallies: &Tallies,
+    count: usize,
+    config: &Config,
+) -> ModelSummary {
+    let recalibrated = config.solve.recalibrates(count);
+    ModelSummary {
+        method: config.solve.method.name(),
+        robust_pixels: tallies.robust,
+        robust_fraction: tallies.robust as f64 / tallies.counts.solved.max(1) as f64,
+        gains: models.iter().map(|m| m.gains.gains.clone()).collect(),
+        recalibrated,
+        gains_applied: models.iter().map(|m| m.gains.applied).collect(),
+        estimated_gains: if recalibrated {
+            models.iter().map(|m| m.gains.estimated.clone()).collect()
+        } else {
+            Vec::new()
+        },
+        noise: models.iter().map(|m| m.noise.clone()).collect(),
+    }
+}
+
+/// The integrability check of normals `normals` solved at `solved`, on the field that is
+/// integrated: log-depth gradients under a pinhole camera, orthographic ones otherwise.
+pub(crate) fn integrability_of(
+    normals: &NormalMap,
+    solved: &Mask,
+    config: &Config,
+) -> crate::normals::Integrability {
+    let (p, q) = match config.integration.as_ref().and_then(|o| o.camera.as_ref()) {
+        Some(k) => crate::integrate::perspective_gradients(normals, solved, k),
+        None => gradients(normals, solved),
+    };
+    integrability(&p, &q)
+}
+
 /// From the per-channel solutions to a [`Reconstruction`] without depth: albedo, normals,
 /// the integrability check, per-pixel summaries, the model summary and the warnings.
 pub(crate) fn assemble(
@@ -210,83 +388,75 @@ pub(crate) fn assemble(
     config: &Config,
 ) -> Reconstruction {
     let t = Instant::now();
-    let (albedo, normals, status) = if solutions.len() == 1 {
-        let (a, n) = albedo_and_normals(&solutions[0]);
-        (vec![a], n, solutions[0].status.clone())
-    } else {
-        combine_channels(&solutions)
-    };
-    let first = &solutions[0];
-    let (w, h) = (first.g.width(), first.g.height());
+    let (albedo, normals, status) = albedo_normals_status(&solutions);
     let solved = status.map(|s| *s == PixelStatus::Solved);
-    // The integrability check (the longest part) runs beside the per-pixel summaries. It uses
-    // the field that is integrated: log-depth gradients under a pinhole camera, orthographic
-    // ones otherwise.
-    let (integ, (residual, condition, samples, counts, robust)) = rayon::join(
-        || {
-            let (p, q) = match config.integration.as_ref().and_then(|o| o.camera.as_ref()) {
-                Some(k) => crate::integrate::perspective_gradients(&normals, &solved, k),
-                None => gradients(&normals, &solved),
-            };
-            integrability(&p, &q)
-        },
-        || {
-            // The worst channel per pixel; one solution is taken as it is.
-            let fold =
-                |f: &dyn Fn(&Solution) -> &ScalarMap, pick: fn(f32, f32) -> f32| match solutions
-                    .as_slice()
-                {
-                    [one] => f(one).clone(),
-                    _ => Grid::from_fn(w, h, |x, y| {
-                        solutions
-                            .iter()
-                            .map(|s| *f(s).at(x, y))
-                            .reduce(pick)
-                            .unwrap_or(f32::NAN)
-                    }),
-                };
-            let residual = fold(&|s| &s.residual, f32::max);
-            let condition = fold(&|s| &s.condition, f32::max);
-            let samples = match solutions.as_slice() {
-                [one] => one.samples.clone(),
-                _ => Grid::from_fn(w, h, |x, y| {
-                    solutions
-                        .iter()
-                        .map(|s| *s.samples.at(x, y))
-                        .min()
-                        .unwrap_or(0)
-                }),
-            };
-            let counts = StatusCounts::from_grid(&status);
-            let robust = Grid::from_fn(w, h, |x, y| {
-                *solved.at(x, y) && solutions.iter().any(|s| *s.robust.at(x, y))
-            });
-            (residual, condition, samples, counts, robust)
-        },
+    // The integrability check (the longest part) runs beside the per-pixel summaries.
+    let (integ, (residual, condition, samples, robust)) = rayon::join(
+        || integrability_of(&normals, &solved, config),
+        || per_pixel(&solutions, &solved),
     );
-    let recalibrated = config.solve.recalibrates(facts.count);
-    let model = ModelSummary {
-        method: config.solve.method.name(),
-        robust_pixels: robust.count(),
-        robust_fraction: robust.count() as f64 / solved.count().max(1) as f64,
-        gains: solutions.iter().map(|s| s.gains.gains.clone()).collect(),
-        recalibrated,
-        gains_applied: solutions.iter().map(|s| s.gains.applied).collect(),
-        estimated_gains: if recalibrated {
-            solutions
-                .iter()
-                .map(|s| s.gains.estimated.clone())
-                .collect()
-        } else {
-            Vec::new()
-        },
-        noise: solutions.iter().map(|s| s.noise.clone()).collect(),
+    let maps = PixelMaps {
+        normals,
+        albedo,
+        residual,
+        samples,
+        condition,
+        status,
+        solved,
+        robust,
     };
-    let albedo_above_one = (0..w * h)
-        .filter(|&i| albedo.iter().any(|a| a.data()[i] > 1.0))
-        .count();
+    let tallies = Tallies::of(&maps);
+    let models = ChannelModel::of(&solutions);
+    let model = model_summary(&models, &tallies, facts.count, config);
     let normals_s = t.elapsed().as_secs_f64();
+    let warnings = warnings(facts, &tallies, &models, &integ.summary, config);
+    let PixelMaps {
+        normals,
+        albedo,
+        residual,
+        samples,
+        condition,
+        status,
+        solved,
+        robust,
+    } = maps;
+    Reconstruction {
+        normals,
+        albedo,
+        residual,
+        samples,
+        condition,
+        status,
+        solved,
+        curl: integ.curl,
+        integrability: integ.summary,
+        integration: None,
+        counts: tallies.counts,
+        albedo_above_one: tallies.albedo_above_one,
+        robust,
+        model,
+        timings: Timings {
+            load: 0.0,
+            solve: solve_s,
+            normals: normals_s,
+            integrate: 0.0,
+            write: 0.0,
+        },
+        warnings,
+    }
+}
 
+/// The warnings of a run: input conversions, saturation, unsolved pixels, intensity
+/// corrections, integrability, albedo above 1.
+pub(crate) fn warnings(
+    facts: &InputFacts,
+    tallies: &Tallies,
+    models: &[ChannelModel],
+    integrability: &IntegrabilitySummary,
+    config: &Config,
+) -> Vec<String> {
+    let counts = &tallies.counts;
+    let recalibrated = config.solve.recalibrates(facts.count);
     let mut warnings = Vec::new();
     let linearised = facts.info.iter().filter(|i| i.linearised).count();
     if linearised > 0 {
@@ -325,7 +495,7 @@ pub(crate) fn assemble(
     }
     if recalibrated {
         let mut off: Vec<(usize, f32)> = Vec::new();
-        for s in &solutions {
+        for s in models {
             for k in s.gains.outliers(GAIN_WARNING) {
                 let g = s.gains.gains[k];
                 match off.iter_mut().find(|(i, _)| *i == k) {
@@ -354,8 +524,8 @@ pub(crate) fn assemble(
             ));
         }
     }
-    if recalibrated && solutions.iter().any(|s| !s.gains.applied) {
-        let far = solutions
+    if recalibrated && models.iter().any(|s| !s.gains.applied) {
+        let far = models
             .iter()
             .filter(|s| !s.gains.applied)
             .flat_map(|s| s.gains.estimated.iter())
@@ -366,41 +536,19 @@ pub(crate) fn assemble(
             );
         }
     }
-    if integ.summary.pixels > 0 && integ.summary.median_abs_curl > POOR_CURL {
+    if integrability.pixels > 0 && integrability.median_abs_curl > POOR_CURL {
         warnings.push(format!(
             "poor integrability: median |curl| {:.3} per pixel (above {POOR_CURL}): the normals are noisy or the surface has discontinuities, so depth from them will be distorted; more or better-spread lights help, and --integrate bilateral keeps discontinuities",
-            integ.summary.median_abs_curl
+            integrability.median_abs_curl
         ));
     }
-    if config.albedo_normalised && albedo_above_one > 0 {
+    if config.albedo_normalised && tallies.albedo_above_one > 0 {
         warnings.push(format!(
-            "{albedo_above_one} pixels have albedo > 1 although intensities were declared normalised: check the light intensities or exposure"
+            "{} pixels have albedo > 1 although intensities were declared normalised: check the light intensities or exposure",
+            tallies.albedo_above_one
         ));
     }
-    Reconstruction {
-        normals,
-        albedo,
-        residual,
-        samples,
-        condition,
-        status,
-        solved,
-        curl: integ.curl,
-        integrability: integ.summary,
-        integration: None,
-        counts,
-        albedo_above_one,
-        robust,
-        model,
-        timings: Timings {
-            load: 0.0,
-            solve: solve_s,
-            normals: normals_s,
-            integrate: 0.0,
-            write: 0.0,
-        },
-        warnings,
-    }
+    warnings
 }
 
 /// Integrates the normals of `recon` as `config` says (`None` without integration or without
@@ -588,9 +736,22 @@ pub fn write_outputs(
     let mut out = OutputDir::create(dir)?;
     let source = Described::of(capture);
     stage_maps(&mut out, recon, &source, config)?;
-    stage_depth(&mut out, recon, &source, config)?;
+    stage_depth(
+        &mut out,
+        &recon.normals,
+        recon.integration.as_ref(),
+        &source,
+        config,
+    )?;
     recon.timings.write = t.elapsed().as_secs_f64();
-    commit_with_report(out, recon, &source, config, evaluation)
+    commit_with_report(
+        out,
+        RunSummary::of(recon),
+        recon.integration.as_ref(),
+        &source,
+        config,
+        evaluation,
+    )
 }
 
 /// [`reconstruct`] and [`write_outputs`] in one, with the integration running concurrently
@@ -670,10 +831,23 @@ pub(crate) fn integrate_and_write(
     recon.integration = integration;
     recon.timings.integrate = integrate_s;
     let t = Instant::now();
-    stage_depth(&mut out, &recon, source, config)?;
+    stage_depth(
+        &mut out,
+        &recon.normals,
+        recon.integration.as_ref(),
+        source,
+        config,
+    )?;
     recon.timings.write = maps_s + t.elapsed().as_secs_f64();
     let evaluation = evaluate(&recon)?;
-    let report = commit_with_report(out, &recon, source, config, evaluation)?;
+    let report = commit_with_report(
+        out,
+        RunSummary::of(&recon),
+        recon.integration.as_ref(),
+        source,
+        config,
+        evaluation,
+    )?;
     Ok((recon, report))
 }
 
@@ -683,7 +857,7 @@ const ORTHOGRAPHIC_UNITS: &str =
 
 /// The string attributes of every EXR header: method, frame, units, light count and the light
 /// directions (a JSON list of [x, y, z] in the camera frame).
-fn exr_attributes(source: &Described, config: &Config) -> Vec<(&'static str, String)> {
+pub(crate) fn exr_attributes(source: &Described, config: &Config) -> Vec<(&'static str, String)> {
     vec![
         ("photostereo:method", config.solve.method.name().to_string()),
         (
@@ -707,6 +881,159 @@ fn exr_attributes(source: &Described, config: &Config) -> Vec<(&'static str, Str
     ]
 }
 
+/// Channel names of `normal.exr`.
+pub(crate) const NORMAL_CHANNELS: [&str; 3] = ["R", "G", "B"];
+/// Channel names of `residual.exr`.
+pub(crate) const RESIDUAL_CHANNELS: [&str; 4] = ["residual", "samples", "condition", "robust"];
+
+/// Channel names of `albedo.exr` for `channels` albedo maps (1 grey, 3 RGB).
+pub(crate) fn albedo_channels(channels: usize) -> Result<&'static [&'static str]> {
+    match channels {
+        1 => Ok(&["Y"]),
+        3 => Ok(&["R", "G", "B"]),
+        n => Err(Error::param(
+            "albedo",
+            format!("{n} albedo channels: 1 or 3 expected"),
+        )),
+    }
+}
+
+/// The contents of the files made from the per-pixel maps, for any rows of them (the whole
+/// image, or a band written as it is solved).
+pub(crate) struct MapRows {
+    /// `normal.exr`: n_x, n_y, n_z.
+    pub normal: Vec<Vec<f32>>,
+    /// `albedo.exr`: per channel, NaN where not solved.
+    pub albedo: Vec<Vec<f32>>,
+    /// `residual.exr`: residual, samples, condition, robust (NaN outside the mask).
+    pub residual: Vec<Vec<f32>>,
+    /// `mask.png`.
+    pub mask: Vec<u8>,
+    /// `normal.png`.
+    pub normal_png: Vec<u8>,
+}
+
+/// The file contents of maps `m` (any rows).
+pub(crate) fn map_rows(m: &MapsRef) -> MapRows {
+    let n = m.status.len();
+    let albedo = m
+        .albedo
+        .iter()
+        .map(|a| nan_outside(a, m.solved).into_data())
+        .collect();
+    let in_mask = |i: usize| m.status.data()[i] != PixelStatus::Outside;
+    let samples = (0..n)
+        .map(|i| {
+            if in_mask(i) {
+                f32::from(m.samples.data()[i])
+            } else {
+                f32::NAN
+            }
+        })
+        .collect();
+    let condition = (0..n)
+        .map(|i| {
+            if in_mask(i) {
+                m.condition.data()[i]
+            } else {
+                f32::NAN
+            }
+        })
+        .collect();
+    let robust = (0..n)
+        .map(|i| {
+            if !in_mask(i) {
+                f32::NAN
+            } else if m.robust.data()[i] {
+                1.0
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    MapRows {
+        normal: normal_planes(m.normals).into(),
+        albedo,
+        residual: vec![m.residual.data().to_vec(), samples, condition, robust],
+        mask: mask_bytes(m.solved),
+        normal_png: normal_preview(m.normals),
+    }
+}
+
+/// The per-pixel maps the outputs are made of, borrowed from a [`Reconstruction`] or a
+/// [`PixelMaps`].
+pub(crate) struct MapsRef<'a> {
+    /// Unit normals.
+    pub normals: &'a NormalMap,
+    /// Albedo per channel.
+    pub albedo: &'a [ScalarMap],
+    /// RMS residual.
+    pub residual: &'a ScalarMap,
+    /// Samples used.
+    pub samples: &'a Grid<u16>,
+    /// Condition number.
+    pub condition: &'a ScalarMap,
+    /// Outcome per pixel.
+    pub status: &'a Grid<PixelStatus>,
+    /// Pixels with a normal.
+    pub solved: &'a Mask,
+    /// Pixels fitted by a robust estimator.
+    pub robust: &'a Mask,
+}
+
+impl PixelMaps {
+    /// The maps, borrowed.
+    pub(crate) fn view(&self) -> MapsRef<'_> {
+        MapsRef {
+            normals: &self.normals,
+            albedo: &self.albedo,
+            residual: &self.residual,
+            samples: &self.samples,
+            condition: &self.condition,
+            status: &self.status,
+            solved: &self.solved,
+            robust: &self.robust,
+        }
+    }
+}
+
+impl Reconstruction {
+    fn maps(&self) -> MapsRef<'_> {
+        MapsRef {
+            normals: &self.normals,
+            albedo: &self.albedo,
+            residual: &self.residual,
+            samples: &self.samples,
+            condition: &self.condition,
+            status: &self.status,
+            solved: &self.solved,
+            robust: &self.robust,
+        }
+    }
+}
+
+/// `albedo.png`: each albedo channel (NaN where not solved) scaled by its own 99th percentile
+/// ([`scalar_preview`]), grey or interleaved RGB.
+pub(crate) fn albedo_png(albedo: &[ScalarMap]) -> Vec<u8> {
+    if let [grey] = albedo {
+        return scalar_preview(grey);
+    }
+    let planes: Vec<Vec<u8>> = albedo.iter().map(scalar_preview).collect();
+    let n = albedo.first().map_or(0, |a| a.len());
+    (0..n)
+        .flat_map(|i| planes.iter().map(move |p| p[i]))
+        .collect()
+}
+
+/// Named channels of planes `planes` under `names`.
+fn named<'a>(names: &[&'a str], planes: &'a [Vec<f32>]) -> Vec<ExrChannel<'a>> {
+    names
+        .iter()
+        .zip(planes)
+        .map(|(n, p)| (*n, p.as_slice()))
+        .collect()
+}
+
 /// Stages every output that does not depend on depth: `normal.exr`, `albedo.exr`,
 /// `residual.exr`, `curl.exr`, `mask.png`, `normal.png`, `albedo.png`.
 fn stage_maps(
@@ -717,96 +1044,54 @@ fn stage_maps(
 ) -> Result<()> {
     let (w, h) = (recon.normals.width(), recon.normals.height());
     let attrs = exr_attributes(source, config);
-    let [nx, ny, nz] = normal_planes(&recon.normals);
+    let rows = map_rows(&recon.maps());
     out.stage_exr(
         "normal.exr",
         w,
         h,
-        &[("R", &nx), ("G", &ny), ("B", &nz)],
+        &named(&NORMAL_CHANNELS, &rows.normal),
         &attrs,
     )?;
-    let albedo: Vec<ScalarMap> = recon
-        .albedo
-        .iter()
-        .map(|a| nan_outside(a, &recon.solved))
-        .collect();
-    match albedo.as_slice() {
-        [grey] => out.stage_exr("albedo.exr", w, h, &[("Y", grey.data())], &attrs)?,
-        [r, g, b] => out.stage_exr(
-            "albedo.exr",
-            w,
-            h,
-            &[("R", r.data()), ("G", g.data()), ("B", b.data())],
-            &attrs,
-        )?,
-        _ => return Err(Error::param("albedo", "1 or 3 channels expected")),
-    }
-    let samples: Vec<f32> = recon
-        .samples
-        .data()
-        .iter()
-        .zip(recon.status.data())
-        .map(|(s, st)| {
-            if *st == PixelStatus::Outside {
-                f32::NAN
-            } else {
-                f32::from(*s)
-            }
-        })
-        .collect();
-    let in_mask = recon.status.map(|s| *s != PixelStatus::Outside);
-    let condition = nan_outside(&recon.condition, &in_mask);
-    let robust: Vec<f32> = (0..w * h)
-        .map(|i| {
-            if !in_mask.data()[i] {
-                f32::NAN
-            } else if recon.robust.data()[i] {
-                1.0
-            } else {
-                0.0
-            }
-        })
-        .collect();
+    out.stage_exr(
+        "albedo.exr",
+        w,
+        h,
+        &named(albedo_channels(rows.albedo.len())?, &rows.albedo),
+        &attrs,
+    )?;
     out.stage_exr(
         "residual.exr",
         w,
         h,
-        &[
-            ("residual", recon.residual.data()),
-            ("samples", &samples),
-            ("condition", condition.data()),
-            ("robust", &robust),
-        ],
+        &named(&RESIDUAL_CHANNELS, &rows.residual),
         &attrs,
     )?;
     out.stage_exr("curl.exr", w, h, &[("curl", recon.curl.data())], &attrs)?;
-    out.stage_png8("mask.png", w, h, 1, &mask_bytes(&recon.solved))?;
-    out.stage_png8("normal.png", w, h, 3, &normal_preview(&recon.normals))?;
-    if let [grey] = albedo.as_slice() {
-        out.stage_png8("albedo.png", w, h, 1, &scalar_preview(grey))?;
-    } else {
-        let planes: Vec<Vec<u8>> = albedo.iter().map(scalar_preview).collect();
-        let rgb: Vec<u8> = (0..w * h)
-            .flat_map(|i| planes.iter().map(move |p| p[i]))
-            .collect();
-        out.stage_png8("albedo.png", w, h, 3, &rgb)?;
-    }
+    out.stage_png8("mask.png", w, h, 1, &rows.mask)?;
+    out.stage_png8("normal.png", w, h, 3, &rows.normal_png)?;
+    let albedo: Vec<ScalarMap> = rows
+        .albedo
+        .into_iter()
+        .map(|a| Grid::from_vec(w, h, a))
+        .collect::<Result<_>>()?;
+    out.stage_png8("albedo.png", w, h, albedo.len(), &albedo_png(&albedo))?;
     Ok(())
 }
 
 /// Stages the outputs that depend on depth: `depth.exr` (NaN without integration, with the
 /// integration residual and weights), `depth.png`, and `mesh.ply` when asked for.
-fn stage_depth(
+pub(crate) fn stage_depth(
     out: &mut OutputDir,
-    recon: &Reconstruction,
+    normals: &NormalMap,
+    integration: Option<&Integration>,
     source: &Described,
     config: &Config,
 ) -> Result<()> {
-    let (w, h) = (recon.normals.width(), recon.normals.height());
+    let (w, h) = (normals.width(), normals.height());
     let nan_map = Grid::new(w, h, f32::NAN);
-    let depth = recon.depth().unwrap_or(&nan_map);
+    let depth = integration.map_or(&nan_map, |i| &i.depth);
     let mut depth_channels: Vec<(&str, &[f32])> = vec![("Z", depth.data())];
-    if let Some(i) = &recon.integration {
+    if let Some(i) = integration {
         depth_channels.push(("residual", i.residual.data()));
         if let Some((wu, wv)) = &i.weights {
             depth_channels.push(("wu", wu.data()));
@@ -826,59 +1111,89 @@ fn stage_depth(
     }
     out.stage_exr("depth.exr", w, h, &depth_channels, &depth_attrs)?;
     if config.mesh
-        && let Some(d) = recon.depth()
+        && let Some(i) = integration
     {
         let camera = config.integration.as_ref().and_then(|o| o.camera);
-        let mesh = crate::mesh::Mesh::from_depth(d, &recon.normals, camera.as_ref())?;
+        let mesh = crate::mesh::Mesh::from_depth(&i.depth, normals, camera.as_ref())?;
         out.stage_bytes("mesh.ply", &mesh.to_ply())?;
     }
     out.stage_png8("depth.png", w, h, 1, &depth_preview(depth))?;
     Ok(())
 }
 
+/// What the report says of a run besides its input, configuration and outputs.
+#[derive(Debug, Clone)]
+pub(crate) struct RunSummary {
+    /// Pixel outcome counts.
+    pub pixels: StatusCounts,
+    /// How much model the data needed.
+    pub model: ModelSummary,
+    /// Pixels with albedo above 1.
+    pub albedo_above_one: usize,
+    /// Model residual over solved pixels.
+    pub residual: ResidualSummary,
+    /// The integrability check.
+    pub integrability: IntegrabilitySummary,
+    /// Stage timings.
+    pub timings: Timings,
+    /// Warnings raised.
+    pub warnings: Vec<String>,
+}
+
+impl RunSummary {
+    /// The summary of an in-memory reconstruction.
+    fn of(recon: &Reconstruction) -> Self {
+        let res = crate::metrics::summarize(&recon.residual);
+        RunSummary {
+            pixels: recon.counts,
+            model: recon.model.clone(),
+            albedo_above_one: recon.albedo_above_one,
+            residual: ResidualSummary {
+                mean: res.mean,
+                median: res.median,
+            },
+            integrability: recon.integrability,
+            timings: recon.timings,
+            warnings: recon.warnings.clone(),
+        }
+    }
+}
+
 /// Stages `report.json` and moves every staged file into place; returns the report.
-fn commit_with_report(
+pub(crate) fn commit_with_report(
     mut out: OutputDir,
-    recon: &Reconstruction,
+    run: RunSummary,
+    integration: Option<&Integration>,
     source: &Described,
     config: &Config,
     evaluation: Option<serde_json::Value>,
 ) -> Result<Report> {
-    let res = crate::metrics::summarize(&recon.residual);
-    let residual = ResidualSummary {
-        mean: res.mean,
-        median: res.median,
-    };
     let mut outputs: Vec<String> = OUTPUT_FILES.iter().map(|s| s.to_string()).collect();
-    if config.mesh && recon.depth().is_some() {
+    if config.mesh && integration.is_some() {
         outputs.push("mesh.ply".into());
     }
-    let integration = recon
-        .integration
-        .as_ref()
-        .zip(config.integration.as_ref())
-        .map(|(i, o)| {
-            let r = crate::metrics::summarize(&i.residual);
-            IntegrationSummary {
-                method: o.method.name(),
-                perspective: o.camera.is_some(),
-                solve: i.solve,
-                iterations: i.iterations,
-                mean_residual: r.mean,
-                median_residual: r.median,
-            }
-        });
+    let integration = integration.zip(config.integration.as_ref()).map(|(i, o)| {
+        let r = crate::metrics::summarize(&i.residual);
+        IntegrationSummary {
+            method: o.method.name(),
+            perspective: o.camera.is_some(),
+            solve: i.solve,
+            iterations: i.iterations,
+            mean_residual: r.mean,
+            median_residual: r.median,
+        }
+    });
     let report = Report {
         version: env!("CARGO_PKG_VERSION"),
         inputs: source.summary.clone(),
         config: *config,
-        pixels: recon.counts,
-        model: recon.model.clone(),
-        albedo_above_one: recon.albedo_above_one,
-        residual,
-        integrability: recon.integrability,
-        timings_s: recon.timings,
-        warnings: recon.warnings.clone(),
+        pixels: run.pixels,
+        model: run.model,
+        albedo_above_one: run.albedo_above_one,
+        residual: run.residual,
+        integrability: run.integrability,
+        timings_s: run.timings,
+        warnings: run.warnings,
         integration,
         outputs,
         evaluation,

@@ -365,6 +365,24 @@ impl Solution {
         Ok(())
     }
 
+    /// The first `rows` rows of this solution (all of it when it has fewer).
+    pub(crate) fn top_rows(&self, rows: usize) -> Solution {
+        fn top<T: Clone>(g: &Grid<T>, rows: usize) -> Grid<T> {
+            Grid::from_fn(g.width(), rows, |x, y| g.at(x, y).clone())
+        }
+        let rows = rows.min(self.g.height());
+        Solution {
+            g: top(&self.g, rows),
+            residual: top(&self.residual, rows),
+            samples: top(&self.samples, rows),
+            condition: top(&self.condition, rows),
+            status: top(&self.status, rows),
+            robust: top(&self.robust, rows),
+            gains: self.gains.clone(),
+            noise: self.noise.clone(),
+        }
+    }
+
     /// Records the outcome `px` of pixel `p` (row-major index).
     pub(crate) fn record(&mut self, p: usize, px: &PixelSolution) {
         self.g.data_mut()[p] = px.g.map(|v| v as f32);
@@ -1337,6 +1355,15 @@ impl StatusCounts {
             c.masked += 1;
         }
         c
+    }
+
+    /// Adds the counts of another part of the image (a band of rows).
+    pub fn add(&mut self, other: &StatusCounts) {
+        self.masked += other.masked;
+        self.solved += other.solved;
+        self.too_few_samples += other.too_few_samples;
+        self.ill_conditioned += other.ill_conditioned;
+        self.dark += other.dark;
     }
 }
 

@@ -1,11 +1,14 @@
 //! Out-of-core reconstruction: image stacks larger than memory, streamed in row bands.
 //!
 //! The Lambertian solve is per pixel, so the stack never has to be held whole. Every image is
-//! opened once ([`crate::bands`]); a band of rows is decoded from all of them at once
+//! opened once (`bands.rs`); a band of rows is decoded from all of them at once
 //! (images in parallel), converted exactly as [`crate::input::load_stack`] converts whole
-//! images, solved, and pasted into the full-size solution, and the band's memory is reused
-//! for the next. Only the outputs (a few maps of the image size) stay resident; integration
-//! then runs on the assembled field as in [`crate::pipeline`].
+//! images, and solved, and the band's memory is reused for the next. Where the solved band
+//! goes is the caller's choice: [`reconstruct_and_write_streamed`] writes its rows of every
+//! per-pixel output file at once and keeps only what needs the whole image (normals, mask,
+//! albedo and residuals: [`RESIDENT_BYTES_PER_PIXEL`]); [`reconstruct_streamed`] pastes it
+//! into the full-size solution and returns that. Integration then runs on the assembled
+//! field as in [`crate::pipeline`].
 //!
 //! What is estimated over the whole capture before pixels are fitted — each image's noise σ
 //! and intensity gain ([`ImageModel`]) — is estimated once from a sample of row blocks spread
@@ -14,8 +17,9 @@
 //!
 //! The band height comes from a memory budget ([`StreamOptions::max_memory`]): the resident
 //! maps and the integrator's working memory ([`resident_bytes`]) are taken off first, the rest
-//! holds the band. The plan is reported ([`StreamPlan`]).
+//! holds the band (with, when writing, its rows in flight to the writers). The plan is reported ([`StreamPlan`]).
 
+use crate::band_output::BandOutput;
 use crate::bands::BandReader;
 use crate::color::{ColorSolve, solve_shared_normal_with_model};
 use crate::dataset::CaptureFiles;
@@ -25,10 +29,13 @@ use crate::input::{
     ColorMode, Convert, ImageInfo, ImageStack, LoadOptions, convert_into, read_mask, srgb_lut,
 };
 use crate::integrate::Integrator;
+use crate::integrate::integrate_normals;
 use crate::lights::MAX_LIGHT_CONDITION;
+use crate::output::OutputDir;
 use crate::pipeline::{
-    Config, Described, InputFacts, InputSummary, Reconstruction, Report, assemble,
-    integrate_and_write,
+    Config, Described, InputFacts, InputSummary, Reconstruction, Report, RunSummary, Timings,
+    assemble, commit_with_report, exr_attributes, integrability_of, model_summary, stage_depth,
+    warnings,
 };
 use crate::progress::{Progress, Silent};
 use crate::solve::{ImageModel, Solution, solve_with_model};
@@ -37,14 +44,32 @@ use serde::Serialize;
 use std::path::Path;
 use std::time::Instant;
 
-/// Bytes per image pixel held for the whole run besides the integrator, one colour channel:
-/// the solution (g, residual, samples, condition, status, robust flag: 24 B per channel), the
-/// maps derived from it (albedo, normals, curl, summaries) and the output buffers staged while
-/// writing. Measured: 79 B per pixel at the peak of a streamed 4000×3000 run without
-/// integration (970 MB); 10% is added.
-pub const RESIDENT_BYTES_PER_PIXEL: u64 = 88;
-/// Bytes per image pixel for each further colour channel (solution and albedo).
-pub const RESIDENT_BYTES_PER_EXTRA_CHANNEL: u64 = 32;
+/// Bytes per image pixel held for the whole of a run that writes its outputs band by band
+/// ([`reconstruct_and_write_streamed`]), besides the integrator, one colour channel. While the
+/// bands run: the normals (12 B) and the solved mask (1 B) for integration, the albedo (4 B)
+/// for the scaling of `albedo.png` and the finite residuals (4 B, then 8 B sorted) for their
+/// median: 29 B. After them, with the albedo and residuals freed: the normals and mask, and
+/// the gradients, curl and sorted |curl| of the integrability check (20 B): 33 B. The larger,
+/// with 10% added; `bench stream` measures the peak.
+pub const RESIDENT_BYTES_PER_PIXEL: u64 = 36;
+/// Bytes per image pixel for each further colour channel of a written run (its albedo).
+pub const RESIDENT_BYTES_PER_EXTRA_CHANNEL: u64 = 4;
+/// Bytes per image pixel held by [`reconstruct_streamed`], which assembles the whole solution
+/// (g, residual, samples, condition, status, robust flag: 24 B per channel), the maps derived
+/// from it (albedo, normals, curl, summaries) and the output buffers staged while writing.
+/// Measured: 79 B per pixel at the peak of a streamed 4000×3000 run without integration
+/// (970 MB); 10% is added.
+pub const ASSEMBLED_BYTES_PER_PIXEL: u64 = 88;
+/// Bytes per image pixel for each further colour channel of an assembled run (solution and
+/// albedo).
+pub const ASSEMBLED_BYTES_PER_EXTRA_CHANNEL: u64 = 32;
+/// Bands of file rows that may be in flight to each writer besides the one being made: the
+/// one a writer is encoding and the one queued for it.
+const OUTPUT_QUEUE_BANDS: u64 = 2;
+/// Bytes per pixel of a band row while the outputs are written band by band, one colour
+/// channel: the band's per-pixel maps (29 B) and its file rows (36 B) being made, and
+/// [`OUTPUT_QUEUE_BANDS`] more bands of file rows in flight.
+const OUTPUT_ROW_BYTES_PER_PIXEL: u64 = 29 + 36 * (1 + OUTPUT_QUEUE_BANDS);
 /// Bytes the process needs whatever the image size (code, thread stacks, allocator slack).
 pub const BASE_BYTES: u64 = 64 << 20;
 /// Rows per sampled block of the model pass: neighbouring rows are needed by the noise
@@ -93,9 +118,10 @@ pub struct StreamPlan {
     pub max_memory: u64,
 }
 
-/// Bytes held for a whole run on a `width`×`height` image with `channels` solved channels and
-/// `masked` pixels in the mask: resident maps plus the integrator's working memory (its
-/// [`Integrator::working_bytes`]).
+/// Bytes held for a whole run that writes its outputs band by band
+/// ([`reconstruct_and_write_streamed`]) on a `width`×`height` image with `channels` solved
+/// channels and `masked` pixels in the mask: resident maps plus the integrator's working
+/// memory (its [`Integrator::working_bytes`]).
 pub fn resident_bytes(
     width: usize,
     height: usize,
@@ -103,9 +129,23 @@ pub fn resident_bytes(
     masked: usize,
     config: &Config,
 ) -> u64 {
+    resident_for(Keep::Written, width, height, channels, masked, config)
+}
+
+fn resident_for(
+    keep: Keep,
+    width: usize,
+    height: usize,
+    channels: usize,
+    masked: usize,
+    config: &Config,
+) -> u64 {
     let pixels = (width * height) as u64;
-    let per = RESIDENT_BYTES_PER_PIXEL
-        + RESIDENT_BYTES_PER_EXTRA_CHANNEL * (channels.saturating_sub(1) as u64);
+    let (base, extra) = match keep {
+        Keep::Written => (RESIDENT_BYTES_PER_PIXEL, RESIDENT_BYTES_PER_EXTRA_CHANNEL),
+        Keep::Assembled => (ASSEMBLED_BYTES_PER_PIXEL, ASSEMBLED_BYTES_PER_EXTRA_CHANNEL),
+    };
+    let per = base + extra * (channels.saturating_sub(1) as u64);
     let integration = config.integration.as_ref().map_or(0, |o| {
         o.method.working_bytes(width, height, masked, o.solver)
     });
@@ -243,7 +283,8 @@ fn open_all(files: &CaptureFiles, load: &LoadOptions) -> Result<Opened> {
     })
 }
 
-/// Plans a streamed run of `files`: band height and memory use.
+/// Plans a streamed run of `files` that writes its outputs band by band
+/// ([`reconstruct_and_write_streamed`]): band height and memory use.
 ///
 /// # Errors
 /// The errors of opening the images and the mask (sizes, formats); [`Error::InvalidParameter`]
@@ -256,7 +297,7 @@ pub fn plan(
     options: &StreamOptions,
 ) -> Result<StreamPlan> {
     let opened = open_all(files, load)?;
-    plan_for(&opened, files.images.len(), config, options)
+    plan_for(&opened, files.images.len(), config, options, Keep::Written)
 }
 
 fn plan_for(
@@ -264,17 +305,26 @@ fn plan_for(
     count: usize,
     config: &Config,
     options: &StreamOptions,
+    keep: Keep,
 ) -> Result<StreamPlan> {
     let win = o.window;
-    let resident = resident_bytes(o.width, o.height, o.channels, o.mask.count(), config);
+    let resident = resident_for(keep, o.width, o.height, o.channels, o.mask.count(), config);
     // One band row: the stack row (f32 per image and channel), saturation flags, the band's
-    // solution and the rows being decoded (at most one image per thread at a time, 16 bytes a
-    // pixel covers RGBA float).
+    // solution, the rows being decoded (at most one image per thread at a time, 16 bytes a
+    // pixel covers RGBA float) and, when the outputs are written band by band, the band's
+    // maps and file rows in flight to the writers.
     let threads = rayon::current_num_threads() as u64;
+    let outputs = match keep {
+        Keep::Written => {
+            OUTPUT_ROW_BYTES_PER_PIXEL + 4 * (OUTPUT_QUEUE_BANDS + 1) * (o.channels as u64 - 1)
+        }
+        Keep::Assembled => 0,
+    };
     let row_bytes = count as u64 * o.channels as u64 * win.width() as u64 * 4
         + count as u64 * (o.width as u64).div_ceil(64) * 8
         + 24 * o.channels as u64 * o.width as u64
-        + threads * o.width as u64 * 16;
+        + threads * o.width as u64 * 16
+        + outputs * o.width as u64;
     let in_memory = count as u64 * o.channels as u64 * win.len() as u64 * 4;
     let available = options.max_memory.saturating_sub(resident);
     let fit = (available / row_bytes.max(1)) as usize;
@@ -507,44 +557,112 @@ fn stack_rows(parts: Vec<(ImageStack, Mask)>, channels: usize) -> Result<(ImageS
     ))
 }
 
-/// Solves a capture streamed in row bands: the same [`Reconstruction`] as
-/// [`crate::pipeline::reconstruct_normals`] (without depth), within `options.max_memory`.
-/// Returns it with the plan, the per-image load records and the seconds spent decoding.
-///
-/// # Errors
-/// The errors of [`plan`], of decoding any band (naming the file), and of the solve;
-/// [`Error::BadImage`] for an image that is dark everywhere in the mask's rows or saturated
-/// everywhere.
-pub fn reconstruct_streamed(
+/// What a [`BandSink`] is told before the first band.
+pub(crate) struct Setup<'a> {
+    /// Image width.
+    pub width: usize,
+    /// Image height.
+    pub height: usize,
+    /// Solutions per band (1 grey, 3 per channel).
+    pub channels: usize,
+    /// The plan the run follows.
+    pub plan: &'a StreamPlan,
+    models: &'a [ImageModel],
+    shared: bool,
+    options: &'a crate::solve::SolveOptions,
+}
+
+impl Setup<'_> {
+    /// Solutions of `rows` rows with every pixel outside the mask, under the run's models:
+    /// what the rows outside the mask's bounding box hold.
+    pub(crate) fn empty(&self, rows: usize) -> Vec<Solution> {
+        (0..self.channels)
+            .map(|c| {
+                let m = &self.models[if self.shared { 0 } else { c }];
+                Solution::empty(
+                    self.width,
+                    rows,
+                    m.gains.clone(),
+                    m.sigma.clone(),
+                    self.options,
+                )
+            })
+            .collect()
+    }
+}
+
+/// Where the solved bands of a streamed run go, top to bottom.
+pub(crate) trait BandSink {
+    /// Takes the per-channel solutions of the full-width rows from `y0` on.
+    fn band(&mut self, y0: usize, solutions: Vec<Solution>) -> Result<()>;
+}
+
+/// What a streamed run found besides the solutions.
+pub(crate) struct BandRun {
+    pub plan: StreamPlan,
+    /// Per image, what loading found (summed over bands).
+    pub info: Vec<ImageInfo>,
+    /// The report's input section.
+    pub summary: InputSummary,
+    /// Seconds decoding (model pass included).
+    pub read_s: f64,
+    /// Seconds solving.
+    pub solve_s: f64,
+    /// Seconds in the sink.
+    pub sink_s: f64,
+}
+
+impl BandRun {
+    /// What the warnings need to know of the input.
+    pub(crate) fn facts(&self, files: &CaptureFiles) -> InputFacts<'_> {
+        InputFacts {
+            info: &self.info,
+            count: self.info.len(),
+            unmasked_files: files.mask_source.is_none(),
+        }
+    }
+}
+
+/// What a streamed run keeps for the whole run besides the band: the assembled solution
+/// ([`reconstruct_streamed`]) or only what the outputs written band by band still need
+/// ([`reconstruct_and_write_streamed`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Keep {
+    Assembled,
+    Written,
+}
+
+/// The band loop of a streamed run: plan, model pass, then each band decoded, solved and
+/// handed to the sink that `start` makes.
+fn run_bands<S: BandSink>(
     files: &CaptureFiles,
     load: &LoadOptions,
     config: &Config,
     options: &StreamOptions,
+    keep: Keep,
     progress: &dyn Progress,
-) -> Result<Streamed> {
+    start: impl FnOnce(&Setup) -> Result<S>,
+) -> Result<(S, BandRun)> {
     files.lights.check_usable(MAX_LIGHT_CONDITION)?;
     config.solve.validate()?;
-    let t_all = Instant::now();
     let mut o = open_all(files, load)?;
-    let plan = plan_for(&o, files.images.len(), config, options)?;
+    let plan = plan_for(&o, files.images.len(), config, options, keep)?;
     let lut = srgb_lut();
     let t = Instant::now();
     let models = estimate_models(files, load, config, &o, &plan, &lut)?;
     let model_s = t.elapsed().as_secs_f64();
     let count = files.images.len();
     let shared = o.channels == 3 && config.color == ColorSolve::SharedNormal;
-    let mut full: Vec<Solution> = (0..o.channels)
-        .map(|c| {
-            let m = &models[if shared { 0 } else { c }];
-            Solution::empty(
-                o.width,
-                o.height,
-                m.gains.clone(),
-                m.sigma.clone(),
-                &config.solve,
-            )
-        })
-        .collect();
+    let setup = Setup {
+        width: o.width,
+        height: o.height,
+        channels: o.channels,
+        plan: &plan,
+        models: &models,
+        shared,
+        options: &config.solve,
+    };
+    let mut sink = start(&setup)?;
     let mut tally = vec![
         Tally {
             info: None,
@@ -555,7 +673,7 @@ pub fn reconstruct_streamed(
         };
         count
     ];
-    let (mut read_s, mut solve_s) = (model_s, 0.0);
+    let (mut read_s, mut solve_s, mut sink_s) = (model_s, 0.0, 0.0);
     let win = o.window;
     progress.begin("bands", plan.bands as u64);
     let mut y = win.y0;
@@ -598,10 +716,10 @@ pub fn reconstruct_streamed(
                 .collect::<Result<_>>()?
         };
         drop(stack);
-        for (f, b) in full.iter_mut().zip(&bands) {
-            f.paste_rows(b, y)?;
-        }
         solve_s += t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        sink.band(y, bands)?;
+        sink_s += t.elapsed().as_secs_f64();
         progress.advance(1);
         y = e;
     }
@@ -631,13 +749,6 @@ pub fn reconstruct_streamed(
         i.non_finite = t.non_finite;
         info.push(i);
     }
-    let facts = InputFacts {
-        info: &info,
-        count,
-        unmasked_files: files.mask_source.is_none(),
-    };
-    let mut recon = assemble(full, solve_s, &facts, config);
-    recon.timings.load = read_s;
     let mut summary = InputSummary::of_files(
         &files.images,
         &files.lights,
@@ -648,10 +759,76 @@ pub fn reconstruct_streamed(
     summary.width = o.width;
     summary.height = o.height;
     summary.color = load.color;
+    Ok((
+        sink,
+        BandRun {
+            plan,
+            info,
+            summary,
+            read_s,
+            solve_s,
+            sink_s,
+        },
+    ))
+}
+
+/// The sink of [`reconstruct_streamed`]: bands pasted into full-size solutions.
+struct Paste {
+    full: Vec<Solution>,
+}
+
+impl BandSink for Paste {
+    fn band(&mut self, y0: usize, solutions: Vec<Solution>) -> Result<()> {
+        for (f, b) in self.full.iter_mut().zip(&solutions) {
+            f.paste_rows(b, y0)?;
+        }
+        Ok(())
+    }
+}
+
+/// Solves a capture streamed in row bands: the same [`Reconstruction`] as
+/// [`crate::pipeline::reconstruct_normals`] (without depth), within `options.max_memory`.
+/// The whole solution is held ([`ASSEMBLED_BYTES_PER_PIXEL`]); to write the outputs of a
+/// stack whose maps are large too, use [`reconstruct_and_write_streamed`], which writes them
+/// band by band. Returns the reconstruction with the plan, the per-image load records and the
+/// seconds spent decoding.
+///
+/// # Errors
+/// The errors of [`plan`], of decoding any band (naming the file), and of the solve;
+/// [`Error::BadImage`] for an image that is dark everywhere in the mask's rows or saturated
+/// everywhere.
+pub fn reconstruct_streamed(
+    files: &CaptureFiles,
+    load: &LoadOptions,
+    config: &Config,
+    options: &StreamOptions,
+    progress: &dyn Progress,
+) -> Result<Streamed> {
+    let t_all = Instant::now();
+    let (sink, run) = run_bands(
+        files,
+        load,
+        config,
+        options,
+        Keep::Assembled,
+        progress,
+        |setup| {
+            Ok(Paste {
+                full: setup.empty(setup.height),
+            })
+        },
+    )?;
+    let mut recon = assemble(
+        sink.full,
+        run.solve_s + run.sink_s,
+        &run.facts(files),
+        config,
+    );
+    recon.timings.load = run.read_s;
     Ok(Streamed {
         recon,
-        plan,
-        summary,
+        plan: run.plan,
+        summary: run.summary,
         seconds: t_all.elapsed().as_secs_f64(),
     })
 }
@@ -670,12 +847,19 @@ pub struct Streamed {
     pub seconds: f64,
 }
 
-/// [`reconstruct_streamed`], then integration and the outputs as
-/// [`crate::pipeline::reconstruct_and_write`] writes them (atomically); the report gains a
-/// `streaming` section with the plan.
+/// Solves a capture streamed in row bands and writes the outputs of
+/// [`crate::pipeline::reconstruct_and_write`] (atomically) as the bands are solved: the
+/// per-pixel maps (`normal.exr`, `albedo.exr`, `residual.exr`, `mask.png`, `normal.png`) go
+/// to their files a band at a time and are not kept. What is kept for the whole run is what
+/// needs the whole image ([`RESIDENT_BYTES_PER_PIXEL`]): the normals and the solved mask for
+/// the integrability check and integration, the albedo for the 99th-percentile scaling of
+/// `albedo.png`, and the residuals for their median. After the bands: `albedo.png`, the
+/// integrability check (`curl.exr`), integration (`depth.exr`, `depth.png`, `mesh.ply`) and
+/// `report.json`, whose `streaming` section holds the plan. Returns the report and the plan.
 ///
 /// # Errors
-/// The errors of [`reconstruct_streamed`] and of writing; nothing is left in `dir` on failure.
+/// The errors of [`reconstruct_streamed`], of integration and of writing; nothing is left in
+/// `dir` on failure.
 pub fn reconstruct_and_write_streamed(
     files: &CaptureFiles,
     load: &LoadOptions,
@@ -683,17 +867,91 @@ pub fn reconstruct_and_write_streamed(
     options: &StreamOptions,
     dir: &Path,
     progress: &dyn Progress,
-) -> Result<(Reconstruction, Report, StreamPlan)> {
-    let s = reconstruct_streamed(files, load, config, options, progress)?;
-    let plan = s.plan;
-    let source = Described {
+) -> Result<(Report, StreamPlan)> {
+    let mut out = OutputDir::create(dir)?;
+    // The plan is not known yet when the EXR headers are made; the lights and the input
+    // summary are.
+    let described = |summary: InputSummary, plan: Option<&StreamPlan>| Described {
         lights: &files.lights,
-        summary: s.summary,
-        streaming: serde_json::to_value(plan).ok(),
+        summary,
+        streaming: plan.and_then(|p| serde_json::to_value(p).ok()),
     };
-    let (recon, report) =
-        integrate_and_write(s.recon, &source, config, dir, progress, |_| Ok(None))?;
-    Ok((recon, report, plan))
+    let header = described(
+        InputSummary::of_files(
+            &files.images,
+            &files.lights,
+            files.lights_source.as_deref(),
+            files.mask_source.as_deref(),
+            &[],
+        ),
+        None,
+    );
+    let attrs = exr_attributes(&header, config);
+    let (sink, run) = run_bands(
+        files,
+        load,
+        config,
+        options,
+        Keep::Written,
+        progress,
+        |setup| BandOutput::start(&out, setup, &attrs),
+    )?;
+    let t = Instant::now();
+    let written = sink.finish(&mut out)?;
+    let facts = run.facts(files);
+    let t_normals = Instant::now();
+    let integ = integrability_of(&written.normals, &written.solved, config);
+    let normals_s = t_normals.elapsed().as_secs_f64();
+    let (w, h) = (written.normals.width(), written.normals.height());
+    out.stage_exr("curl.exr", w, h, &[("curl", integ.curl.data())], &attrs)?;
+    let integrability = integ.summary;
+    drop(integ);
+    let model = model_summary(&written.models, &written.tallies, facts.count, config);
+    let warnings = warnings(
+        &facts,
+        &written.tallies,
+        &written.models,
+        &integrability,
+        config,
+    );
+    let write_s = run.sink_s + t.elapsed().as_secs_f64() - normals_s;
+    let t = Instant::now();
+    let integration = match &config.integration {
+        Some(o) if written.tallies.counts.solved > 0 => Some(integrate_normals(
+            &written.normals,
+            &written.solved,
+            o,
+            progress,
+        )?),
+        _ => None,
+    };
+    let integrate_s = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let source = described(run.summary.clone(), Some(&run.plan));
+    stage_depth(
+        &mut out,
+        &written.normals,
+        integration.as_ref(),
+        &source,
+        config,
+    )?;
+    let summary = RunSummary {
+        pixels: written.tallies.counts,
+        model,
+        albedo_above_one: written.tallies.albedo_above_one,
+        residual: written.residual,
+        integrability,
+        timings: Timings {
+            load: run.read_s,
+            solve: run.solve_s,
+            normals: normals_s,
+            integrate: integrate_s,
+            write: write_s + t.elapsed().as_secs_f64(),
+        },
+        warnings,
+    };
+    let report = commit_with_report(out, summary, integration.as_ref(), &source, config, None)?;
+    Ok((report, run.plan))
 }
 
 impl Integrator {

@@ -313,3 +313,222 @@ fn band_rows_alone_streams() {
         report["streaming"]
     );
 }
+
+/// The channels of an EXR file (name, values as f32) and its attributes (name, value), sorted.
+struct ExrContents {
+    channels: Vec<(String, Vec<f32>)>,
+    attributes: Vec<(String, String)>,
+}
+
+/// Every channel of an EXR file and its string attributes.
+fn exr_contents(path: &Path) -> ExrContents {
+    use exr::prelude::*;
+    let image = read_all_flat_layers_from_file(path).unwrap();
+    let layer = &image.layer_data[0];
+    let channels = layer
+        .channel_data
+        .list
+        .iter()
+        .map(|c| {
+            let values: Vec<f32> = c.sample_data.values_as_f32().collect();
+            (c.name.to_string(), values)
+        })
+        .collect();
+    let mut attrs: Vec<(String, String)> = layer
+        .attributes
+        .other
+        .iter()
+        .map(|(k, v)| (k.to_string(), format!("{v:?}")))
+        .collect();
+    attrs.sort();
+    ExrContents {
+        channels,
+        attributes: attrs,
+    }
+}
+
+/// `report.json` without what differs between runs by design: timings and the streaming plan.
+fn report_without_timings(path: &Path) -> serde_json::Value {
+    let mut r: serde_json::Value = serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap();
+    let o = r.as_object_mut().unwrap();
+    o.remove("timings_s");
+    o.remove("streaming");
+    r
+}
+
+/// Asserts that the outputs in `a` and `b` hold the same values: every EXR channel bit for bit
+/// (NaN where the other has NaN), the same header attributes, the same decoded PNG pixels, the
+/// same mesh and the same report apart from timings.
+fn assert_same_outputs(a: &Path, b: &Path, what: &str) {
+    let names = common::listing(a);
+    assert_eq!(names, common::listing(b), "{what}: different files");
+    for name in &names {
+        let (pa, pb) = (a.join(name), b.join(name));
+        if name.ends_with(".exr") {
+            let (a, b) = (exr_contents(&pa), exr_contents(&pb));
+            let (ca, cb) = (a.channels, b.channels);
+            assert_eq!(
+                a.attributes, b.attributes,
+                "{what}: {name} header attributes"
+            );
+            assert_eq!(ca.len(), cb.len(), "{what}: {name} channels");
+            for ((na, va), (nb, vb)) in ca.iter().zip(&cb) {
+                assert_eq!(na, nb, "{what}: {name}");
+                assert_eq!(va.len(), vb.len(), "{what}: {name}.{na}");
+                let differ = va
+                    .iter()
+                    .zip(vb)
+                    .filter(|(x, y)| x.to_bits() != y.to_bits() && !(x.is_nan() && y.is_nan()))
+                    .count();
+                assert_eq!(differ, 0, "{what}: {name}.{na}: {differ} values differ");
+            }
+        } else if name.ends_with(".png") {
+            let (ia, ib) = (image::open(&pa).unwrap(), image::open(&pb).unwrap());
+            assert_eq!(ia.color(), ib.color(), "{what}: {name}");
+            assert!(
+                ia.as_bytes() == ib.as_bytes(),
+                "{what}: {name} pixels differ"
+            );
+        } else if name == "report.json" {
+            assert_eq!(
+                report_without_timings(&pa),
+                report_without_timings(&pb),
+                "{what}: report"
+            );
+        } else {
+            assert!(
+                std::fs::read(&pa).unwrap() == std::fs::read(&pb).unwrap(),
+                "{what}: {name} differs"
+            );
+        }
+    }
+}
+
+/// A run that writes its outputs band by band writes what the in-memory run writes: every
+/// map, preview, the mesh and the report, for band heights that do and do not divide the
+/// EXR block height (16 rows), one row, and the whole mask at once; on a vase, whose mask
+/// leaves rows above and below that no band covers, and on a colour capture solved per
+/// channel (three albedo channels).
+#[test]
+fn outputs_written_band_by_band_equal_the_in_memory_outputs() {
+    use photostereo::integrate::{IntegrationOptions, Integrator};
+    use photostereo::pipeline::reconstruct_and_write;
+    use photostereo::stream::reconstruct_and_write_streamed;
+    let dir = tempfile::tempdir().unwrap();
+    let lights = Lights::fibonacci(LIGHTS, 30.0).unwrap();
+    let cases = [
+        (
+            "vase",
+            photostereo::scene::SceneKind::Vase.build(
+                96,
+                photostereo::scene::Albedo::Constant(0.8),
+                Material::lambertian(),
+            ),
+            false,
+            ColorMode::Grey,
+        ),
+        (
+            "colour",
+            Scene::sphere_on_ground(64, Material::lambertian()),
+            true,
+            ColorMode::PerChannel,
+        ),
+    ];
+    for (name, scene, color, mode) in cases {
+        let data = dir.path().join(name);
+        let options = RenderOptions {
+            noise_sigma: 0.004,
+            color,
+            seed: 5,
+            ..RenderOptions::default()
+        };
+        let rendering = render(&scene, &lights, &options).unwrap();
+        write_synthetic(&rendering, &lights, &data, ImageFormat::Png16).unwrap();
+        let files = CaptureFiles::from_files(
+            &(0..LIGHTS)
+                .map(|k| data.join(format!("img_{k:03}.png")))
+                .collect::<Vec<_>>(),
+            &data.join("lights.json"),
+            Some(&data.join("mask.png")),
+        )
+        .unwrap();
+        let load = LoadOptions {
+            color: mode,
+            ..LoadOptions::default()
+        };
+        let config = Config {
+            solve: SolveOptions::with_method(Method::Threshold),
+            integration: Some(IntegrationOptions {
+                method: Integrator::MaskedLs,
+                ..IntegrationOptions::default()
+            }),
+            mesh: true,
+            ..Config::default()
+        };
+        let whole = dir.path().join(format!("{name}-whole"));
+        let capture = files.load(&load, &Silent).unwrap();
+        reconstruct_and_write(&capture, &config, &whole, 0.0, &Silent, |_| Ok(None)).unwrap();
+        let masked_rows = {
+            let m = &capture.mask;
+            (0..m.height())
+                .filter(|&y| (0..m.width()).any(|x| *m.at(x, y)))
+                .count()
+        };
+        if name == "vase" {
+            assert!(
+                masked_rows < capture.mask.height(),
+                "the vase should leave rows outside its mask"
+            );
+        }
+        for band_rows in [Some(1), Some(7), Some(16), Some(23), None] {
+            let out = dir.path().join(format!("{name}-{band_rows:?}"));
+            let stream = StreamOptions {
+                max_memory: 1 << 30,
+                band_rows,
+            };
+            let (report, plan) =
+                reconstruct_and_write_streamed(&files, &load, &config, &stream, &out, &Silent)
+                    .unwrap();
+            assert_eq!(
+                plan.band_rows,
+                band_rows.unwrap_or(masked_rows).min(masked_rows)
+            );
+            assert!(report.streaming.is_some());
+            assert_same_outputs(&whole, &out, &format!("{name}, bands of {band_rows:?}"));
+        }
+    }
+}
+
+/// A streamed run that fails in the middle (a truncated image met in a later band, after
+/// rows were written) leaves nothing in the output folder: no file and no temporary.
+#[test]
+fn a_streamed_run_that_fails_midway_leaves_nothing() {
+    use photostereo::stream::reconstruct_and_write_streamed;
+    let dir = tempfile::tempdir().unwrap();
+    let (files, _) = scene(dir.path(), "png");
+    let victim = &files.images[7];
+    let bytes = std::fs::read(victim).unwrap();
+    std::fs::write(victim, &bytes[..bytes.len() * 3 / 5]).unwrap();
+    let out = dir.path().join("out");
+    let stream = StreamOptions {
+        max_memory: 1 << 30,
+        band_rows: Some(8),
+    };
+    let err = reconstruct_and_write_streamed(
+        &files,
+        &LoadOptions::default(),
+        &config(Method::Threshold),
+        &stream,
+        &out,
+        &Silent,
+    )
+    .unwrap_err();
+    assert!(err.to_string().contains("img_007.png"), "{err}");
+    let left: Vec<String> = std::fs::read_dir(&out)
+        .map(|d| {
+            d.map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect()
+        })
+        .unwrap_or_default();
+    assert!(left.is_empty(), "left behind: {left:?}");
+}

@@ -7,7 +7,7 @@
 //!   gradient: for a sphere, the mean of ∇E is ρ (s_x, s_y)/r, the shading term of n_z averaging
 //!   to zero.
 //! - **Slant** σ and **albedo** ρ come from the first two moments of the brightness. For normals
-//!   uniform over the projected hemisphere, m₁ = E[E] = ρ f₁(σ) and m₂ = E[E²] = ρ² f₂(σ), with
+//!   uniform over the projected hemisphere, m₁ = E\[E\] = ρ f₁(σ) and m₂ = E\[E²\] = ρ² f₂(σ), with
 //!   f₁, f₂ the moments of max(0, n·s) (attached shadows included; without them f₁ = ⅔ cos σ and
 //!   f₂ = (1 + cos² σ)/4). m₁²/m₂ = f₁²/f₂ depends on σ alone and decreases with it: it is
 //!   inverted on a table, then ρ = m₁/f₁(σ).

@@ -36,7 +36,7 @@ use photostereo::integrate::integrate_normals;
 use photostereo::mesh::Mesh;
 use photostereo::metrics::{angular_errors, depth_errors, scaled_depth_errors};
 use photostereo::output::OutputDir;
-use photostereo::pipeline::{Config, Reconstruction, Report, reconstruct, reconstruct_and_write};
+use photostereo::pipeline::{Config, Report, reconstruct, reconstruct_and_write};
 use photostereo::progress::{Progress, Silent};
 use photostereo::stream::{StreamOptions, reconstruct_and_write_streamed};
 use std::path::Path;
@@ -224,7 +224,7 @@ fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOption
 fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
     let files = capture_files(&rc)?;
     if let Some(options) = streaming(&rc, &files)? {
-        let (recon, report, plan) = reconstruct_and_write_streamed(
+        let (report, plan) = reconstruct_and_write_streamed(
             &files, &rc.load, &rc.config, &options, &rc.output, progress,
         )?;
         say!(
@@ -235,18 +235,18 @@ fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
             plan.resident_bytes >> 20,
             plan.in_memory_stack_bytes >> 20
         );
-        print_summary(&recon, &report, &rc.config, &rc.output);
+        print_summary(&report, &rc.output);
         return Ok(());
     }
     let t = Instant::now();
     let capture = files.load(&rc.load, progress)?;
     let load_s = t.elapsed().as_secs_f64();
     // Integration runs beside the writing of the maps that do not need depth.
-    let (recon, report) =
+    let (_, report) =
         reconstruct_and_write(&capture, &rc.config, &rc.output, load_s, progress, |_| {
             Ok(None)
         })?;
-    print_summary(&recon, &report, &rc.config, &rc.output);
+    print_summary(&report, &rc.output);
     Ok(())
 }
 
@@ -268,7 +268,7 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
     );
     // The error against ground truth is measured once depth exists and goes into the report.
     let mut evaluation = None;
-    let (recon, report) = reconstruct_and_write(
+    let (_, report) = reconstruct_and_write(
         &synth.capture,
         &config,
         &a.output,
@@ -291,7 +291,7 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
         &a.output.join("scene"),
         photostereo::dataset::ImageFormat::Exr,
     )?;
-    print_summary(&recon, &report, &config, &a.output);
+    print_summary(&report, &a.output);
     say!("error against ground truth:");
     let n = &eval.normals;
     say!(
@@ -517,9 +517,10 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
     Ok(())
 }
 
-fn print_summary(recon: &Reconstruction, report: &Report, config: &Config, dir: &Path) {
+fn print_summary(report: &Report, dir: &Path) {
     let i = &report.inputs;
-    let c = &recon.counts;
+    let c = &report.pixels;
+    let config = &report.config;
     say!(
         "{} images {}x{}, method {}, integration {}",
         i.count,
@@ -536,7 +537,7 @@ fn print_summary(recon: &Reconstruction, report: &Report, config: &Config, dir: 
         c.ill_conditioned,
         c.dark
     );
-    let m = &recon.model;
+    let m = &report.model;
     if m.robust_pixels > 0 || m.recalibrated {
         say!(
             "  model: {:.1}% of solved pixels needed the robust fit{}",
@@ -552,11 +553,11 @@ fn print_summary(recon: &Reconstruction, report: &Report, config: &Config, dir: 
     }
     say!(
         "  integrability: mean |curl| {:.4}, median {:.4}, 95th pct {:.4} (per pixel)",
-        recon.integrability.mean_abs_curl,
-        recon.integrability.median_abs_curl,
-        recon.integrability.p95_abs_curl
+        report.integrability.mean_abs_curl,
+        report.integrability.median_abs_curl,
+        report.integrability.p95_abs_curl
     );
-    let t = &recon.timings;
+    let t = &report.timings_s;
     say!(
         "  time: load {:.3} s, solve {:.3} s, normals {:.3} s, integrate {:.3} s, write {:.3} s",
         t.load,
@@ -566,7 +567,7 @@ fn print_summary(recon: &Reconstruction, report: &Report, config: &Config, dir: 
         t.write
     );
     say!("  wrote {} ({})", dir.display(), report.outputs.join(", "));
-    for w in &recon.warnings {
+    for w in &report.warnings {
         eprintln!("warning: {w}");
     }
 }
