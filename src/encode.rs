@@ -264,16 +264,21 @@ pub(crate) fn encode_png8(
     out.flush().map_err(|e| Error::io(path, e))
 }
 
-/// A writer thread fed through a bounded channel; it returns the file it wrote.
+/// A writer thread fed through a bounded channel with the rows of a file, top to bottom; it
+/// returns the file it wrote.
 struct Pipe<T: Send + 'static> {
     tx: Option<mpsc::SyncSender<T>>,
     handle: Option<std::thread::JoinHandle<Result<PendingFile>>>,
     path: PathBuf,
+    /// Rows of the file, and rows sent so far.
+    height: usize,
+    rows: usize,
 }
 
 impl<T: Send + 'static> Pipe<T> {
     fn spawn(
         path: PathBuf,
+        height: usize,
         work: impl FnOnce(mpsc::Receiver<T>) -> Result<PendingFile> + Send + 'static,
     ) -> Result<Self> {
         let (tx, rx) = mpsc::sync_channel(QUEUE_DEPTH);
@@ -285,11 +290,31 @@ impl<T: Send + 'static> Pipe<T> {
             tx: Some(tx),
             handle: Some(handle),
             path,
+            height,
+            rows: 0,
         })
     }
 
-    /// Queues `item`; when the writer has stopped, returns the error that stopped it.
-    fn send(&mut self, item: T) -> Result<()> {
+    /// An error naming the file: `what` does not continue it at the current row.
+    fn misfit(&self, what: String) -> Error {
+        Error::param(
+            "rows",
+            format!(
+                "{}: {what} do not continue a file of {} rows at row {}",
+                self.path.display(),
+                self.height,
+                self.rows
+            ),
+        )
+    }
+
+    /// Queues `item`, which holds the next `rows` rows; when the writer has stopped, returns
+    /// the error that stopped it.
+    fn send(&mut self, rows: usize, item: T) -> Result<()> {
+        if self.rows + rows > self.height {
+            return Err(self.misfit(format!("{rows} more rows")));
+        }
+        self.rows += rows;
         if let Some(tx) = &self.tx
             && tx.send(item).is_ok()
         {
@@ -320,15 +345,24 @@ impl<T: Send + 'static> Pipe<T> {
             )
         })?
     }
-}
 
-impl<T: Send + 'static> Drop for Pipe<T> {
-    fn drop(&mut self) {
-        // Closing the channel makes an unfinished writer give up; its temporary goes with it.
-        self.tx = None;
-        if let Some(h) = self.handle.take() {
-            let _ = h.join();
+    /// Waits for the end of the file; returns it, ready to stage.
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] when rows are missing; the writer's error.
+    fn finish(mut self) -> Result<PendingFile> {
+        if self.rows != self.height {
+            return Err(Error::param(
+                "rows",
+                format!(
+                    "{}: {} of {} rows were written",
+                    self.path.display(),
+                    self.rows,
+                    self.height
+                ),
+            ));
         }
+        self.join()
     }
 }
 
@@ -337,9 +371,7 @@ impl<T: Send + 'static> Drop for Pipe<T> {
 pub(crate) struct ExrRows {
     pipe: Pipe<Vec<Vec<f32>>>,
     width: usize,
-    height: usize,
     channels: usize,
-    rows: usize,
 }
 
 impl ExrRows {
@@ -360,7 +392,7 @@ impl ExrRows {
         let layout = ExrLayout::new(&path, width, height, names, attributes)?;
         let channels = names.len();
         let thread_path = path.clone();
-        let pipe = Pipe::spawn(path, move |rx: mpsc::Receiver<Vec<Vec<f32>>>| {
+        let pipe = Pipe::spawn(path, height, move |rx: mpsc::Receiver<Vec<Vec<f32>>>| {
             let mut file = file;
             let path = thread_path;
             let mut out = BufWriter::new(file.file_mut());
@@ -400,9 +432,7 @@ impl ExrRows {
         Ok(ExrRows {
             pipe,
             width,
-            height,
             channels,
-            rows: 0,
         })
     }
 
@@ -417,42 +447,23 @@ impl ExrRows {
         if planes.len() != self.channels
             || planes.iter().any(|p| p.len() != len)
             || !len.is_multiple_of(self.width)
-            || self.rows + len / self.width > self.height
         {
-            return Err(Error::param(
-                "rows",
-                format!(
-                    "{}: {} planes of {len} values do not continue a {}x{} map of {} channel(s) at row {}",
-                    self.pipe.path.display(),
-                    planes.len(),
-                    self.width,
-                    self.height,
-                    self.channels,
-                    self.rows
-                ),
-            ));
+            return Err(self.pipe.misfit(format!(
+                "{} planes of {len} values for {} channel(s) of width {}",
+                planes.len(),
+                self.channels,
+                self.width
+            )));
         }
-        self.rows += len / self.width;
-        self.pipe.send(planes)
+        self.pipe.send(len / self.width, planes)
     }
 
     /// Waits for the last block; returns the written file, ready to stage.
     ///
     /// # Errors
     /// [`Error::InvalidParameter`] when rows are missing; the writer's error.
-    pub(crate) fn finish(mut self) -> Result<PendingFile> {
-        if self.rows != self.height {
-            return Err(Error::param(
-                "rows",
-                format!(
-                    "{}: {} of {} rows were written",
-                    self.pipe.path.display(),
-                    self.rows,
-                    self.height
-                ),
-            ));
-        }
-        self.pipe.join()
+    pub(crate) fn finish(self) -> Result<PendingFile> {
+        self.pipe.finish()
     }
 }
 
@@ -461,8 +472,6 @@ impl ExrRows {
 pub(crate) struct PngRows {
     pipe: Pipe<Vec<u8>>,
     row_bytes: usize,
-    height: usize,
-    rows: usize,
 }
 
 impl PngRows {
@@ -482,7 +491,7 @@ impl PngRows {
         // Checked here so that a bad call fails before any thread starts.
         png_encoder(std::io::sink(), width, height, channels)?;
         let thread_path = path.clone();
-        let pipe = Pipe::spawn(path, move |rx: mpsc::Receiver<Vec<u8>>| {
+        let pipe = Pipe::spawn(path, height, move |rx: mpsc::Receiver<Vec<u8>>| {
             let mut file = file;
             let path = thread_path;
             let mut out = BufWriter::new(file.file_mut());
@@ -502,8 +511,6 @@ impl PngRows {
         Ok(PngRows {
             pipe,
             row_bytes: width * channels,
-            height,
-            rows: 0,
         })
     }
 
@@ -513,41 +520,119 @@ impl PngRows {
     /// [`Error::InvalidParameter`] for a partial row or rows past the last; the writer's
     /// error when it has failed.
     pub(crate) fn write(&mut self, rows: Vec<u8>) -> Result<()> {
-        if !rows.len().is_multiple_of(self.row_bytes)
-            || self.rows + rows.len() / self.row_bytes > self.height
-        {
-            return Err(Error::param(
-                "rows",
-                format!(
-                    "{}: {} bytes do not continue rows of {} bytes at row {} of {}",
-                    self.pipe.path.display(),
-                    rows.len(),
-                    self.row_bytes,
-                    self.rows,
-                    self.height
-                ),
-            ));
+        if !rows.len().is_multiple_of(self.row_bytes) {
+            return Err(self.pipe.misfit(format!(
+                "{} bytes in rows of {}",
+                rows.len(),
+                self.row_bytes
+            )));
         }
-        self.rows += rows.len() / self.row_bytes;
-        self.pipe.send(rows)
+        self.pipe.send(rows.len() / self.row_bytes, rows)
     }
 
     /// Waits for the end of the file; returns it, ready to stage.
     ///
     /// # Errors
     /// [`Error::InvalidParameter`] when rows are missing; the writer's error.
-    pub(crate) fn finish(mut self) -> Result<PendingFile> {
-        if self.rows != self.height {
-            return Err(Error::param(
-                "rows",
-                format!(
-                    "{}: {} of {} rows were written",
-                    self.pipe.path.display(),
-                    self.rows,
-                    self.height
-                ),
-            ));
+    pub(crate) fn finish(self) -> Result<PendingFile> {
+        self.pipe.finish()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::output::OutputDir;
+
+    fn read_exr(path: &Path) -> Vec<(String, Vec<f32>)> {
+        let image = exr::prelude::read_all_flat_layers_from_file(path).unwrap();
+        image.layer_data[0]
+            .channel_data
+            .list
+            .iter()
+            .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
+            .collect()
+    }
+
+    /// Bands of any height give the values the whole-image encoder gives, for a size that
+    /// is not a multiple of the block height; rows in the wrong shape, too many rows and
+    /// missing rows are refused naming the file.
+    #[test]
+    fn bands_encode_like_the_whole_image() {
+        let (w, h) = (37, 53);
+        let a: Vec<f32> = (0..w * h).map(|i| (i as f32 * 0.37).sin()).collect();
+        let mut b: Vec<f32> = (0..w * h).map(|i| i as f32).collect();
+        b[5] = f32::NAN;
+        let grey: Vec<u8> = (0..w * h).map(|i| (i * 7 % 251) as u8).collect();
+        let tmp = tempfile::tempdir().unwrap();
+        let mut out = OutputDir::create(tmp.path()).unwrap();
+        out.stage_exr("whole.exr", w, h, &[("b", &b), ("a", &a)], &[])
+            .unwrap();
+        out.stage_png8("whole.png", w, h, 1, &grey).unwrap();
+        for band in [1, 5, 16, 17, 53] {
+            let mut exr = ExrRows::start(
+                out.begin(&format!("{band}.exr")).unwrap(),
+                w,
+                h,
+                &["b", "a"],
+                &[],
+            )
+            .unwrap();
+            let mut png =
+                PngRows::start(out.begin(&format!("{band}.png")).unwrap(), w, h, 1).unwrap();
+            for y in (0..h).step_by(band) {
+                let r = y * w..(y + band).min(h) * w;
+                exr.write(vec![b[r.clone()].to_vec(), a[r.clone()].to_vec()])
+                    .unwrap();
+                png.write(grey[r].to_vec()).unwrap();
+            }
+            out.add(exr.finish().unwrap());
+            out.add(png.finish().unwrap());
         }
-        self.pipe.join()
+        out.commit().unwrap();
+        let whole = read_exr(&tmp.path().join("whole.exr"));
+        assert_eq!(whole.len(), 2);
+        let whole_png = image::open(tmp.path().join("whole.png")).unwrap();
+        assert_eq!(whole_png.as_bytes(), grey.as_slice());
+        for band in [1, 5, 16, 17, 53] {
+            let got = read_exr(&tmp.path().join(format!("{band}.exr")));
+            for ((nw, vw), (ng, vg)) in whole.iter().zip(&got) {
+                assert_eq!(nw, ng);
+                assert!(
+                    vw.iter()
+                        .zip(vg)
+                        .all(|(x, y)| x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan())),
+                    "bands of {band}: channel {nw} differs"
+                );
+            }
+            let png = image::open(tmp.path().join(format!("{band}.png"))).unwrap();
+            assert_eq!(png.as_bytes(), grey.as_slice(), "bands of {band}");
+        }
+        // Refusals.
+        let out = OutputDir::create(&tmp.path().join("bad")).unwrap();
+        let mut exr = ExrRows::start(out.begin("x.exr").unwrap(), w, h, &["a"], &[]).unwrap();
+        let e = exr.write(vec![vec![0.0; w + 1]]).unwrap_err().to_string();
+        assert!(e.contains("x.exr"), "{e}");
+        let e = exr
+            .write(vec![vec![0.0; w * (h + 1)]])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("x.exr") && e.contains("rows"), "{e}");
+        exr.write(vec![vec![0.0; w * 3]]).unwrap();
+        let e = exr.finish().unwrap_err().to_string();
+        assert!(e.contains("3 of 53 rows"), "{e}");
+        let mut png = PngRows::start(out.begin("y.png").unwrap(), w, h, 3).unwrap();
+        let e = png.write(vec![0; w * 3 - 1]).unwrap_err().to_string();
+        assert!(e.contains("y.png"), "{e}");
+        assert!(PngRows::start(out.begin("z.png").unwrap(), w, h, 2).is_err());
+        drop(png);
+        drop(out);
+        assert!(
+            std::fs::read_dir(tmp.path().join("bad"))
+                .unwrap()
+                .next()
+                .is_none(),
+            "abandoned writers left files"
+        );
     }
 }
