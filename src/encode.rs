@@ -198,13 +198,14 @@ pub(crate) fn encode_exr(
     out.flush().map_err(|e| Error::io(path, e))
 }
 
-/// A PNG encoder with the settings of every preview: 8 bits, 1 (grey) or 3 (RGB) channels,
-/// balanced deflate, adaptive filtering.
+/// A PNG encoder with the settings of every PNG written: 1 (grey) or 3 (RGB) channels of
+/// `depth`, balanced deflate, adaptive filtering.
 fn png_encoder<W: Write>(
     w: W,
     width: usize,
     height: usize,
     channels: usize,
+    depth: png::BitDepth,
 ) -> Result<png::Encoder<'static, W>> {
     let color = match channels {
         1 => png::ColorType::Grayscale,
@@ -224,7 +225,7 @@ fn png_encoder<W: Write>(
     };
     let mut e = png::Encoder::new(w, w32, h32);
     e.set_color(color);
-    e.set_depth(png::BitDepth::Eight);
+    e.set_depth(depth);
     e.set_compression(png::Compression::Balanced);
     e.set_filter(png::Filter::Adaptive);
     Ok(e)
@@ -244,21 +245,67 @@ pub(crate) fn encode_png8(
     channels: usize,
     data: &[u8],
 ) -> Result<()> {
-    if data.len() != width * height * channels {
+    encode_png(
+        file,
+        path,
+        (width, height, channels),
+        png::BitDepth::Eight,
+        data,
+    )
+}
+
+/// Encodes a 16-bit PNG (`channels` 1 or 3, interleaved) into `file`; `path` names it in
+/// errors.
+///
+/// # Errors
+/// As [`encode_png8`].
+pub(crate) fn encode_png16(
+    file: &mut File,
+    path: &Path,
+    width: usize,
+    height: usize,
+    channels: usize,
+    data: &[u16],
+) -> Result<()> {
+    // PNG stores 16-bit samples big-endian.
+    let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_be_bytes()).collect();
+    encode_png(
+        file,
+        path,
+        (width, height, channels),
+        png::BitDepth::Sixteen,
+        &bytes,
+    )
+}
+
+/// Encodes a PNG of `(width, height, channels)` samples of `depth` from their bytes.
+fn encode_png(
+    file: &mut File,
+    path: &Path,
+    (width, height, channels): (usize, usize, usize),
+    depth: png::BitDepth,
+    bytes: &[u8],
+) -> Result<()> {
+    let sample = if depth == png::BitDepth::Sixteen {
+        2
+    } else {
+        1
+    };
+    if bytes.len() != width * height * channels * sample {
         return Err(Error::param(
             "data",
             format!(
-                "{} bytes for a {width}x{height} image of {channels} channel(s)",
-                data.len()
+                "{} samples for a {width}x{height} image of {channels} channel(s)",
+                bytes.len() / sample
             ),
         ));
     }
     let mut out = BufWriter::new(file);
-    let mut png = png_encoder(&mut out, width, height, channels)?
+    let mut png = png_encoder(&mut out, width, height, channels, depth)?
         .write_header()
         .map_err(|e| png_error(path, e))?;
     let mut rows = png.stream_writer().map_err(|e| png_error(path, e))?;
-    rows.write_all(data).map_err(|e| Error::io(path, e))?;
+    rows.write_all(bytes).map_err(|e| Error::io(path, e))?;
     rows.finish().map_err(|e| png_error(path, e))?;
     png.finish().map_err(|e| png_error(path, e))?;
     out.flush().map_err(|e| Error::io(path, e))
@@ -489,13 +536,19 @@ impl PngRows {
     ) -> Result<Self> {
         let path = file.path().to_path_buf();
         // Checked here so that a bad call fails before any thread starts.
-        png_encoder(std::io::sink(), width, height, channels)?;
+        png_encoder(
+            std::io::sink(),
+            width,
+            height,
+            channels,
+            png::BitDepth::Eight,
+        )?;
         let thread_path = path.clone();
         let pipe = Pipe::spawn(path, height, move |rx: mpsc::Receiver<Vec<u8>>| {
             let mut file = file;
             let path = thread_path;
             let mut out = BufWriter::new(file.file_mut());
-            let mut png = png_encoder(&mut out, width, height, channels)?
+            let mut png = png_encoder(&mut out, width, height, channels, png::BitDepth::Eight)?
                 .write_header()
                 .map_err(|e| png_error(&path, e))?;
             let mut rows = png.stream_writer().map_err(|e| png_error(&path, e))?;

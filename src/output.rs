@@ -7,12 +7,12 @@
 //! cannot create unnamed files, it is a hidden `.NAME.tmp-PID` beside the destination, removed
 //! when the [`OutputDir`] is dropped uncommitted (a killed process can leave those).
 
-use crate::encode::{encode_exr, encode_png8};
+use crate::encode::{encode_exr, encode_png8, encode_png16};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
 use crate::input::linear_to_srgb;
 use std::fs::File;
-use std::io::{BufWriter, Seek, Write};
+use std::io::{Seek, Write};
 use std::path::{Path, PathBuf};
 
 /// A folder that receives a set of output files atomically.
@@ -427,16 +427,6 @@ pub fn write_exr(
     encode_exr(&mut file, path, width, height, channels, attributes)
 }
 
-fn encode_err(path: &Path, e: image::ImageError) -> Error {
-    match e {
-        image::ImageError::IoError(io) => Error::io(path, io),
-        other => Error::Encode {
-            path: path.to_path_buf(),
-            reason: other.to_string(),
-        },
-    }
-}
-
 /// Writes an 8-bit PNG with 1 or 3 interleaved channels.
 ///
 /// # Errors
@@ -465,46 +455,6 @@ pub fn write_png16(
 ) -> Result<()> {
     let mut file = File::create(path).map_err(|e| Error::io(path, e))?;
     encode_png16(&mut file, path, width, height, channels, data)
-}
-
-/// Encodes a 16-bit PNG into `file`; `path` names it in errors.
-fn encode_png16(
-    file: &mut File,
-    path: &Path,
-    width: usize,
-    height: usize,
-    channels: usize,
-    data: &[u16],
-) -> Result<()> {
-    fn encode<P>(
-        path: &Path,
-        width: usize,
-        height: usize,
-        data: &[u16],
-        out: &mut BufWriter<&mut File>,
-    ) -> Result<()>
-    where
-        P: image::Pixel<Subpixel = u16> + image::PixelWithColorType,
-        [u16]: image::EncodableLayout,
-    {
-        let buf: image::ImageBuffer<P, Vec<u16>> =
-            image::ImageBuffer::from_raw(width as u32, height as u32, data.to_vec())
-                .ok_or_else(|| Error::param("data", "wrong length for the image size"))?;
-        buf.write_to(out, image::ImageFormat::Png)
-            .map_err(|e| encode_err(path, e))
-    }
-    let mut w = BufWriter::new(file);
-    match channels {
-        1 => encode::<image::Luma<u16>>(path, width, height, data, &mut w)?,
-        3 => encode::<image::Rgb<u16>>(path, width, height, data, &mut w)?,
-        _ => {
-            return Err(Error::param(
-                "channels",
-                format!("{channels}: 1 or 3 expected"),
-            ));
-        }
-    }
-    w.flush().map_err(|e| Error::io(path, e))
 }
 
 /// Splits a normal map into its n_x, n_y, n_z planes (for the R, G, B channels of an EXR).
