@@ -72,7 +72,8 @@ impl BandOutput {
         let blank_rows = setup.plan.band_rows.clamp(1, h.max(1));
         let blank = setup.empty(blank_rows);
         let models = ChannelModel::of(&blank);
-        let albedo_count = pixel_maps(&blank).albedo.len();
+        // One albedo map per solved channel (grey, or R, G, B for either colour solve).
+        let albedo_count = blank.len();
         let exr = |name: &str, names: &[&str]| -> Result<ExrRows> {
             ExrRows::start(out.begin(name)?, w, h, names, attributes)
         };

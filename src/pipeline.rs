@@ -857,7 +857,10 @@ const ORTHOGRAPHIC_UNITS: &str =
 
 /// The string attributes of every EXR header: method, frame, units, light count and the light
 /// directions (a JSON list of [x, y, z] in the camera frame).
-pub(crate) fn exr_attributes(source: &Described, config: &Config) -> Vec<(&'static str, String)> {
+pub(crate) fn exr_attributes(
+    lights: &crate::lights::Lights,
+    config: &Config,
+) -> Vec<(&'static str, String)> {
     vec![
         ("photostereo:method", config.solve.method.name().to_string()),
         (
@@ -865,12 +868,11 @@ pub(crate) fn exr_attributes(source: &Described, config: &Config) -> Vec<(&'stat
             "x right, y up, z towards the camera; row 0 at the top".to_string(),
         ),
         ("photostereo:units", ORTHOGRAPHIC_UNITS.to_string()),
-        ("photostereo:lights", source.lights.len().to_string()),
+        ("photostereo:lights", lights.len().to_string()),
         (
             "photostereo:light_directions",
             serde_json::to_string(
-                &source
-                    .lights
+                &lights
                     .directions()
                     .iter()
                     .map(|d| [d.x, d.y, d.z])
@@ -1043,7 +1045,7 @@ fn stage_maps(
     config: &Config,
 ) -> Result<()> {
     let (w, h) = (recon.normals.width(), recon.normals.height());
-    let attrs = exr_attributes(source, config);
+    let attrs = exr_attributes(source.lights, config);
     let rows = map_rows(&recon.maps());
     out.stage_exr(
         "normal.exr",
@@ -1098,7 +1100,7 @@ pub(crate) fn stage_depth(
             depth_channels.push(("wv", wv.data()));
         }
     }
-    let mut depth_attrs = exr_attributes(source, config);
+    let mut depth_attrs = exr_attributes(source.lights, config);
     if let Some(options) = &config.integration {
         depth_attrs.push(("photostereo:integration", options.method.name().to_string()));
         depth_attrs[2].1 = match &options.camera {

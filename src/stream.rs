@@ -869,24 +869,7 @@ pub fn reconstruct_and_write_streamed(
     progress: &dyn Progress,
 ) -> Result<(Report, StreamPlan)> {
     let mut out = OutputDir::create(dir)?;
-    // The plan is not known yet when the EXR headers are made; the lights and the input
-    // summary are.
-    let described = |summary: InputSummary, plan: Option<&StreamPlan>| Described {
-        lights: &files.lights,
-        summary,
-        streaming: plan.and_then(|p| serde_json::to_value(p).ok()),
-    };
-    let header = described(
-        InputSummary::of_files(
-            &files.images,
-            &files.lights,
-            files.lights_source.as_deref(),
-            files.mask_source.as_deref(),
-            &[],
-        ),
-        None,
-    );
-    let attrs = exr_attributes(&header, config);
+    let attrs = exr_attributes(&files.lights, config);
     let (sink, run) = run_bands(
         files,
         load,
@@ -927,7 +910,11 @@ pub fn reconstruct_and_write_streamed(
     };
     let integrate_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    let source = described(run.summary.clone(), Some(&run.plan));
+    let source = Described {
+        lights: &files.lights,
+        summary: run.summary.clone(),
+        streaming: serde_json::to_value(run.plan).ok(),
+    };
     stage_depth(
         &mut out,
         &written.normals,

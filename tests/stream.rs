@@ -407,10 +407,11 @@ fn assert_same_outputs(a: &Path, b: &Path, what: &str) {
 /// A run that writes its outputs band by band writes what the in-memory run writes: every
 /// map, preview, the mesh and the report, for band heights that do and do not divide the
 /// EXR block height (16 rows), one row, and the whole mask at once; on a vase, whose mask
-/// leaves rows above and below that no band covers, and on a colour capture solved per
-/// channel (three albedo channels).
+/// leaves rows above and below that no band covers, and on a colour capture (three albedo
+/// channels) under both colour solves, shared normal and per channel.
 #[test]
 fn outputs_written_band_by_band_equal_the_in_memory_outputs() {
+    use photostereo::color::ColorSolve;
     use photostereo::integrate::{IntegrationOptions, Integrator};
     use photostereo::pipeline::reconstruct_and_write;
     use photostereo::stream::reconstruct_and_write_streamed;
@@ -426,15 +427,24 @@ fn outputs_written_band_by_band_equal_the_in_memory_outputs() {
             ),
             false,
             ColorMode::Grey,
+            ColorSolve::SharedNormal,
         ),
         (
-            "colour",
+            "colour-shared",
             Scene::sphere_on_ground(64, Material::lambertian()),
             true,
             ColorMode::PerChannel,
+            ColorSolve::SharedNormal,
+        ),
+        (
+            "colour-per-channel",
+            Scene::sphere_on_ground(64, Material::lambertian()),
+            true,
+            ColorMode::PerChannel,
+            ColorSolve::PerChannel,
         ),
     ];
-    for (name, scene, color, mode) in cases {
+    for (name, scene, color, mode, solve) in cases {
         let data = dir.path().join(name);
         let options = RenderOptions {
             noise_sigma: 0.004,
@@ -463,6 +473,7 @@ fn outputs_written_band_by_band_equal_the_in_memory_outputs() {
                 ..IntegrationOptions::default()
             }),
             mesh: true,
+            color: solve,
             ..Config::default()
         };
         let whole = dir.path().join(format!("{name}-whole"));
