@@ -8,7 +8,8 @@ use photostereo::camera::Intrinsics;
 use photostereo::grid::{Grid, Mask, NormalMap, ScalarMap};
 use photostereo::input::{read_image, read_mask, read_normal_map};
 use photostereo::integrate::{
-    IntegrationOptions, Integrator, LinearSolver, integrate_gradients, integrate_normals,
+    Censoring, IntegrationOptions, Integrator, LinearSolver, integrate_censored_gradients,
+    integrate_gradients, integrate_normals,
 };
 use photostereo::metrics::{depth_errors, scaled_depth_errors};
 use photostereo::progress::Silent;
@@ -86,6 +87,42 @@ fn masked_least_squares_is_exact_on_quadratics_and_irregular_masks() {
     assert!(depth_errors(&poisson, &z, &mask).unwrap().rmse > 0.1);
 }
 
+/// Occluding rims: a sphere and a flattened ellipsoid seen edge-on, whose depth goes like
+/// √(distance) to the silhouette and whose gradients blow up there (to |p| ≈ 50 where n_z is
+/// clamped). The normals are exact at the pixel centres. With the square-root rim profile masked
+/// least squares is within 0.02 px (RMS) of the true depth: measured 0.016 px on the sphere and
+/// 0.011 px on the ellipsoid, against 0.57 px on the sphere with the polynomial rules alone (the
+/// build before the rim profile), the error then concentrating at the rim.
+#[test]
+fn occluding_rims_follow_the_square_root_profile() {
+    let (w, h, r) = (100usize, 90usize, 40.0f64);
+    for (name, sy, sz) in [("sphere", 1.0, 1.0), ("ellipsoid", 0.7, 0.6)] {
+        // z = sz·r·√(1 − (x/r)² − (y/(sy·r))²), centre off the pixel grid.
+        let inside = |x: f64, y: f64| 1.0 - (x / r).powi(2) - (y / (sy * r)).powi(2);
+        let (z, _, _, normals) = field(w, h, |x, y| {
+            let (x, y) = (x - 0.3, y + 0.2);
+            let u = inside(x, y).max(1e-12);
+            let zv = sz * r * u.sqrt();
+            (
+                zv,
+                -sz * x / (r * u.sqrt()),
+                -sz * y / (sy * sy * r * u.sqrt()),
+            )
+        });
+        let mask = Grid::from_fn(w, h, |c, row| {
+            let x = c as f64 - (w as f64 - 1.0) / 2.0 - 0.3;
+            let y = (h as f64 - 1.0) / 2.0 - row as f64 + 0.2;
+            inside(x, y) > 0.0
+        });
+        let depth = integrate_normals(&normals, &mask, &options(Integrator::MaskedLs), &Silent)
+            .unwrap()
+            .depth;
+        let e = depth_errors(&depth, &z, &mask).unwrap();
+        println!("{name}: masked-ls RMSE {:.4} px", e.rmse);
+        assert!(e.rmse < 0.02, "{name}: RMSE {} px", e.rmse);
+    }
+}
+
 /// Frankot–Chellappa recovers a periodic surface (up to discretisation) on the full image.
 #[test]
 fn frankot_chellappa_on_a_periodic_surface() {
@@ -114,12 +151,13 @@ fn frankot_chellappa_on_a_periodic_surface() {
     assert!(e.rmse_over_range < 1e-3, "{e:?}");
 }
 
-/// The survey vase (Quéau, Durou & Aujol 2018): masked least squares reaches RMSE 0.094 on the
-/// exact gradients; with Gaussian noise of 0.5% of the largest gradient (σ = 0.05) the RMSE
-/// varies with the draw (0.092–0.121 over 12 draws, mean 0.105: the noise integrates into
-/// large-scale tilts), so the test averages 8 draws. The systematic part sits at the silhouette,
-/// where the file's gradients are clipped at ±10. The rectangle methods, which assume a flat
-/// background around the mask, are an order of magnitude off: this is why the mask matters.
+/// The survey vase (Quéau, Durou & Aujol 2018), whose file stores the gradients clipped at ±10
+/// (the largest magnitude, reached by many samples at the silhouette). With the clipped samples
+/// marked as bounds, masked least squares reaches RMSE 0.069 on the exact gradients (0.094 with
+/// polynomial rules only, 0.100 when the clipped samples are taken as exact); with Gaussian noise
+/// of 0.5% of the largest gradient (σ = 0.05) the RMSE varies with the draw (the noise integrates
+/// into large-scale tilts), so the test averages 8 draws. The rectangle methods, which assume a
+/// flat background around the mask, are an order of magnitude off: this is why the mask matters.
 #[test]
 fn vase_with_noise() {
     let path = require_shared!("integration/vase/vase.exr");
@@ -128,12 +166,20 @@ fn vase_with_noise() {
     let (zg, pv, qv, mv) = (exr("Z"), exr("p"), exr("q"), exr("mask"));
     let mask = mv.map(|v| *v > 0.5);
     // The file's p = ∂Z/∂row, q = ∂Z/∂column; ours: p = ∂z/∂x (columns), q = ∂z/∂y (up).
-    let max = pv
-        .data()
-        .iter()
-        .chain(qv.data())
-        .filter(|v| v.is_finite())
-        .fold(0f32, |m, v| m.max(v.abs()));
+    let values = || {
+        pv.data()
+            .iter()
+            .chain(qv.data())
+            .filter(|v| v.is_finite())
+            .map(|v| v.abs())
+    };
+    let max = values().fold(0f32, f32::max);
+    let at_max = values().filter(|v| *v == max).count();
+    assert!(
+        at_max > 100,
+        "the clip level {max} is reached {at_max} times"
+    );
+    let clipped = Censoring::ClippedAt(max);
     let sigma = 0.005 * max;
     let noise = Normal::new(0.0f32, sigma).unwrap();
     let noisy = |seed: u64| {
@@ -143,18 +189,18 @@ fn vase_with_noise() {
             pv.map(|v| -v + noise.sample(&mut rng)),
         )
     };
-    let (exact, _) = integrate_gradients(
-        &qv,
-        &pv.map(|v| -v),
-        &mask,
-        Integrator::MaskedLs,
-        LinearSolver::Auto,
-    )
-    .unwrap();
-    let exact = depth_errors(&exact, &zg, &mask).unwrap().rmse;
-    println!("vase, exact gradients: masked-ls RMSE {exact:.4}");
+    let integrate = |p: &ScalarMap, q: &ScalarMap, censoring: &Censoring, method| {
+        let (z, _) =
+            integrate_censored_gradients(p, q, censoring, &mask, method, LinearSolver::Auto)
+                .unwrap();
+        depth_errors(&z, &zg, &mask).unwrap().rmse
+    };
+    let (p, q) = (qv.clone(), pv.map(|v| -v));
+    let exact = integrate(&p, &q, &clipped, Integrator::MaskedLs);
+    let uncensored = integrate(&p, &q, &Censoring::None, Integrator::MaskedLs);
+    println!("vase, exact gradients: masked-ls RMSE {exact:.4} ({uncensored:.4} uncensored)");
     assert!(
-        exact <= 0.1,
+        exact <= 0.08,
         "masked least squares on exact gradients: RMSE {exact}"
     );
     let mut rmse = Vec::new();
@@ -167,9 +213,7 @@ fn vase_with_noise() {
         let draws: Vec<f64> = (0..8)
             .map(|seed| {
                 let (p, q) = noisy(seed);
-                let (z, _) =
-                    integrate_gradients(&p, &q, &mask, method, LinearSolver::Auto).unwrap();
-                depth_errors(&z, &zg, &mask).unwrap().rmse
+                integrate(&p, &q, &clipped, method)
             })
             .collect();
         let mean = draws.iter().sum::<f64>() / draws.len() as f64;
@@ -179,12 +223,7 @@ fn vase_with_noise() {
         );
         rmse.push(mean);
     }
-    // Measured mean 0.110 (the 0.1 of the survey's figure is reached on some draws only).
-    assert!(
-        rmse[0] <= 0.115,
-        "masked least squares mean RMSE {}",
-        rmse[0]
-    );
+    assert!(rmse[0] <= 0.1, "masked least squares mean RMSE {}", rmse[0]);
     assert!(
         rmse[1] > 10.0 * rmse[0] && rmse[2] > 10.0 * rmse[0],
         "{rmse:?}"

@@ -2,9 +2,10 @@
 //! boundary; Quéau, Durou & Aujol, "Normal integration: a survey", JMIV 2018, §3).
 //!
 //! Minimises Σ over the edges between neighbouring mask pixels of (z_j − z_i − d_ij)², d_ij the
-//! trapezoid difference of the gradients. Unlike DCT Poisson, nothing outside the mask enters:
-//! the mask boundary is a free (natural) boundary, so masks of any shape and depth discontinuities
-//! along the silhouette are handled. Each connected part is integrated independently (anchored at
+//! depth difference the gradients give (the shared rule of the parent module, with its rim
+//! profile). Unlike DCT Poisson, nothing outside the mask enters: the mask boundary is a free
+//! (natural) boundary, so masks of any shape and depth discontinuities along the silhouette are
+//! handled. Each connected part is integrated independently (anchored at
 //! one pixel, then made zero-mean). Its normal equations are the mask's graph Laplacian L z = b,
 //! solved by sparse Cholesky or by conjugate gradients preconditioned with the DCT solve of the
 //! enclosing rectangle (a few tens of iterations for compact masks).
@@ -12,9 +13,9 @@
 //! Assumes a continuous surface inside each part: a depth jump inside the mask is smeared over
 //! its neighbourhood (see the bilateral integrator for that case).
 
-use super::edge_differences;
 use super::poisson::NeumannSolver;
 use super::sparse::{Direct, LinearSolver, Preconditioner, Stencil, Unknowns, pcg};
+use super::{Censoring, edge_differences};
 use crate::error::Result;
 use crate::grid::{Mask, ScalarMap};
 
@@ -42,12 +43,13 @@ pub struct SolveInfo {
 pub fn integrate_masked_ls(
     p: &ScalarMap,
     q: &ScalarMap,
+    censoring: &Censoring,
     domain: &Mask,
     solver: LinearSolver,
 ) -> Result<(ScalarMap, SolveInfo)> {
     let u = Unknowns::new(domain);
     let n = u.len();
-    let (right, down) = edge_differences(p, q, domain);
+    let (right, down) = edge_differences(p, q, domain, censoring);
     let mut a = Stencil::zeros(n);
     let mut b = vec![0f64; n];
     for i in 0..n {

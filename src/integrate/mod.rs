@@ -18,9 +18,15 @@
 //! - `bilateral`: discontinuity-preserving reweighted least squares; slower (one solve per
 //!   iteration) and may break smooth surfaces where normals are noisy.
 //!
-//! The gradient-based methods share one discretisation: the depth difference between neighbours
-//! is the trapezoid-rule mean of the two pixels' gradients. After integration, the per-pixel
-//! residual |Δz − trapezoid gradient| (RMS over the pixel's edges) shows where the result is not
+//! The gradient-based methods share one discretisation of the depth difference between
+//! neighbours: a fourth-order rule along each line, the trapezoid rule next to the domain's edge,
+//! and, on the two edges next to an occluding rim, the integral of the square-root profile
+//! c/√(t − t₀) fitted to the edge's two samples (depth near an occluding contour grows like the
+//! square root of the distance to it, so the gradient blows up and no polynomial rule follows
+//! it). The profile is used only where the samples grow towards the rim, place the contour
+//! within a pixel outside it, and predict the next sample better than a straight line; gradients
+//! known to be clipped ([`Censoring`]) are extrapolated over. After integration, the per-pixel
+//! residual |Δz − that difference| (RMS over the pixel's edges) shows where the result is not
 //! faithful to the normals: discontinuities, or non-integrable (wrong) normals.
 
 pub mod bilateral;
@@ -156,15 +162,47 @@ pub fn integrate_gradients(
     method: Integrator,
     solver: LinearSolver,
 ) -> Result<(ScalarMap, Option<SolveInfo>)> {
+    integrate_censored_gradients(p, q, &Censoring::None, mask, method, solver)
+}
+
+/// [`integrate_gradients`] for a field with samples that are only bounds, such as gradients
+/// clipped at a level ([`Censoring::ClippedAt`]): at occluding rims the depth differences are
+/// then extrapolated from the exact samples instead of interpolated through the clipped ones.
+///
+/// # Errors
+/// As [`integrate_gradients`]; also [`Error::InvalidParameter`] when the clip level is not
+/// positive and finite.
+pub fn integrate_censored_gradients(
+    p: &ScalarMap,
+    q: &ScalarMap,
+    censoring: &Censoring,
+    mask: &Mask,
+    method: Integrator,
+    solver: LinearSolver,
+) -> Result<(ScalarMap, Option<SolveInfo>)> {
     p.check_same_size(q, "q vs p")?;
     p.check_same_size(mask, "mask vs gradients")?;
+    match censoring {
+        Censoring::None => {}
+        Censoring::ClippedAt(level) => {
+            if !(level.is_finite() && *level > 0.0) {
+                return Err(Error::param(
+                    "clip",
+                    format!("the clip level must be positive and finite, got {level}"),
+                ));
+            }
+        }
+    }
     let domain = gradient_domain(p, q, mask)?;
     Ok(match method {
-        Integrator::Poisson => (poisson::integrate_poisson(p, q, &domain), None),
-        Integrator::Path => (path::integrate_path(p, q, &domain, DEFAULT_PATHS), None),
+        Integrator::Poisson => (poisson::integrate_poisson(p, q, censoring, &domain), None),
+        Integrator::Path => (
+            path::integrate_path(p, q, censoring, &domain, DEFAULT_PATHS),
+            None,
+        ),
         Integrator::FrankotChellappa => (fourier::integrate_fourier(p, q, &domain), None),
         Integrator::MaskedLs => {
-            let (z, info) = masked::integrate_masked_ls(p, q, &domain, solver)?;
+            let (z, info) = masked::integrate_masked_ls(p, q, censoring, &domain, solver)?;
             (z, Some(info))
         }
         Integrator::Bilateral => {
@@ -204,12 +242,14 @@ pub fn integrate_normals(
         )?;
         (r.z, Some(r.solve), Some((r.wu, r.wv)), r.iterations)
     } else {
+        // Gradients clamped at MIN_NZ are left uncensored: the rim profile through them is
+        // insensitive to a large |g| (measured: censoring them doubled the error on a sphere).
         let (z, solve) = integrate_gradients(&p, &q, &domain, options.method, options.solver)?;
         (z, solve, None, 0)
     };
     progress.advance(1);
     progress.end();
-    let residual = integration_residual(&z, &p, &q, &domain);
+    let residual = integration_residual(&z, &p, &q, &Censoring::None, &domain);
     let depth = match &options.camera {
         None => z,
         Some(_) => z.map(|v| v.exp()),
@@ -244,15 +284,17 @@ fn gradient_domain(p: &ScalarMap, q: &ScalarMap, mask: &Mask) -> Result<Mask> {
     Ok(domain)
 }
 
-/// Per-pixel RMS over the pixel's edges within `domain` of (z_j − z_i − trapezoid difference).
+/// Per-pixel RMS over the pixel's edges within `domain` of (z_j − z_i − d_ij), d_ij the depth
+/// difference the gradients give (the shared discretisation of the module documentation).
 pub fn integration_residual(
     z: &ScalarMap,
     p: &ScalarMap,
     q: &ScalarMap,
+    censoring: &Censoring,
     domain: &Mask,
 ) -> ScalarMap {
     let (w, h) = (z.width(), z.height());
-    let (right, down) = edge_differences(p, q, domain);
+    let (right, down) = edge_differences(p, q, domain, censoring);
     let zd = z.data();
     let mut sum = vec![0f64; w * h];
     let mut count = vec![0u32; w * h];
@@ -288,15 +330,123 @@ fn quadrature(gm: f32, g0: f32, g1: f32, g2: f32) -> f64 {
     (13.0 * (f64::from(g0) + f64::from(g1)) - f64::from(gm) - f64::from(g2)) / 24.0
 }
 
+/// Gradient samples that are only bounds: a censored sample's true magnitude is at least its
+/// value (clipped data). At occluding rims integration extrapolates over them instead of
+/// interpolating through them (see the module documentation).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum Censoring {
+    /// Every sample is exact.
+    #[default]
+    None,
+    /// Components with |value| ≥ this level were clipped to it (e.g. a data set stored with its
+    /// gradients clipped at ±10).
+    ClippedAt(f32),
+}
+
+impl Censoring {
+    /// Whether the sample `value` is censored.
+    fn at(&self, value: f32) -> bool {
+        match self {
+            Censoring::None => false,
+            Censoring::ClippedAt(level) => value.abs() >= *level,
+        }
+    }
+}
+
+/// How far outside the rim pixel's centre (in pixels) a fitted contour may lie: up to the centre
+/// of the first pixel outside the domain.
+const RIM_REACH: f64 = 1.0;
+/// Shortest run of domain pixels along a line whose ends are checked for a rim profile (five:
+/// the two edges corrected at each end are distinct, and each fit has a sample to check it on).
+const RIM_MIN_RUN: usize = 5;
+
+/// The square-root rim profile through two samples: the derivative c/√(t − t₀) of a surface near
+/// an occluding contour at t₀ (depth ≈ z₀ + 2c√(t − t₀): the leading term of every smooth surface
+/// seen edge-on), through g_a at t = a and g_b at t = a + 1, t increasing away from the rim.
+/// Returns (c, t₀) when both samples have one sign, |g_a| > |g_b|, the contour lies within
+/// [`RIM_REACH`] outside the rim pixel (t₀ ≥ −`RIM_REACH`, the rim pixel at t = 0), and the
+/// profile predicts the next sample g_c (at t = a + 2) better than the straight line through
+/// g_a and g_b does — so that smooth, polynomial-like samples keep the polynomial rules.
+fn rim_profile(a: f64, ga: f64, gb: f64, gc: f64) -> Option<(f64, f64)> {
+    if !(ga * gb > 0.0 && ga.abs() > gb.abs()) {
+        return None;
+    }
+    let delta = gb * gb / (ga * ga - gb * gb);
+    let (c, t0) = (ga * delta.sqrt(), a - delta);
+    let profile_miss = (c / (a + 2.0 - t0).sqrt() - gc).abs();
+    let line_miss = (2.0 * gb - ga - gc).abs();
+    (t0 >= -RIM_REACH && profile_miss < line_miss).then_some((c, t0))
+}
+
+/// ∫ from a to a + 1 of c/√(t − t₀) dt, from t₀ where the contour lies inside the interval.
+fn rim_integral((c, t0): (f64, f64), a: f64) -> f64 {
+    2.0 * c * ((a + 1.0 - t0).sqrt() - (a.max(t0) - t0).sqrt())
+}
+
+/// Rim corrections along one line of `len` samples: `g(k)` is the derivative along the line at
+/// sample k, `inside(k)` whether k is in the domain, `censored(k)` whether g(k) is a bound.
+/// At both ends of every run of at least [`RIM_MIN_RUN`] domain pixels, the first two edges
+/// inwards get the integral of the [`rim_profile`] through their own end samples, when the
+/// samples fit one (checked on the next sample); a censored rim sample is replaced by
+/// extrapolating the next edge's profile.
+/// Calls `set(k, d)` for the edge k → k+1.
+fn rim_edges(
+    len: usize,
+    g: impl Fn(usize) -> f64,
+    inside: impl Fn(usize) -> bool,
+    censored: impl Fn(usize) -> bool,
+    mut set: impl FnMut(usize, f64),
+) {
+    let mut k = 0;
+    while k < len {
+        if !inside(k) {
+            k += 1;
+            continue;
+        }
+        let start = k;
+        while k < len && inside(k) {
+            k += 1;
+        }
+        if k - start < RIM_MIN_RUN {
+            continue;
+        }
+        for (rim, inward) in [(start, true), (k - 1, false)] {
+            // Sample j steps inwards from the rim pixel.
+            let at = |j: usize| if inward { rim + j } else { rim - j };
+            let (h, c) = (|j| g(at(j)), |j| censored(at(j)));
+            let second = (!c(1) && !c(2) && !c(3))
+                .then(|| rim_profile(1.0, h(1), h(2), h(3)))
+                .flatten();
+            let first = match (c(0), c(1)) {
+                (false, false) if !c(2) => rim_profile(0.0, h(0), h(1), h(2)),
+                (true, false) => second,
+                _ => None,
+            };
+            for (j, profile) in [(0usize, first), (1, second)] {
+                if let Some(profile) = profile {
+                    // The edge between samples j and j + 1 inwards; along the line it runs from
+                    // the lower index, and ∫ g over it equals ∫ of the profile over [j, j + 1].
+                    let edge = if inward { rim + j } else { rim - j - 1 };
+                    set(edge, rim_integral(profile, j as f64));
+                }
+            }
+        }
+    }
+}
+
 /// Depth differences on the edges of `domain` from the gradients: the fourth-order rule
 /// [`quadrature`] where two more samples along the line lie in the domain, the trapezoid rule
-/// (the mean of the two end samples) next to its edge. Indexed so that
+/// (the mean of the two end samples) next to its edge — and, on the two edges next to an
+/// occluding rim, the integral of the square-root rim profile ([`rim_edges`]). Near a contour the
+/// derivative grows like 1/√(distance), which no polynomial rule follows: on the survey vase this
+/// halves the depth error, on a sphere it divides it by a hundred. Indexed so that
 /// `right[i]` = z(x+1, y) − z(x, y) and `down[i]` = z(x, y+1) − z(x, y) (row below), NaN where
 /// the edge leaves the domain.
 pub(crate) fn edge_differences(
     p: &ScalarMap,
     q: &ScalarMap,
     domain: &Mask,
+    censoring: &Censoring,
 ) -> (Vec<f64>, Vec<f64>) {
     let (w, h) = (p.width(), p.height());
     let (pd, qd, m) = (p.data(), q.data(), domain.data());
@@ -328,7 +478,33 @@ pub(crate) fn edge_differences(
                     };
                 }
             }
+            let row = y * w;
+            rim_edges(
+                w,
+                |x| f64::from(pd[row + x]),
+                |x| m[row + x],
+                |x| censoring.at(pd[row + x]),
+                |x, d| right[x] = d,
+            );
         });
+    // Down a column the derivative of z is −q.
+    let columns: Vec<(usize, f64)> = (0..w)
+        .into_par_iter()
+        .flat_map_iter(|x| {
+            let mut set = Vec::new();
+            rim_edges(
+                h,
+                |y| -f64::from(qd[y * w + x]),
+                |y| m[y * w + x],
+                |y| censoring.at(qd[y * w + x]),
+                |y, d| set.push((y * w + x, d)),
+            );
+            set
+        })
+        .collect();
+    for (i, d) in columns {
+        down[i] = d;
+    }
     (right, down)
 }
 
@@ -349,4 +525,83 @@ pub(crate) fn finish_depth(z: Vec<f64>, domain: &Mask) -> ScalarMap {
         .collect();
     Grid::from_vec(domain.width(), domain.height(), data)
         .unwrap_or_else(|_| Grid::new(domain.width(), domain.height(), f32::NAN))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Samples of the profile c/√(t − t₀) at t = 0, 1, 2, … (the rim pixel at 0).
+    fn profile(c: f64, t0: f64, n: usize) -> Vec<f64> {
+        (0..n).map(|t| c / (t as f64 - t0).sqrt()).collect()
+    }
+
+    #[test]
+    fn the_rim_profile_is_exact_on_a_square_root_surface() {
+        let (c, t0) = (-3.0, -0.4);
+        let g = profile(c, t0, 4);
+        let (fc, ft0) = rim_profile(0.0, g[0], g[1], g[2]).unwrap();
+        assert!((fc - c).abs() < 1e-12 && (ft0 - t0).abs() < 1e-12);
+        // ∫₀¹ c/√(t − t₀) dt = 2c(√(1 − t₀) − √(−t₀)).
+        let exact = 2.0 * c * ((1.0 - t0).sqrt() - (-t0).sqrt());
+        assert!((rim_integral((fc, ft0), 0.0) - exact).abs() < 1e-12);
+        // A contour inside the first interval is integrated from the contour on.
+        assert!((rim_integral((c, 0.3), 0.0) - 2.0 * c * 0.7f64.sqrt()).abs() < 1e-12);
+        // Linear samples (a smooth surface) keep the polynomial rules; so do falling or mixed
+        // signs and a contour farther than RIM_REACH outside.
+        assert!(rim_profile(0.0, 0.3, 0.1, -0.1).is_none());
+        assert!(rim_profile(0.0, 1.0, 2.0, 3.0).is_none());
+        assert!(rim_profile(0.0, 1.0, -0.5, 0.2).is_none());
+        let far = profile(1.0, -3.0, 3);
+        assert!(rim_profile(0.0, far[0], far[1], far[2]).is_none());
+    }
+
+    #[test]
+    fn rim_edges_integrate_the_profile_at_both_ends_and_skip_censored_samples() {
+        // A line of 10 samples: outside, 8 inside, outside. Left rim profile rising to the
+        // left; the right rim mirrored (derivative negative, growing to the right).
+        let (c, t0) = (2.0, -0.3);
+        let left = profile(c, t0, 4);
+        let mut g = [0.0; 10];
+        for j in 0..4 {
+            g[1 + j] = left[j];
+            g[8 - j] = -left[j];
+        }
+        let exact = |a: f64| 2.0 * c * ((a + 1.0 - t0).sqrt() - (a - t0).sqrt());
+        let run = |censored: &dyn Fn(usize) -> bool| {
+            let mut d = [f64::NAN; 10];
+            rim_edges(
+                10,
+                |k| g[k],
+                |k| (1..9).contains(&k),
+                censored,
+                |k, v| d[k] = v,
+            );
+            d
+        };
+        let d = run(&|_| false);
+        for (edge, a, sign) in [(1, 0.0, 1.0), (2, 1.0, 1.0), (7, 0.0, -1.0), (6, 1.0, -1.0)] {
+            assert!(
+                (d[edge] - sign * exact(a)).abs() < 1e-12,
+                "edge {edge}: {d:?}"
+            );
+        }
+        assert!(
+            d[3..6].iter().all(|v| v.is_nan()),
+            "the middle keeps the polynomial rules"
+        );
+        // A clipped rim sample: the first edge is extrapolated from the next two samples.
+        let d = run(&|k| k == 1);
+        assert!((d[1] - exact(0.0)).abs() < 1e-12, "{d:?}");
+        // Runs shorter than RIM_MIN_RUN are left alone.
+        let mut short = [f64::NAN; 9];
+        rim_edges(
+            9,
+            |k| g[k],
+            |k| (1..5).contains(&k),
+            |_| false,
+            |k, v| short[k] = v,
+        );
+        assert!(short.iter().all(|v| v.is_nan()));
+    }
 }

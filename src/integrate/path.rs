@@ -1,7 +1,7 @@
-//! Path integration: depth accumulated along paths with the trapezoid rule.
+//! Path integration: depth accumulated along paths of edge differences.
 //!
 //! Each connected part of the domain is covered by a spanning tree grown from a seed;
-//! z(child) = z(parent) + the trapezoid difference along the tree edge. The tree is grown in
+//! z(child) = z(parent) + the depth difference along the tree edge. The tree is grown in
 //! order of edge quality (the quality-guided path following of phase unwrapping: the frontier
 //! edge whose end pixels have the gentlest slopes is taken first), so steep, error-prone pixels —
 //! grazing rims, creases — become leaves and their errors do not propagate to the rest.
@@ -12,16 +12,23 @@
 //! √(path length) for white noise); a wrong gradient on a bridge between two regions shifts the
 //! whole region behind it; depth discontinuities are integrated over as if they were slopes.
 
-use super::{edge_differences, finish_depth};
+use super::{Censoring, edge_differences, finish_depth};
 use crate::grid::{Mask, ScalarMap};
 use std::cmp::Reverse;
 use std::collections::{BinaryHeap, VecDeque};
 
 /// Integrates (p, q) on `domain` by averaging `paths` (≥ 1) quality-guided spanning-tree
 /// integrations per connected part. `domain` must contain only pixels where p and q are finite.
-pub fn integrate_path(p: &ScalarMap, q: &ScalarMap, domain: &Mask, paths: usize) -> ScalarMap {
+/// `censoring` marks samples that are only bounds ([`Censoring`]).
+pub fn integrate_path(
+    p: &ScalarMap,
+    q: &ScalarMap,
+    censoring: &Censoring,
+    domain: &Mask,
+    paths: usize,
+) -> ScalarMap {
     let (w, h) = (p.width(), p.height());
-    let (right, down) = edge_differences(p, q, domain);
+    let (right, down) = edge_differences(p, q, domain, censoring);
     let m = domain.data();
     let paths = paths.max(1);
     // Steepness of each pixel: the larger of |p| and |q|.

@@ -1,22 +1,28 @@
 //! Poisson integration by the discrete cosine transform (Simchony, Chellappa & Shao, "Direct
 //! analytical methods for solving Poisson equations in computer vision problems", PAMI 1990).
 //!
-//! Minimises Σ over grid edges of (z_j − z_i − d_ij)², where d_ij is the trapezoid difference of
+//! Minimises Σ over grid edges of (z_j − z_i − d_ij)², where d_ij is the depth difference of
 //! the gradients. Its normal equations are L z = b with L the grid-graph Laplacian (free, i.e.
 //! Neumann, boundary) and b the divergence of the edge differences; the DCT-II diagonalises L
 //! with eigenvalues (2 − 2cos(πu/W)) + (2 − 2cos(πv/H)), so z = IDCT(DCT(b) / λ). Edges leaving
 //! the mask carry difference 0: the background is treated as flat, which distorts depth near a
 //! mask boundary whose depth varies (a masked-domain solver avoids that).
 
-use super::{edge_differences, finish_depth};
+use super::{Censoring, edge_differences, finish_depth};
 use crate::grid::{Mask, ScalarMap};
 use rayon::prelude::*;
 use rustdct::DctPlanner;
 
 /// Integrates (p, q) on `domain` (pixels where p and q are finite) by DCT Poisson.
-pub fn integrate_poisson(p: &ScalarMap, q: &ScalarMap, domain: &Mask) -> ScalarMap {
+/// `censoring` marks samples that are only bounds ([`Censoring`]).
+pub fn integrate_poisson(
+    p: &ScalarMap,
+    q: &ScalarMap,
+    censoring: &Censoring,
+    domain: &Mask,
+) -> ScalarMap {
     let (w, h) = (p.width(), p.height());
-    let (right, down) = edge_differences(p, q, domain);
+    let (right, down) = edge_differences(p, q, domain, censoring);
     let edge = |v: f64| if v.is_nan() { 0.0 } else { v };
     // b_i = Σ incoming differences − Σ outgoing differences.
     let mut b = vec![0f64; w * h];
