@@ -154,7 +154,7 @@ fn frankot_chellappa_on_a_periodic_surface() {
 /// The survey vase (Quéau, Durou & Aujol 2018), whose file stores the gradients clipped at ±10
 /// (the largest magnitude, reached by many samples at the silhouette). With the clipped samples
 /// marked as bounds, masked least squares reaches RMSE 0.069 on the exact gradients (0.094 with
-/// polynomial rules only, 0.100 when the clipped samples are taken as exact); with Gaussian noise
+/// polynomial rules only, 0.114 when the clipped samples are taken as exact); with Gaussian noise
 /// of 0.5% of the largest gradient (σ = 0.05) the RMSE varies with the draw (the noise integrates
 /// into large-scale tilts), so the test averages 8 draws. The rectangle methods, which assume a
 /// flat background around the mask, are an order of magnitude off: this is why the mask matters.

@@ -243,13 +243,14 @@ pub fn integrate_normals(
         (r.z, Some(r.solve), Some((r.wu, r.wv)), r.iterations)
     } else {
         // Gradients clamped at MIN_NZ are left uncensored: the rim profile through them is
-        // insensitive to a large |g| (measured: censoring them doubled the error on a sphere).
+        // insensitive to a large |g| (measured: censoring them raised the error on a sphere from
+        // 0.016 to 0.020 px, on DiLiGenT bear from 0.096 to 0.111 mm).
         let (z, solve) = integrate_gradients(&p, &q, &domain, options.method, options.solver)?;
         (z, solve, None, 0)
     };
     progress.advance(1);
     progress.end();
-    let residual = integration_residual(&z, &p, &q, &Censoring::None, &domain);
+    let residual = integration_residual(&z, &p, &q, &domain);
     let depth = match &options.camera {
         None => z,
         Some(_) => z.map(|v| v.exp()),
@@ -290,11 +291,10 @@ pub fn integration_residual(
     z: &ScalarMap,
     p: &ScalarMap,
     q: &ScalarMap,
-    censoring: &Censoring,
     domain: &Mask,
 ) -> ScalarMap {
     let (w, h) = (z.width(), z.height());
-    let (right, down) = edge_differences(p, q, domain, censoring);
+    let (right, down) = edge_differences(p, q, domain, &Censoring::None);
     let zd = z.data();
     let mut sum = vec![0f64; w * h];
     let mut count = vec![0u32; w * h];
@@ -438,8 +438,9 @@ fn rim_edges(
 /// [`quadrature`] where two more samples along the line lie in the domain, the trapezoid rule
 /// (the mean of the two end samples) next to its edge — and, on the two edges next to an
 /// occluding rim, the integral of the square-root rim profile ([`rim_edges`]). Near a contour the
-/// derivative grows like 1/√(distance), which no polynomial rule follows: on the survey vase this
-/// halves the depth error, on a sphere it divides it by a hundred. Indexed so that
+/// derivative grows like 1/√(distance), which no polynomial rule follows: measured, this takes
+/// the survey vase from RMSE 0.094 to 0.069 and a sphere seen edge-on from 0.57 to 0.016 px.
+/// Indexed so that
 /// `right[i]` = z(x+1, y) − z(x, y) and `down[i]` = z(x, y+1) − z(x, y) (row below), NaN where
 /// the edge leaves the domain.
 pub(crate) fn edge_differences(

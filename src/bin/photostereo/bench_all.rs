@@ -158,6 +158,8 @@ fn integration_real(data: &Path) -> Result<Vec<Value>> {
         .chain(q.data())
         .filter(|v| v.is_finite())
         .fold(0f32, |m, v| m.max(v.abs()));
+    // The file's gradients are clipped at their largest magnitude (±10).
+    let clipped = Censoring::ClippedAt(max);
     let noise = Normal::new(0.0f32, VASE_NOISE * max)?;
     let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(0);
     let noisy = (
@@ -186,8 +188,6 @@ fn integration_real(data: &Path) -> Result<Vec<Value>> {
                 };
                 integrate_normals(&normals, &mask, &o, &Silent)?.depth
             } else {
-                // The file's gradients are clipped at their largest magnitude (±10).
-                let clipped = Censoring::ClippedAt(max);
                 integrate_censored_gradients(p, q, &clipped, &mask, m, LinearSolver::Auto)?.0
             };
             let seconds = t.elapsed().as_secs_f64();
