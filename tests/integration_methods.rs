@@ -8,8 +8,8 @@ use photostereo::camera::Intrinsics;
 use photostereo::grid::{Grid, Mask, NormalMap, ScalarMap};
 use photostereo::input::{read_image, read_mask, read_normal_map};
 use photostereo::integrate::{
-    Censoring, IntegrationOptions, Integrator, LinearSolver, integrate_censored_gradients,
-    integrate_gradients, integrate_normals,
+    BilateralParams, Censoring, IntegrationOptions, Integrator, LinearSolver,
+    integrate_censored_gradients, integrate_gradients, integrate_normals,
 };
 use photostereo::metrics::{depth_errors, scaled_depth_errors};
 use photostereo::progress::Silent;
@@ -232,7 +232,9 @@ fn vase_with_noise() {
 
 /// DiLiGenT depth (Cao et al.'s benchmark): perspective integration of the ground-truth normals
 /// with K, scaled by median(gt/estimate), mean absolute error in mm. Published figures of
-/// bilateral normal integration: cat 0.074, bear 0.334.
+/// bilateral normal integration: cat 0.074, bear 0.334. Bilateral integration with its
+/// re-integration over the cut edges (the default) meets both, with either inner solver; the
+/// published soft-weighted result is reproduced beside it.
 #[test]
 fn diligent_depth_with_the_camera() {
     for (obj, published) in [("cat", 0.074), ("bear", 0.334)] {
@@ -242,38 +244,68 @@ fn diligent_depth_with_the_camera() {
         let gt = read_image(&dir.join("depth_gt.exr")).unwrap();
         let gt = Grid::from_vec(gt.width, gt.height, gt.data).unwrap();
         let camera = Intrinsics::from_file(&dir.join("K.txt")).unwrap();
-        let mut made = Vec::new();
-        for method in [Integrator::Bilateral, Integrator::MaskedLs] {
-            let o = IntegrationOptions {
-                method,
-                camera: Some(camera),
-                ..IntegrationOptions::default()
-            };
+        let run = |name: &str, o: IntegrationOptions| {
             let r = integrate_normals(&normals, &mask, &o, &Silent).unwrap();
             let e = scaled_depth_errors(&r.depth, &gt, &mask).unwrap();
             println!(
-                "{obj}: {} MADE {:.4} mm (published bilateral {published})",
-                method.name(),
+                "{obj}: {name} MADE {:.4} mm (published bilateral {published})",
                 e.mean_abs
             );
-            made.push(e.mean_abs);
-        }
+            e.mean_abs
+        };
+        let base = IntegrationOptions {
+            method: Integrator::Bilateral,
+            camera: Some(camera),
+            ..IntegrationOptions::default()
+        };
+        let bilateral = run("bilateral", base);
+        let exact = run(
+            "bilateral, exact inner solves",
+            IntegrationOptions {
+                solver: LinearSolver::Direct,
+                ..base
+            },
+        );
+        let soft = run(
+            "bilateral as published (no re-integration)",
+            IntegrationOptions {
+                bilateral: BilateralParams {
+                    reintegrate: false,
+                    ..BilateralParams::default()
+                },
+                ..base
+            },
+        );
+        let masked = run(
+            "masked-ls",
+            IntegrationOptions {
+                method: Integrator::MaskedLs,
+                ..base
+            },
+        );
+        // Measured: cat 0.058 and 0.057 (exact inner solves), bear 0.029 and 0.027.
+        assert!(bilateral <= published, "{obj} bilateral {bilateral}");
+        assert!(
+            exact <= published,
+            "{obj} bilateral, exact inner solves {exact}"
+        );
         match obj {
-            // Bilateral reproduces the published 0.074 (measured 0.0743); masked least squares,
-            // which smooths over the cat's occlusion edges, is 20× worse.
+            // The soft-weighted result reproduces the published 0.074 (measured 0.0743);
+            // masked least squares, which smooths over the cat's occlusion edges, is 20× worse.
             "cat" => {
-                assert!(made[0] <= 0.0745, "cat bilateral {}", made[0]);
-                assert!(made[1] > 10.0 * made[0]);
+                assert!(soft <= 0.0745, "cat bilateral as published {soft}");
+                assert!(masked > 10.0 * bilateral, "cat masked-ls {masked}");
             }
-            // Bear is smooth but for its chin: masked least squares (0.133) beats the published
-            // bilateral figure; bilateral measures 0.392 here (it detaches the head at the chin).
+            // Bear is smooth but for its chin: the soft weights leave the head's offset to the
+            // weight that remains under the chin (measured 0.392, 0.21–0.43 mm with the
+            // published code over inner tolerances); masked least squares measures 0.096.
             _ => {
+                assert!(soft <= 0.40, "bear bilateral as published {soft}");
+                assert!(masked <= published, "bear masked least squares {masked}");
                 assert!(
-                    made[1] <= published,
-                    "bear masked least squares {}",
-                    made[1]
+                    bilateral < 0.5 * masked,
+                    "bear bilateral {bilateral} vs {masked}"
                 );
-                assert!(made[0] <= 0.40, "bear bilateral {}", made[0]);
             }
         }
     }
@@ -381,10 +413,14 @@ fn bilateral_preserves_a_depth_discontinuity() {
             );
         }
     }
-    // Measured: bilateral ball 0.27 (its grazing rim pixels may join the ground), ground 0.007;
-    // continuous methods ball 0.44, ground 0.31 (bent up towards the ball).
+    // Measured: bilateral ball 0.25, ground 0.051; continuous methods ball 0.44, ground 0.31
+    // (bent up towards the ball). Where the weights give a grazing rim pixel of the ball to the
+    // ground, the re-integration uses that pixel's own steep gradient on the edge to the ground
+    // (with a small weight), which lifts the ground next to it: the published soft-weighted
+    // result, which holds it at ground level with the ground pixel's normal, measures ground
+    // 0.007 and ball 0.27 on this scene.
     let (ball_b, ground_b) = errs[0];
-    assert!(ground_b < 0.05 && ball_b < 0.35, "bilateral {errs:?}");
+    assert!(ground_b < 0.06 && ball_b < 0.3, "bilateral {errs:?}");
     for (ball, ground) in &errs[1..] {
         assert!(*ground > 5.0 * ground_b && *ball > ball_b, "{errs:?}");
     }

@@ -16,13 +16,52 @@
 //! published method (Jacobi-preconditioned conjugate gradients to a relative residual of 1e-3,
 //! warm-started from the previous depth): the reweighting is not convex, and exact solves
 //! ([`LinearSolver::Direct`]) reach a different fixed point.
+//!
+//! **Re-integration over the cuts** (on by default, [`BilateralParams::reintegrate`]). The soft
+//! weights say where the surface jumps, but integrating with them directly has two faults: the
+//! first-order one-sided equations are poor where normals graze (at the silhouette and on the
+//! near side of every jump), and edges that are only partly cut keep pulling the two sides
+//! together, so the depth offset across a jump is left to whatever weight remains there. The
+//! fixed point, and with it the error, then moves with the tolerance of the inner solves
+//! (measured with the published code on DiLiGenT bear: 0.21 to 0.43 mm over tolerances 5e-4 to
+//! 2e-3). So the weights are only used to decide which edges are cut: an edge is cut when
+//! less than half of a smooth edge's weight remains on it ([`CUT_LEVEL`]; the edge's weight is
+//! the forward weight of its first pixel plus the backward weight of its second, 1 on a smooth
+//! surface, 0 across a jump). Depth is then integrated once more, exactly, with
+//! - the module's shared discretisation ([`super`]), the cuts acting like the domain's edge:
+//!   no rule reaches across a cut, and the near side of a jump gets the occluding-rim profile;
+//! - each edge weighted by the inverse variance that noise in the normals gives its depth
+//!   difference: a gradient's variance grows like 1/a², a = n_z (orthographic) or f·m
+//!   (perspective), the normal-multiplied factor above, so the weight is the harmonic mean of
+//!   a² over the edge's two pixels — gradients of grazing normals are the least reliable;
+//! - cut edges kept at a weight of [`CUT_FLOOR`] relative to the median: a part that the cuts
+//!   separate completely has no depth offset in the normals, and takes the one with the least
+//!   jump.
+//!
+//! Measured on DiLiGenT (median-scaled mean absolute depth error, `tests/integration_methods.rs`):
+//! cat 0.074 → 0.058 mm and bear 0.392 → 0.029 mm, and the result no longer moves with the inner
+//! tolerance.
 
 use super::masked::SolveInfo;
 use super::sparse::{Direct, LinearSolver, NONE, Preconditioner, Stencil, Unknowns, pcg};
+use super::{Censoring, Cuts, edge_differences, edge_differences_with_cuts, perspective_gradients};
 use crate::camera::Intrinsics;
 use crate::error::Result;
 use crate::grid::{Mask, NormalMap, ScalarMap};
+use crate::normals::gradients;
 use serde::Serialize;
+
+/// An edge is cut when its weight (forward weight of its first pixel plus backward weight of its
+/// second: 1 on a smooth surface, 0 across a jump) is below this: less than half remains.
+pub const CUT_LEVEL: f64 = 0.5;
+/// Weight of a cut edge in the re-integration, relative to the median edge weight: small enough
+/// not to bridge the jump, and enough to give a part that cuts separate completely the offset
+/// with the least jump.
+pub const CUT_FLOOR: f64 = 1e-6;
+/// Relative residual of the re-integration when it is solved by conjugate gradients.
+const REINTEGRATE_CG_TOL: f64 = 1e-10;
+/// Iteration limit of that solve.
+const REINTEGRATE_CG_MAX_ITER: usize = 20_000;
 
 /// Parameters of the bilateral integrator (defaults as in the paper's DiLiGenT evaluation).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -37,6 +76,9 @@ pub struct BilateralParams {
     pub cg_tol: f64,
     /// Iteration limit of each inner conjugate-gradient solve.
     pub cg_max_iter: usize,
+    /// Re-integrate over the cut edges once the weights have converged (see the module
+    /// documentation); `false` returns the published method's soft-weighted depth.
+    pub reintegrate: bool,
 }
 
 impl Default for BilateralParams {
@@ -47,6 +89,7 @@ impl Default for BilateralParams {
             tol: 1e-4,
             cg_tol: 1e-3,
             cg_max_iter: 5000,
+            reintegrate: true,
         }
     }
 }
@@ -62,6 +105,8 @@ pub struct BilateralResult {
     pub wv: ScalarMap,
     /// Reweighting iterations run.
     pub iterations: usize,
+    /// Edges cut in the re-integration (0 without it).
+    pub cuts: usize,
     /// How the last system was solved.
     pub solve: SolveInfo,
 }
@@ -217,6 +262,15 @@ pub fn integrate_bilateral(
             break;
         }
     }
+    let mut cuts = 0;
+    let mut solve = SolveInfo {
+        unknowns: n,
+        direct,
+        iterations: cg_iterations,
+    };
+    if params.reintegrate {
+        (cuts, solve) = reintegrate(normals, domain, camera, &u, &c, &w, &mut z, solver)?;
+    }
     u.zero_mean_parts(&mut z);
     let wu: Vec<f64> = w.iter().map(|w| w[0]).collect();
     let wv: Vec<f64> = w.iter().map(|w| w[1]).collect();
@@ -225,10 +279,119 @@ pub fn integrate_bilateral(
         wu: u.to_map(&wu),
         wv: u.to_map(&wv),
         iterations,
-        solve: SolveInfo {
+        cuts,
+        solve,
+    })
+}
+
+/// The re-integration over the cut edges of the module documentation: replaces `z` and returns
+/// the number of cut edges and how the system was solved.
+#[allow(clippy::too_many_arguments)]
+fn reintegrate(
+    normals: &NormalMap,
+    domain: &Mask,
+    camera: Option<&Intrinsics>,
+    u: &Unknowns,
+    c: &[[f64; 4]],
+    w: &[[f64; 2]],
+    z: &mut Vec<f64>,
+    solver: LinearSolver,
+) -> Result<(usize, SolveInfo)> {
+    let n = u.len();
+    let pixels = u.w * u.h;
+    let mut cut = Cuts {
+        right: vec![false; pixels],
+        down: vec![false; pixels],
+    };
+    let mut count = 0;
+    for i in 0..n {
+        let pix = u.pixel[i] as usize;
+        for (axis, nb, flag) in [
+            (0, u.right[i], &mut cut.right[pix]),
+            (1, u.down[i], &mut cut.down[pix]),
+        ] {
+            if nb != NONE && w[i][axis] + 1.0 - w[nb as usize][axis] < CUT_LEVEL {
+                *flag = true;
+                count += 1;
+            }
+        }
+    }
+    let (p, q) = match camera {
+        None => gradients(normals, domain),
+        Some(k) => perspective_gradients(normals, domain, k),
+    };
+    let (right, down) = edge_differences_with_cuts(&p, &q, domain, &Censoring::None, Some(&cut));
+    // Across a cut, the difference without the cut: what the floor weight pulls towards.
+    let (right0, down0) = edge_differences(&p, &q, domain, &Censoring::None);
+    // Inverse-variance weights per edge, normalised by the median: a difference from the two end
+    // samples has variance ∝ 1/a_i² + 1/a_j², so the weight is the harmonic mean of a² (an edge
+    // to a grazing pixel is as unreliable as that pixel's gradient).
+    let mut edges = Vec::with_capacity(2 * n);
+    for i in 0..n {
+        let pix = u.pixel[i] as usize;
+        for (axis, nb, d, d0, is_cut) in [
+            (0, u.right[i], right[pix], right0[pix], cut.right[pix]),
+            (1, u.down[i], down[pix], down0[pix], cut.down[pix]),
+        ] {
+            if nb == NONE {
+                continue;
+            }
+            let j = nb as usize;
+            let (ai, aj) = (c[i][2 * axis].powi(2), c[j][2 * axis].powi(2));
+            let a2 = if ai + aj > 0.0 {
+                2.0 * ai * aj / (ai + aj)
+            } else {
+                0.0
+            };
+            let d = if is_cut { d0 } else { d };
+            if d.is_finite() && a2.is_finite() {
+                edges.push((i, j, axis, d, a2, is_cut));
+            }
+        }
+    }
+    let mut a2s: Vec<f64> = edges.iter().filter(|e| !e.5).map(|e| e.4).collect();
+    let median = if a2s.is_empty() {
+        1.0
+    } else {
+        let mid = a2s.len() / 2;
+        *a2s.select_nth_unstable_by(mid, f64::total_cmp).1
+    };
+    let scale = if median > 0.0 { 1.0 / median } else { 1.0 };
+    let mut a = Stencil::zeros(n);
+    let mut rhs = vec![0f64; n];
+    for &(i, j, axis, d, a2, is_cut) in &edges {
+        let omega = if is_cut { CUT_FLOOR } else { a2 * scale };
+        a.diag[i] += omega;
+        a.diag[j] += omega;
+        if axis == 0 {
+            a.right[i] -= omega;
+        } else {
+            a.down[i] -= omega;
+        }
+        rhs[i] -= omega * d;
+        rhs[j] += omega * d;
+    }
+    let direct = solver.direct_for(n);
+    let iterations = if direct {
+        *z = Direct::new(u)?.solve(&a, &rhs)?;
+        0
+    } else {
+        pcg(
+            u,
+            &a,
+            &rhs,
+            z,
+            &Preconditioner::Jacobi,
+            REINTEGRATE_CG_TOL,
+            REINTEGRATE_CG_MAX_ITER,
+        )
+    };
+    Ok((
+        count,
+        SolveInfo {
             unknowns: n,
             direct,
-            iterations: cg_iterations,
+            iterations,
         },
-    })
+    ))
 }

@@ -15,8 +15,9 @@
 //! - `poisson`: DCT least squares on the whole rectangle; fast, but treats the background as flat.
 //! - `path`: quality-guided path integration on the mask; noise accumulates along paths.
 //! - `fc`: Frankot–Chellappa by FFT; assumes periodicity, distorts near the image border.
-//! - `bilateral`: discontinuity-preserving reweighted least squares; slower (one solve per
-//!   iteration) and may break smooth surfaces where normals are noisy.
+//! - `bilateral`: discontinuity-preserving reweighted least squares, then one exact
+//!   re-integration over the edges it cut; slower (one solve per iteration), and the depth
+//!   offset across a jump that closes on itself is not in the normals (the least jump is taken).
 //!
 //! The gradient-based methods share one discretisation of the depth difference between
 //! neighbours: a fourth-order rule along each line, the trapezoid rule next to the domain's edge,
@@ -65,7 +66,8 @@ pub enum Integrator {
     /// mask shape, at a few times the cost of DCT Poisson.
     #[default]
     MaskedLs,
-    /// Bilateral normal integration (Cao et al. 2022): discontinuity preserving.
+    /// Bilateral normal integration (Cao et al. 2022): discontinuity preserving; re-integrated
+    /// over the edges it cuts ([`bilateral`]).
     Bilateral,
 }
 
@@ -384,8 +386,9 @@ fn rim_integral((c, t0): (f64, f64), a: f64) -> f64 {
 }
 
 /// Rim corrections along one line of `len` samples: `g(k)` is the derivative along the line at
-/// sample k, `inside(k)` whether k is in the domain, `censored(k)` whether g(k) is a bound.
-/// At both ends of every run of at least [`RIM_MIN_RUN`] domain pixels, the first two edges
+/// sample k, `inside(k)` whether k is in the domain, `joined(k)` whether the edge k → k+1 joins
+/// two domain samples (not cut), `censored(k)` whether g(k) is a bound.
+/// At both ends of every run of at least [`RIM_MIN_RUN`] joined domain pixels, the first two edges
 /// inwards get the integral of the [`rim_profile`] through their own end samples, when the
 /// samples fit one (checked on the next sample); a censored rim sample is replaced by
 /// extrapolating the next edge's profile.
@@ -394,6 +397,7 @@ fn rim_edges(
     len: usize,
     g: impl Fn(usize) -> f64,
     inside: impl Fn(usize) -> bool,
+    joined: impl Fn(usize) -> bool,
     censored: impl Fn(usize) -> bool,
     mut set: impl FnMut(usize, f64),
 ) {
@@ -404,9 +408,10 @@ fn rim_edges(
             continue;
         }
         let start = k;
-        while k < len && inside(k) {
+        while k + 1 < len && joined(k) {
             k += 1;
         }
+        k += 1;
         if k - start < RIM_MIN_RUN {
             continue;
         }
@@ -434,6 +439,13 @@ fn rim_edges(
     }
 }
 
+/// Edges cut by a discontinuity-preserving integrator, indexed like the edge differences:
+/// `right[i]` cuts the edge from pixel i to its right neighbour, `down[i]` to the pixel below.
+pub(crate) struct Cuts {
+    pub right: Vec<bool>,
+    pub down: Vec<bool>,
+}
+
 /// Depth differences on the edges of `domain` from the gradients: the fourth-order rule
 /// [`quadrature`] where two more samples along the line lie in the domain, the trapezoid rule
 /// (the mean of the two end samples) next to its edge — and, on the two edges next to an
@@ -449,8 +461,28 @@ pub(crate) fn edge_differences(
     domain: &Mask,
     censoring: &Censoring,
 ) -> (Vec<f64>, Vec<f64>) {
+    edge_differences_with_cuts(p, q, domain, censoring, None)
+}
+
+/// [`edge_differences`] with some edges `cuts` (depth jumps): a cut edge is treated like the
+/// domain's edge — it gets NaN, no rule reaches across it, and the runs it ends get the trapezoid
+/// rule and, where the samples fit one, the rim profile (the near side of a depth jump is an
+/// occluding contour).
+pub(crate) fn edge_differences_with_cuts(
+    p: &ScalarMap,
+    q: &ScalarMap,
+    domain: &Mask,
+    censoring: &Censoring,
+    cuts: Option<&Cuts>,
+) -> (Vec<f64>, Vec<f64>) {
     let (w, h) = (p.width(), p.height());
     let (pd, qd, m) = (p.data(), q.data(), domain.data());
+    let cut_right = |i: usize| cuts.is_some_and(|c| c.right[i]);
+    let cut_down = |i: usize| cuts.is_some_and(|c| c.down[i]);
+    // Whether the edge from pixel i (column x, row y) to its right / lower neighbour joins two
+    // domain pixels.
+    let joined_right = |i: usize, x: usize| x + 1 < w && m[i] && m[i + 1] && !cut_right(i);
+    let joined_down = |i: usize, y: usize| y + 1 < h && m[i] && m[i + w] && !cut_down(i);
     let mut right = vec![f64::NAN; w * h];
     let mut down = vec![f64::NAN; w * h];
     right
@@ -460,19 +492,17 @@ pub(crate) fn edge_differences(
         .for_each(|(y, (right, down))| {
             for x in 0..w {
                 let i = y * w + x;
-                if !m[i] {
-                    continue;
-                }
-                if x + 1 < w && m[i + 1] {
-                    right[x] = if x >= 1 && x + 2 < w && m[i - 1] && m[i + 2] {
+                if joined_right(i, x) {
+                    right[x] = if x >= 1 && joined_right(i - 1, x - 1) && joined_right(i + 1, x + 1)
+                    {
                         quadrature(pd[i - 1], pd[i], pd[i + 1], pd[i + 2])
                     } else {
                         0.5 * (f64::from(pd[i]) + f64::from(pd[i + 1]))
                     };
                 }
                 // y is up, so going one row down changes z by −q.
-                if y + 1 < h && m[i + w] {
-                    down[x] = -if y >= 1 && y + 2 < h && m[i - w] && m[i + 2 * w] {
+                if joined_down(i, y) {
+                    down[x] = -if y >= 1 && joined_down(i - w, y - 1) && joined_down(i + w, y + 1) {
                         quadrature(qd[i - w], qd[i], qd[i + w], qd[i + 2 * w])
                     } else {
                         0.5 * (f64::from(qd[i]) + f64::from(qd[i + w]))
@@ -484,6 +514,7 @@ pub(crate) fn edge_differences(
                 w,
                 |x| f64::from(pd[row + x]),
                 |x| m[row + x],
+                |x| joined_right(row + x, x),
                 |x| censoring.at(pd[row + x]),
                 |x, d| right[x] = d,
             );
@@ -497,6 +528,7 @@ pub(crate) fn edge_differences(
                 h,
                 |y| -f64::from(qd[y * w + x]),
                 |y| m[y * w + x],
+                |y| joined_down(y * w + x, y),
                 |y| censoring.at(qd[y * w + x]),
                 |y, d| set.push((y * w + x, d)),
             );
@@ -557,6 +589,49 @@ mod tests {
         assert!(rim_profile(0.0, far[0], far[1], far[2]).is_none());
     }
 
+    /// A cut edge acts like the domain's edge: it gets no difference, no rule reaches across it,
+    /// and the near side of the jump gets the rim profile.
+    #[test]
+    fn cut_edges_split_the_lines_like_the_domain_edge() {
+        // One row of 14 samples: a rim profile rising towards the cut between 6 and 7 (the
+        // near side of a jump), flat beyond it.
+        let (w, cut_at) = (14, 6);
+        let (c, t0) = (-1.5, -0.2);
+        let rim = profile(c, t0, 7);
+        let g: Vec<f32> = (0..w)
+            .map(|x| {
+                if x <= cut_at {
+                    rim[cut_at - x] as f32
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let p = Grid::from_vec(w, 1, g.clone()).unwrap();
+        let q = Grid::new(w, 1, 0f32);
+        let domain = Grid::new(w, 1, true);
+        let mut cuts = Cuts {
+            right: vec![false; w],
+            down: vec![false; w],
+        };
+        cuts.right[cut_at] = true;
+        let (right, _) = edge_differences_with_cuts(&p, &q, &domain, &Censoring::None, Some(&cuts));
+        assert!(right[cut_at].is_nan(), "{right:?}");
+        // Towards the cut, depth follows the profile: the edges j = 0, 1 steps from the rim are
+        // its exact integrals.
+        let exact = |a: f64| 2.0 * c * ((a + 1.0 - t0).sqrt() - (a - t0).sqrt());
+        for j in 0..2 {
+            let edge = cut_at - j - 1;
+            assert!((right[edge] - exact(j as f64)).abs() < 1e-6, "{right:?}");
+        }
+        // Beyond the cut the flat side integrates to zero: nothing leaks from the steep side.
+        assert!(right[cut_at + 1..w - 1].iter().all(|d| d.abs() < 1e-12));
+        // Without the cut the edge gets a difference and the flat side's first edge sees the
+        // steep sample.
+        let (right, _) = edge_differences(&p, &q, &domain, &Censoring::None);
+        assert!(right[cut_at].is_finite() && right[cut_at + 1].abs() > 1e-3);
+    }
+
     #[test]
     fn rim_edges_integrate_the_profile_at_both_ends_and_skip_censored_samples() {
         // A line of 10 samples: outside, 8 inside, outside. Left rim profile rising to the
@@ -575,6 +650,7 @@ mod tests {
                 10,
                 |k| g[k],
                 |k| (1..9).contains(&k),
+                |k| (1..8).contains(&k),
                 censored,
                 |k, v| d[k] = v,
             );
@@ -600,6 +676,7 @@ mod tests {
             9,
             |k| g[k],
             |k| (1..5).contains(&k),
+            |k| (1..4).contains(&k),
             |_| false,
             |k, v| short[k] = v,
         );

@@ -550,6 +550,11 @@ pub struct IntegrationArgs {
     /// Bilateral: stop when the energy changes by less than this, relatively.
     #[arg(long, default_value_t = BilateralParams::default().tol, value_name = "TOL")]
     pub bilateral_tol: f64,
+    /// Bilateral: return the published method's soft-weighted depth, without the final
+    /// re-integration over the cut edges (which is more accurate and does not depend on the
+    /// inner solver's tolerance).
+    #[arg(long)]
+    pub bilateral_published: bool,
 }
 
 impl IntegrationArgs {
@@ -583,6 +588,7 @@ impl IntegrationArgs {
                 k: self.bilateral_k,
                 max_iter: self.bilateral_iterations,
                 tol: self.bilateral_tol,
+                reintegrate: !self.bilateral_published,
                 ..BilateralParams::default()
             },
         })
