@@ -207,17 +207,14 @@ pub fn integrate_bilateral(
         let mut a = Stencil::zeros(n);
         let mut rhs = vec![0f64; n];
         // Adds ω(a(z_q − z_p) − b)² to the normal equations.
-        let mut add = |p: usize, q: usize, omega: f64, coef: f64, b: f64, off: bool| {
-            let aa = omega * coef * coef;
-            a.diag[p] += aa;
-            a.diag[q] += aa;
-            if off {
-                a.right[p] -= aa;
-            } else {
-                a.down[p] -= aa;
-            }
-            rhs[p] -= omega * coef * b;
-            rhs[q] += omega * coef * b;
+        let mut add = |p: usize, q: usize, omega: f64, coef: f64, b: f64, along_rows: bool| {
+            a.add_edge(
+                &mut rhs,
+                (p, q),
+                along_rows,
+                omega * coef * coef,
+                omega * coef * b,
+            );
         };
         for i in 0..n {
             let [au, bu, av, bv] = c[i];
@@ -361,15 +358,7 @@ fn reintegrate(
     let mut rhs = vec![0f64; n];
     for &(i, j, axis, d, a2, is_cut) in &edges {
         let omega = if is_cut { CUT_FLOOR } else { a2 * scale };
-        a.diag[i] += omega;
-        a.diag[j] += omega;
-        if axis == 0 {
-            a.right[i] -= omega;
-        } else {
-            a.down[i] -= omega;
-        }
-        rhs[i] -= omega * d;
-        rhs[j] += omega * d;
+        a.add_edge(&mut rhs, (i, j), axis == 0, omega, omega * d);
     }
     let direct = solver.direct_for(n);
     let iterations = if direct {

@@ -54,19 +54,14 @@ pub fn integrate_masked_ls(
     let mut b = vec![0f64; n];
     for i in 0..n {
         let pix = u.pixel[i] as usize;
-        for (nb, d, off) in [
-            (u.right[i], right[pix], &mut a.right[i]),
-            (u.down[i], down[pix], &mut a.down[i]),
+        for (nb, d, along_rows) in [
+            (u.right[i], right[pix], true),
+            (u.down[i], down[pix], false),
         ] {
             if nb == super::sparse::NONE || d.is_nan() {
                 continue;
             }
-            let j = nb as usize;
-            a.diag[i] += 1.0;
-            a.diag[j] += 1.0;
-            *off -= 1.0;
-            b[i] -= d;
-            b[j] += d;
+            a.add_edge(&mut b, (i, nb as usize), along_rows, 1.0, d);
         }
     }
     // The DCT preconditioner assumes uniform weights; censored edges make it approximate only,

@@ -174,6 +174,28 @@ impl Stencil {
         }
     }
 
+    /// Adds the least-squares equation √weight·(x_j − x_i) = rhs_term/√weight for the edge from
+    /// unknown i to its right (`along_rows`) or lower neighbour j: `weight` to the matrix, and
+    /// ∓`rhs_term` (weight × the edge's difference) to `rhs` at i and j.
+    pub fn add_edge(
+        &mut self,
+        rhs: &mut [f64],
+        (i, j): (usize, usize),
+        along_rows: bool,
+        weight: f64,
+        rhs_term: f64,
+    ) {
+        self.diag[i] += weight;
+        self.diag[j] += weight;
+        if along_rows {
+            self.right[i] -= weight;
+        } else {
+            self.down[i] -= weight;
+        }
+        rhs[i] -= rhs_term;
+        rhs[j] += rhs_term;
+    }
+
     /// y = A x.
     pub fn apply(&self, u: &Unknowns, x: &[f64], y: &mut [f64]) {
         y.par_iter_mut().enumerate().for_each(|(i, yi)| {
