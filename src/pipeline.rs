@@ -11,9 +11,7 @@ use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
 use crate::input::ColorMode;
 use crate::integrate::{Integration, IntegrationOptions, integrate_normals};
 use crate::lights::MAX_LIGHT_CONDITION;
-use crate::normals::{
-    IntegrabilitySummary, albedo_and_normals, combine_channels, gradients, integrability,
-};
+use crate::normals::{IntegrabilitySummary, albedo_and_normals, combine_channels, integrability};
 use crate::output::{
     ExrChannel, OutputDir, depth_preview, mask_bytes, nan_outside, normal_planes, normal_preview,
     scalar_preview,
@@ -372,10 +370,8 @@ pub(crate) fn integrability_of(
     solved: &Mask,
     config: &Config,
 ) -> crate::normals::Integrability {
-    let (p, q) = match config.integration.as_ref().and_then(|o| o.camera.as_ref()) {
-        Some(k) => crate::integrate::perspective_gradients(normals, solved, k),
-        None => gradients(normals, solved),
-    };
+    let camera = config.integration.as_ref().and_then(|o| o.camera.as_ref());
+    let (p, q) = crate::integrate::normal_gradients(normals, solved, camera);
     integrability(&p, &q)
 }
 

@@ -44,11 +44,10 @@
 
 use super::masked::SolveInfo;
 use super::sparse::{Direct, LinearSolver, NONE, Preconditioner, Stencil, Unknowns, pcg};
-use super::{Censoring, Cuts, edge_differences, edge_differences_with_cuts, perspective_gradients};
+use super::{Censoring, Cuts, edge_differences, edge_differences_with_cuts, normal_gradients};
 use crate::camera::Intrinsics;
 use crate::error::Result;
 use crate::grid::{Mask, NormalMap, ScalarMap};
-use crate::normals::gradients;
 use serde::Serialize;
 
 /// An edge is cut when its weight (forward weight of its first pixel plus backward weight of its
@@ -313,10 +312,7 @@ fn reintegrate(
             }
         }
     }
-    let (p, q) = match camera {
-        None => gradients(normals, domain),
-        Some(k) => perspective_gradients(normals, domain, k),
-    };
+    let (p, q) = normal_gradients(normals, domain, camera);
     let (right, down) = edge_differences_with_cuts(&p, &q, domain, &Censoring::None, Some(&cut));
     // Across a cut, the difference without the cut: what the floor weight pulls towards.
     let (right0, down0) = edge_differences(&p, &q, domain, &Censoring::None);

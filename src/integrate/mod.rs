@@ -151,6 +151,19 @@ pub fn perspective_gradients(
     (p, q)
 }
 
+/// The gradients that integration uses: of height, p = −n_x/n_z and q = −n_y/n_z
+/// ([`gradients`]), or with a pinhole `camera` of log depth ([`perspective_gradients`]).
+pub fn normal_gradients(
+    normals: &NormalMap,
+    mask: &Mask,
+    camera: Option<&Intrinsics>,
+) -> (ScalarMap, ScalarMap) {
+    match camera {
+        None => gradients(normals, mask),
+        Some(k) => perspective_gradients(normals, mask, k),
+    }
+}
+
 /// Integrates a gradient field (p, q) (x right, y up) over `mask` with a gradient-based method.
 ///
 /// # Errors
@@ -228,10 +241,7 @@ pub fn integrate_normals(
     progress: &dyn Progress,
 ) -> Result<Integration> {
     normals.check_same_size(mask, "mask vs normals")?;
-    let (p, q) = match &options.camera {
-        None => gradients(normals, mask),
-        Some(k) => perspective_gradients(normals, mask, k),
-    };
+    let (p, q) = normal_gradients(normals, mask, options.camera.as_ref());
     let domain = gradient_domain(&p, &q, mask)?;
     progress.begin(options.method.name(), 1);
     let (z, solve, weights, iterations) = if options.method == Integrator::Bilateral {
