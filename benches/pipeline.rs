@@ -4,13 +4,13 @@
 //! Speed targets live here and in `photostereo bench`, not in timed tests.
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
-use photostereo::demo::synthesize;
+use photostereo::capture::lights::Lights;
+use photostereo::eval::demo::synthesize;
 use photostereo::integrate::{IntegrationOptions, Integrator, integrate_normals};
-use photostereo::lights::Lights;
 use photostereo::progress::Silent;
-use photostereo::render::RenderOptions;
-use photostereo::scene::{Albedo, Scene};
-use photostereo::solve::{Method, SolveOptions, solve};
+use photostereo::ps::solve::{Method, SolveOptions, solve};
+use photostereo::synth::render::RenderOptions;
+use photostereo::synth::scene::{Albedo, Scene};
 use std::hint::black_box;
 
 /// Per-pixel solve on a 512×512 sphere under 24 lights, per method (throughput in samples).
@@ -84,8 +84,12 @@ fn bench_load_diligent(c: &mut Criterion) {
     g.bench_function("load", |b| {
         b.iter(|| {
             black_box(
-                photostereo::dataset::Capture::from_diligent(&dir, &Default::default(), &Silent)
-                    .unwrap(),
+                photostereo::capture::dataset::Capture::from_diligent(
+                    &dir,
+                    &Default::default(),
+                    &Silent,
+                )
+                .unwrap(),
             )
         })
     });
@@ -93,17 +97,18 @@ fn bench_load_diligent(c: &mut Criterion) {
 }
 
 /// A 512² sphere under 24 lights as 16-bit PNGs: decoded whole and solved in memory, against
-/// streamed in bands of 64 rows (`photostereo::stream`), load included in both; then the same
+/// streamed in bands of 64 rows (`photostereo::run::stream`), load included in both; then the same
 /// with the outputs written (Poisson integration), in memory against band by band.
 fn bench_stream(c: &mut Criterion) {
-    use photostereo::dataset::{CaptureFiles, ImageFormat, write_synthetic};
-    use photostereo::input::{ColorMode, LoadOptions};
+    use photostereo::capture::dataset::CaptureFiles;
+    use photostereo::capture::stack::{ColorMode, LoadOptions};
     use photostereo::integrate::{IntegrationOptions, Integrator};
-    use photostereo::pipeline::{Config, reconstruct_and_write, reconstruct_normals};
-    use photostereo::render::render;
-    use photostereo::stream::{
+    use photostereo::run::pipeline::{Config, reconstruct_and_write, reconstruct_normals};
+    use photostereo::run::stream::{
         StreamOptions, reconstruct_and_write_streamed, reconstruct_streamed,
     };
+    use photostereo::synth::render::render;
+    use photostereo::synth::write::{ImageFormat, write_synthetic};
     let dir = tempfile::tempdir().unwrap();
     let scene = Scene::sphere(512, 240.0, Albedo::Constant(0.6));
     let lights = Lights::fibonacci(24, 25.0).unwrap();

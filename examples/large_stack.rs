@@ -10,7 +10,7 @@
 //! Run: `cargo run --release --example large_stack -- OUT_DIR [WIDTH HEIGHT COUNT]`
 //! (default 4000 3000 96: 2.3 GB of samples, 4.6 GB as f32 in memory).
 
-use photostereo::lights::Lights;
+use photostereo::capture::lights::Lights;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use rayon::prelude::*;

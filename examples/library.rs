@@ -3,11 +3,13 @@
 //!
 //! `cargo run --release --example library [OUT_DIR]`
 
-use photostereo::dataset::{Capture, GROUND_TRUTH_DIR, ImageFormat, write_synthetic};
-use photostereo::input::{LoadOptions, read_normal_map};
-use photostereo::metrics::angular_errors;
-use photostereo::pipeline::{Config, reconstruct, write_outputs};
+use photostereo::capture::dataset::Capture;
+use photostereo::capture::stack::LoadOptions;
+use photostereo::eval::metrics::angular_errors;
+use photostereo::io::decode::read_normal_map;
 use photostereo::progress::Silent;
+use photostereo::run::pipeline::{Config, reconstruct, write_outputs};
+use photostereo::synth::write::{GROUND_TRUTH_DIR, ImageFormat, write_synthetic};
 use std::path::PathBuf;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -19,7 +21,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let scene = out.join("scene");
 
     // A data set on disk: the built-in scene, 12 lights, noise σ = 0.005.
-    let synth = photostereo::demo::default_capture(0.005, 7)?;
+    let synth = photostereo::eval::demo::default_capture(0.005, 7)?;
     write_synthetic(
         &synth.rendering,
         &synth.capture.lights,

@@ -183,7 +183,7 @@ impl Grid<bool> {
 
 /// An axis-aligned rectangle of pixels: columns `x0..x1`, rows `y0..y1` (ends excluded).
 ///
-/// An [`crate::input::ImageStack`] stores only the window its mask spans; pixel indices stay
+/// An [`crate::capture::stack::ImageStack`] stores only the window its mask spans; pixel indices stay
 /// those of the whole image (`y * width + x`) and [`Window::local`] maps them into the window.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
 pub struct Window {

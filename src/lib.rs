@@ -3,23 +3,22 @@
 //! Photometric stereo, normal integration and synthetic scenes: from photographs of a still
 //! object under known distant lights to albedo, normals and depth.
 //!
-//! The pipeline, one module per stage:
-//! [`input`] (images → [`input::ImageStack`]) → [`lights`] ([`lights::Lights`]) →
-//! [`solve`] (per-pixel g = ρN; [`color`] for one normal from RGB) → [`normals`] (albedo, normals, gradients, integrability) →
-//! [`integrate`] (depth) → [`output`] (EXR/PNG, atomically). [`pipeline`] composes them;
-//! [`dataset`] assembles inputs from files; [`calibrate`] measures the lights from a chrome
-//! sphere (directions) and a matte reference (intensities). Beside it: [`reflectance`] holds the BRDF models,
-//! [`scene`] and [`render`] make synthetic data with ground truth, [`reflectance_map`] gives
-//! brightness as a function of the surface gradient and [`sfs`] inverts it for one image (shape
-//! from shading), [`metrics`] measures errors, [`sweep`] measures error and time over noise,
-//! lights and specularity, [`stream`] solves stacks larger than memory in row bands,
-//! [`demo`] is the built-in default scene.
+//! The pipeline, one folder per stage (see `docs/ARCHITECTURE.md` for the data flow):
+//! [`capture`] (files → images, lights and mask: [`capture::ImageStack`], [`capture::Lights`])
+//! → [`ps`] (per-pixel g = ρN, robust estimators, the image model, colour; albedo, normals and
+//! the integrability check) → [`integrate`] (normals → depth, one file per method) → [`io`]
+//! (EXR/PNG/TIFF in and out, written atomically). [`run`] composes the stages, in memory or
+//! streamed in row bands. Beside the pipeline: [`calibrate`] measures the lights from a chrome
+//! sphere and a matte reference; [`sfs`] is shape from shading through reflectance maps;
+//! [`synth`] renders scenes with ground truth (reflectance models, renderer); [`eval`] measures
+//! errors, runs the demo and the speed–accuracy sweeps. The foundations every stage uses sit at
+//! the root: [`grid`] (images, masks, maps), [`camera`], [`error`], [`progress`].
 //!
 //! Conventions: camera frame x right, y up, z towards the camera; image row 0 is the top; light
 //! directions point from the surface to the light; normals point out of the surface.
 //!
 //! ```
-//! use photostereo::{demo, pipeline, progress::Silent};
+//! use photostereo::{eval::demo, run::pipeline, progress::Silent};
 //! // Render the built-in scene without noise, reconstruct it, and check the normals.
 //! let synth = demo::default_capture(0.0, 1)?;
 //! let recon = pipeline::reconstruct(&synth.capture, &pipeline::Config::default(), &Silent)?;
@@ -29,39 +28,31 @@
 //! ```
 #![deny(missing_docs)]
 
-mod band_output;
-mod bands;
 mod buffer;
 pub mod calibrate;
 pub mod camera;
-pub mod color;
-pub mod dataset;
-pub mod demo;
-mod encode;
+pub mod capture;
 pub mod error;
+pub mod eval;
 pub mod grid;
-pub mod input;
 pub mod integrate;
-pub mod intensities;
-pub mod lights;
+pub mod io;
 mod linalg;
-pub mod mesh;
-pub mod metrics;
-pub mod noise;
-pub mod normals;
-pub mod output;
-pub mod pipeline;
 pub mod progress;
-pub mod reflectance;
-pub mod reflectance_map;
-pub mod render;
-pub mod robust;
-pub mod scene;
+pub mod ps;
+pub mod run;
 pub mod sfs;
-pub mod solve;
-pub mod stream;
-pub mod sweep;
+pub mod stats;
+pub mod synth;
 
 pub use error::{Error, Result};
+
+// The domain types, re-exported: what most callers need without knowing the folders.
+pub use camera::Intrinsics;
+pub use capture::{Capture, CaptureFiles, ImageStack, Lights, LoadOptions};
+pub use grid::{Grid, Mask, NormalMap, ScalarMap};
+pub use integrate::{Integration, IntegrationOptions, Integrator, integrate_normals};
 /// The linear-algebra crate of the public API (normals are `nalgebra::Vector3<f32>`).
 pub use nalgebra;
+pub use ps::{Method, SolveOptions};
+pub use run::{Config, Reconstruction, Report, reconstruct, reconstruct_and_write};

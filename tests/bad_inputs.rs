@@ -6,9 +6,9 @@
 mod common;
 
 use common::{listing, os, run, sphere_dataset};
-use photostereo::dataset::ImageFormat;
-use photostereo::input::read_image;
-use photostereo::output::write_exr;
+use photostereo::io::decode::read_image;
+use photostereo::io::output::write_exr;
+use photostereo::synth::write::ImageFormat;
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 
@@ -490,9 +490,9 @@ fn interrupted_runs_leave_no_partial_file() {
             }
             let outputs: Vec<&String> = files
                 .iter()
-                .filter(|f| photostereo::pipeline::OUTPUT_FILES.contains(&f.as_str()))
+                .filter(|f| photostereo::run::pipeline::OUTPUT_FILES.contains(&f.as_str()))
                 .collect();
-            let complete = outputs.len() == photostereo::pipeline::OUTPUT_FILES.len();
+            let complete = outputs.len() == photostereo::run::pipeline::OUTPUT_FILES.len();
             assert!(
                 outputs.is_empty() || complete,
                 "{signal} at {delay_ms} ms left a partial set: {files:?}"

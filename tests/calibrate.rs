@@ -13,16 +13,16 @@ use photostereo::calibrate::{
     ChromeCalibration, ChromeOptions, calibrate_chrome, find_sphere, load_reference_images,
     read_grey_mask,
 };
-use photostereo::dataset::{Capture, read_image_list};
+use photostereo::capture::dataset::{Capture, read_image_list};
+use photostereo::capture::lights::{Light, Lights};
+use photostereo::capture::stack::{ColorMode, ImageStack, LoadOptions, Transfer, load_stack};
+use photostereo::eval::metrics::angular_errors;
 use photostereo::grid::{Grid, Mask, ScalarMap};
-use photostereo::input::{ColorMode, ImageStack, LoadOptions, Transfer, load_stack};
-use photostereo::lights::{Light, Lights};
-use photostereo::metrics::angular_errors;
-use photostereo::pipeline::{Config, Reconstruction, reconstruct};
 use photostereo::progress::Silent;
-use photostereo::reflectance::{Diffuse, Material, Mirror, Specular};
-use photostereo::render::{RenderOptions, Rendering, render};
-use photostereo::scene::{Albedo, Object, Primitive, Scene};
+use photostereo::run::pipeline::{Config, Reconstruction, reconstruct};
+use photostereo::synth::reflectance::{Diffuse, Material, Mirror, Specular};
+use photostereo::synth::render::{RenderOptions, Rendering, render};
+use photostereo::synth::scene::{Albedo, Object, Primitive, Scene};
 use std::path::Path;
 
 /// A chrome ball: a mirror with a faint diffuse part (`diffuse` > 0 shows its outline under
@@ -337,7 +337,7 @@ fn reconstruct_psm(list: &Path, lights: &Lights) -> Reconstruction {
         ..LoadOptions::default()
     };
     let stack = load_stack(&list.images, lights, &options, &Silent).unwrap();
-    let mask = photostereo::input::read_mask(list.mask.as_ref().unwrap()).unwrap();
+    let mask = photostereo::io::decode::read_mask(list.mask.as_ref().unwrap()).unwrap();
     let capture = Capture::from_stack(stack, lights.clone(), Some(mask)).unwrap();
     let config = Config {
         integration: None,
@@ -479,7 +479,7 @@ fn bad_image_lists_name_the_problem() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("line 2") && e.contains("not_there.png"), "{e}");
-    assert!(!photostereo::dataset::is_image_list(&write(
+    assert!(!photostereo::capture::dataset::is_image_list(&write(
         "lights.txt",
         "2\n0 0 1\n0 1 1\n"
     )));

@@ -4,11 +4,11 @@
 mod common;
 
 use common::{listing, os, run, sphere_dataset};
-use photostereo::dataset::{ImageFormat, write_synthetic};
-use photostereo::demo::synthesize;
-use photostereo::lights::Lights;
-use photostereo::render::RenderOptions;
-use photostereo::scene::{Albedo, Scene};
+use photostereo::capture::lights::Lights;
+use photostereo::eval::demo::synthesize;
+use photostereo::synth::render::RenderOptions;
+use photostereo::synth::scene::{Albedo, Scene};
+use photostereo::synth::write::{ImageFormat, write_synthetic};
 use std::path::{Path, PathBuf};
 
 /// Mean angular error of `out/normal.exr` against `gt` via the `eval` subcommand.
@@ -50,7 +50,7 @@ fn images_with_json_lights_given_in_shuffled_order() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains("integrability"), "{stdout}");
-    for f in photostereo::pipeline::OUTPUT_FILES {
+    for f in photostereo::run::pipeline::OUTPUT_FILES {
         assert!(out.join(f).is_file(), "missing {f}");
     }
     // No temporary files remain.
@@ -72,8 +72,8 @@ fn images_with_json_lights_given_in_shuffled_order() {
     assert!(report["timings_s"]["solve"].as_f64().unwrap() >= 0.0);
     assert_eq!(report["inputs"]["count"], 10);
     // Outside the mask every EXR holds NaN; inside, unit normals.
-    let n = photostereo::input::read_image(&out.join("normal.exr")).unwrap();
-    let m = photostereo::input::read_mask(&mask).unwrap();
+    let n = photostereo::io::decode::read_image(&out.join("normal.exr")).unwrap();
+    let m = photostereo::io::decode::read_mask(&mask).unwrap();
     for (px, inside) in n.data.chunks_exact(3).zip(m.data()) {
         if *inside {
             let len = (px[0] * px[0] + px[1] * px[1] + px[2] * px[2]).sqrt();
@@ -82,7 +82,7 @@ fn images_with_json_lights_given_in_shuffled_order() {
             assert!(px.iter().all(|v| v.is_nan()));
         }
     }
-    let d = photostereo::input::read_image(&out.join("depth.exr")).unwrap();
+    let d = photostereo::io::decode::read_image(&out.join("depth.exr")).unwrap();
     assert_eq!(d.channels, 1);
     assert_eq!(d.data.iter().filter(|v| v.is_finite()).count(), m.count());
 }
@@ -169,7 +169,7 @@ fn diligent_like(dir: &Path) -> PathBuf {
         synth.truth.normals.map(|n| n.y),
         synth.truth.normals.map(|n| n.z),
     );
-    photostereo::output::write_exr(
+    photostereo::io::output::write_exr(
         &dir.join("normal_gt.exr"),
         80,
         80,
@@ -198,7 +198,7 @@ fn diligent_layout_folder_with_colour_intensities() {
         let e = eval(&out, &dir.join("normal_gt.exr"), &dir.join("mask.png"));
         assert!(e["mean_deg"].as_f64().unwrap() < 0.05, "{color}: {e}");
         // Albedo: 0.5 in every channel once intensities are divided out.
-        let a = photostereo::input::read_image(&out.join("albedo.exr")).unwrap();
+        let a = photostereo::io::decode::read_image(&out.join("albedo.exr")).unwrap();
         assert_eq!(a.channels, if color == "grey" { 1 } else { 3 });
         let finite: Vec<f32> = a.data.iter().copied().filter(|v| v.is_finite()).collect();
         let mean = finite.iter().sum::<f32>() / finite.len() as f32;
@@ -268,8 +268,8 @@ fn demo_writes_outputs_scene_and_evaluation() {
     ]);
     let o = run(&args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let a = photostereo::input::read_image(&out.join("normal.exr")).unwrap();
-    let b = photostereo::input::read_image(&out2.join("normal.exr")).unwrap();
+    let a = photostereo::io::decode::read_image(&out.join("normal.exr")).unwrap();
+    let b = photostereo::io::decode::read_image(&out2.join("normal.exr")).unwrap();
     assert_eq!(a.data.len(), b.data.len());
     assert!(
         a.data
@@ -394,8 +394,8 @@ fn bad_input_fails_cleanly() {
 /// several degrees.
 #[test]
 fn srgb_8_bit_colour_dataset_round_trips() {
-    use photostereo::reflectance::Material;
-    use photostereo::scene::SceneKind;
+    use photostereo::synth::reflectance::Material;
+    use photostereo::synth::scene::SceneKind;
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     let material = Material {

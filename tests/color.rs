@@ -2,18 +2,18 @@
 //! mix, on rendered RGB scenes under lights of different colours.
 
 use photostereo::Error;
-use photostereo::color::{ColorSolve, solve_shared_normal};
-use photostereo::dataset::Capture;
+use photostereo::capture::dataset::Capture;
+use photostereo::capture::lights::{Light, Lights};
+use photostereo::capture::stack::{ColorMode, ImageStack};
+use photostereo::eval::metrics::angular_errors;
 use photostereo::grid::Grid;
-use photostereo::input::{ColorMode, ImageStack};
-use photostereo::lights::{Light, Lights};
-use photostereo::metrics::angular_errors;
-use photostereo::pipeline::{Config, Reconstruction, reconstruct};
 use photostereo::progress::Silent;
-use photostereo::reflectance::{BlinnPhong, Material, Specular};
-use photostereo::render::{RenderOptions, Rendering, render};
-use photostereo::scene::{Albedo, Scene, SceneKind};
-use photostereo::solve::{Method, SolveOptions};
+use photostereo::ps::color::{ColorSolve, solve_shared_normal};
+use photostereo::ps::solve::{Method, SolveOptions};
+use photostereo::run::pipeline::{Config, Reconstruction, reconstruct};
+use photostereo::synth::reflectance::{BlinnPhong, Material, Specular};
+use photostereo::synth::render::{RenderOptions, Rendering, render};
+use photostereo::synth::scene::{Albedo, Scene, SceneKind};
 
 /// `n` lights up to 40° from the view, each of a different colour.
 fn coloured_lights(n: usize) -> Lights {

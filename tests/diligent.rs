@@ -64,10 +64,11 @@ fn diligent_bear_least_squares_baseline() {
 /// images for this reason) while leaving the other 77 within 10%.
 #[test]
 fn diligent_default_method_meets_the_robust_target() {
-    use photostereo::dataset::Capture;
-    use photostereo::input::{LoadOptions, read_normal_map};
-    use photostereo::pipeline::{Config, reconstruct};
+    use photostereo::capture::dataset::Capture;
+    use photostereo::capture::stack::LoadOptions;
+    use photostereo::io::decode::read_normal_map;
     use photostereo::progress::Silent;
+    use photostereo::run::pipeline::{Config, reconstruct};
     for obj in ["cat", "bear"] {
         let dir = require_shared!(format!("diligent/{obj}PNG"));
         let capture = Capture::from_diligent(&dir, &LoadOptions::default(), &Silent).unwrap();
@@ -77,7 +78,8 @@ fn diligent_default_method_meets_the_robust_target() {
         };
         let recon = reconstruct(&capture, &config, &Silent).unwrap();
         let gt = read_normal_map(&dir.join("normal_gt.exr")).unwrap();
-        let s = photostereo::metrics::angular_errors(&recon.normals, &gt, &capture.mask).unwrap();
+        let s =
+            photostereo::eval::metrics::angular_errors(&recon.normals, &gt, &capture.mask).unwrap();
         println!(
             "{obj}: auto {:.3}° mean, {:.3}° median, {:.1}% robust ({} px, {} unsolved)",
             s.mean_deg,
@@ -109,11 +111,12 @@ fn diligent_default_method_meets_the_robust_target() {
 /// beat it by at least a degree.
 #[test]
 fn diligent_every_estimator_beats_the_baseline() {
-    use photostereo::dataset::Capture;
-    use photostereo::input::{LoadOptions, read_normal_map};
-    use photostereo::pipeline::{Config, reconstruct};
+    use photostereo::capture::dataset::Capture;
+    use photostereo::capture::stack::LoadOptions;
+    use photostereo::io::decode::read_normal_map;
     use photostereo::progress::Silent;
-    use photostereo::solve::{Method, SolveOptions};
+    use photostereo::ps::solve::{Method, SolveOptions};
+    use photostereo::run::pipeline::{Config, reconstruct};
     for obj in ["cat", "bear"] {
         let dir = require_shared!(format!("diligent/{obj}PNG"));
         let capture = Capture::from_diligent(&dir, &LoadOptions::default(), &Silent).unwrap();
@@ -132,8 +135,8 @@ fn diligent_every_estimator_beats_the_baseline() {
                 ..Config::default()
             };
             let recon = reconstruct(&capture, &config, &Silent).unwrap();
-            let s =
-                photostereo::metrics::angular_errors(&recon.normals, &gt, &capture.mask).unwrap();
+            let s = photostereo::eval::metrics::angular_errors(&recon.normals, &gt, &capture.mask)
+                .unwrap();
             println!("{obj} {}: {:.3}°", method.name(), s.mean_deg);
             assert!(
                 s.mean_deg < 8.39 - 0.7,
@@ -149,13 +152,13 @@ fn diligent_every_estimator_beats_the_baseline() {
 /// truth: the integration set's `normal_map.png` equals DiLiGenT's `Normal_gt` inside the mask.
 #[test]
 fn png_normal_map_decodes_like_the_exr_ground_truth() {
-    use photostereo::input::{read_mask, read_normal_map};
+    use photostereo::io::decode::{read_mask, read_normal_map};
     let png = require_shared!("integration/cat/normal_map.png");
     let exr = require_shared!("diligent/catPNG/normal_gt.exr");
     let mask = read_mask(&png.with_file_name("mask.png")).unwrap();
     let a = read_normal_map(&png).unwrap();
     let b = read_normal_map(&exr).unwrap();
-    let s = photostereo::metrics::angular_errors(&a, &b, &mask).unwrap();
+    let s = photostereo::eval::metrics::angular_errors(&a, &b, &mask).unwrap();
     println!(
         "normal_map.png vs normal_gt.exr: mean {:.5}°, p95 {:.5}°",
         s.mean_deg, s.p95_deg

@@ -3,9 +3,9 @@
 //! renderer, regenerate them with `REGENERATE=1 cargo test --release --test golden` and review
 //! the new images before committing.
 
-use photostereo::lights::Lights;
-use photostereo::render::{RenderOptions, render};
-use photostereo::scene::{Albedo, Object, Primitive, Scene};
+use photostereo::capture::lights::Lights;
+use photostereo::synth::render::{RenderOptions, render};
+use photostereo::synth::scene::{Albedo, Object, Primitive, Scene};
 use std::path::PathBuf;
 
 fn golden_dir() -> PathBuf {
@@ -72,7 +72,7 @@ fn rendered_scene_matches_golden_images() {
         let path = golden_dir().join(format!("render_{k}.png"));
         if regenerate {
             std::fs::create_dir_all(golden_dir()).unwrap();
-            photostereo::output::write_png16(&path, 96, 72, 1, &codes).unwrap();
+            photostereo::io::output::write_png16(&path, 96, 72, 1, &codes).unwrap();
             continue;
         }
         let truth = image::open(&path)
@@ -114,7 +114,7 @@ fn shadow_masks_match_golden_masks() {
             .collect();
         let path = golden_dir().join(format!("shadow_{k}.png"));
         if regenerate {
-            photostereo::output::write_png8(&path, 96, 72, 1, &bytes).unwrap();
+            photostereo::io::output::write_png8(&path, 96, 72, 1, &bytes).unwrap();
             continue;
         }
         let truth = image::open(&path)

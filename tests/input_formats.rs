@@ -9,13 +9,13 @@ use exr::prelude::{
 use image::{DynamicImage, ImageBuffer};
 use nalgebra::Vector3;
 use photostereo::Error;
-use photostereo::grid::Window;
-use photostereo::input::{
-    ColorMode, GREY_WEIGHTS, ImageStack, LoadOptions, SampleFormat, Transfer, image_size,
-    load_stack, read_image, read_mask, srgb_to_linear,
+use photostereo::capture::lights::{Light, Lights};
+use photostereo::capture::stack::{
+    ColorMode, GREY_WEIGHTS, ImageStack, LoadOptions, Transfer, load_stack,
 };
-use photostereo::lights::{Light, Lights};
-use photostereo::output::{write_exr, write_png8, write_png16};
+use photostereo::grid::Window;
+use photostereo::io::decode::{SampleFormat, image_size, read_image, read_mask, srgb_to_linear};
+use photostereo::io::output::{write_exr, write_png8, write_png16};
 use photostereo::progress::Silent;
 use std::path::{Path, PathBuf};
 
@@ -1378,7 +1378,7 @@ fn image_size_of_each_format() {
 /// Loading only a window (as a capture does for its mask's bounding box) stores just that
 /// window, bit-identical to the same pixels of a full load, for 16-bit RGB PNG (decoded only up
 /// to the window's last row) and float EXR; saturation flags keep whole-image pixel indices and
-/// counts come from the window only. Through [`photostereo::dataset::Capture`] the window is the
+/// counts come from the window only. Through [`photostereo::capture::dataset::Capture`] the window is the
 /// mask's bounding box, and a mask reaching outside it is refused.
 #[test]
 fn window_stores_only_those_pixels() {
@@ -1499,7 +1499,7 @@ fn window_stores_only_those_pixels() {
     save(luma8(w, h, &mask), &mask_path);
     let lights_path = dir.path().join("lights.txt");
     std::fs::write(&lights_path, "0 0 1\n1 0 1\n0 1 1\n").unwrap();
-    let capture = photostereo::dataset::Capture::from_files(
+    let capture = photostereo::capture::dataset::Capture::from_files(
         &pngs,
         &lights_path,
         Some(&mask_path),
@@ -1541,12 +1541,12 @@ fn window_stores_only_those_pixels() {
         ),
     }
     let everything = photostereo::grid::Grid::new(w as usize, h as usize, true);
-    let solved = photostereo::solve::solve(
+    let solved = photostereo::ps::solve::solve(
         &capture.stack,
         0,
         &capture.lights,
         &everything,
-        &photostereo::solve::SolveOptions::default(),
+        &photostereo::ps::solve::SolveOptions::default(),
         &Silent,
     );
     match solved {

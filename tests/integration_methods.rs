@@ -5,13 +5,13 @@ mod common;
 
 use nalgebra::Vector3;
 use photostereo::camera::Intrinsics;
+use photostereo::eval::metrics::{depth_errors, scaled_depth_errors};
 use photostereo::grid::{Grid, Mask, NormalMap, ScalarMap};
-use photostereo::input::{read_image, read_mask, read_normal_map};
 use photostereo::integrate::{
     BilateralParams, Censoring, IntegrationOptions, Integrator, LinearSolver,
     integrate_censored_gradients, integrate_gradients, integrate_normals,
 };
-use photostereo::metrics::{depth_errors, scaled_depth_errors};
+use photostereo::io::decode::{read_image, read_mask, read_normal_map};
 use photostereo::progress::Silent;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
@@ -161,8 +161,9 @@ fn frankot_chellappa_on_a_periodic_surface() {
 #[test]
 fn vase_with_noise() {
     let path = require_shared!("integration/vase/vase.exr");
-    let exr =
-        |name: &str| -> ScalarMap { photostereo::input::read_exr_channel(&path, name).unwrap() };
+    let exr = |name: &str| -> ScalarMap {
+        photostereo::io::decode::read_exr_channel(&path, name).unwrap()
+    };
     let (zg, pv, qv, mv) = (exr("Z"), exr("p"), exr("q"), exr("mask"));
     let mask = mv.map(|v| *v > 0.5);
     // The file's p = ∂Z/∂row, q = ∂Z/∂column; ours: p = ∂z/∂x (columns), q = ∂z/∂y (up).

@@ -2,12 +2,12 @@
 //! by `write_outputs`: the same files with the same contents, and nothing left behind when a
 //! stage fails.
 
-use photostereo::demo::default_capture;
-use photostereo::input::read_exr_channel;
-use photostereo::pipeline::{
+use photostereo::eval::demo::default_capture;
+use photostereo::io::decode::read_exr_channel;
+use photostereo::progress::Silent;
+use photostereo::run::pipeline::{
     Config, OUTPUT_FILES, reconstruct, reconstruct_and_write, write_outputs,
 };
-use photostereo::progress::Silent;
 use std::path::Path;
 
 fn listing(dir: &Path) -> Vec<String> {

@@ -4,7 +4,7 @@
 //! normalisation constant), isotropy where claimed, and Oren–Nayar's Lambertian limit.
 
 use nalgebra::{Rotation3, Vector3};
-use photostereo::reflectance::{
+use photostereo::synth::reflectance::{
     BlinnPhong, Brdf, Lambertian, Mirror, OrenNayar, Phong, TorranceSparrow, Ward,
     directional_albedo,
 };

@@ -3,11 +3,13 @@
 //! coloured diffuse and a white specular lobe, and the camera model written to disk and read back.
 
 use nalgebra::Vector3;
-use photostereo::input::ColorMode;
-use photostereo::lights::{Light, Lights};
-use photostereo::reflectance::{BlinnPhong, Brdf, Diffuse, Frame, Material, Mirror, Specular};
-use photostereo::render::{RenderOptions, render};
-use photostereo::scene::{Albedo, Object, Primitive, Scene, SceneKind};
+use photostereo::capture::lights::{Light, Lights};
+use photostereo::capture::stack::ColorMode;
+use photostereo::synth::reflectance::{
+    BlinnPhong, Brdf, Diffuse, Frame, Material, Mirror, Specular,
+};
+use photostereo::synth::render::{RenderOptions, render};
+use photostereo::synth::scene::{Albedo, Object, Primitive, Scene, SceneKind};
 
 fn chrome() -> Material {
     Material {
@@ -248,8 +250,9 @@ fn oren_nayar_renders() {
     assert_eq!(lam.images[0][0], on0.images[0][0]);
     let rough = render_with(Diffuse::OrenNayar { sigma: 0.6 });
     // Pixel 20 px right of centre on the middle row: n_z = √(1 − (20/25.6)²).
-    let ratio =
-        |r: &photostereo::render::Rendering| r.images[0][0].at(52, 32) / r.images[0][0].at(32, 32);
+    let ratio = |r: &photostereo::synth::render::Rendering| {
+        r.images[0][0].at(52, 32) / r.images[0][0].at(32, 32)
+    };
     assert!(
         ratio(&rough) > ratio(&lam) + 0.05,
         "{} vs {}",

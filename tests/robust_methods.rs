@@ -1,16 +1,16 @@
 //! The robust estimators and the automatic method on rendered scenes with ground truth: a
 //! sphere on a ground plane beside a pyramid (attached and cast shadows), matte and glossy.
 
-use photostereo::dataset::Capture;
-use photostereo::input::ColorMode;
-use photostereo::lights::Lights;
-use photostereo::metrics::angular_errors;
-use photostereo::pipeline::{Config, Reconstruction, reconstruct};
+use photostereo::capture::dataset::Capture;
+use photostereo::capture::lights::Lights;
+use photostereo::capture::stack::ColorMode;
+use photostereo::eval::metrics::angular_errors;
 use photostereo::progress::Silent;
-use photostereo::reflectance::{BlinnPhong, Material, Specular, TorranceSparrow};
-use photostereo::render::{RenderOptions, Rendering, render};
-use photostereo::scene::Scene;
-use photostereo::solve::{Method, SolveOptions};
+use photostereo::ps::solve::{Method, SolveOptions};
+use photostereo::run::pipeline::{Config, Reconstruction, reconstruct};
+use photostereo::synth::reflectance::{BlinnPhong, Material, Specular, TorranceSparrow};
+use photostereo::synth::render::{RenderOptions, Rendering, render};
+use photostereo::synth::scene::Scene;
 
 fn rendered(material: Material) -> (Capture, Rendering) {
     let lights = Lights::fibonacci(32, 30.0).unwrap();
@@ -113,7 +113,7 @@ fn highlights_do_not_become_intensity_corrections() {
         let lobe = Specular::BlinnPhong(BlinnPhong { ks, exponent: 50.0 });
         let (capture, r) = rendered(Material::with_specular(lobe));
         let (_, recon) = run(&capture, &r, Method::Auto);
-        let estimate = photostereo::intensities::estimate_gains(
+        let estimate = photostereo::ps::intensities::estimate_gains(
             &capture.stack,
             0,
             &capture.lights,

@@ -5,16 +5,16 @@
 mod common;
 
 use photostereo::Error;
+use photostereo::capture::lights::{Light, Lights};
+use photostereo::eval::metrics::{angular_errors, depth_errors};
 use photostereo::grid::{Mask, NormalMap, ScalarMap};
-use photostereo::lights::{Light, Lights};
-use photostereo::metrics::{angular_errors, depth_errors};
 use photostereo::nalgebra::Vector3;
-use photostereo::reflectance::Material;
-use photostereo::reflectance_map::ReflectanceMap;
-use photostereo::render::{RenderOptions, render};
-use photostereo::scene::{Albedo, HeightField, SceneKind};
 use photostereo::sfs::estimate::estimate_light;
+use photostereo::sfs::reflectance_map::ReflectanceMap;
 use photostereo::sfs::{Boundary, SfsMethod, SfsOptions, SfsResult, shape_from_shading};
+use photostereo::synth::reflectance::Material;
+use photostereo::synth::render::{RenderOptions, render};
+use photostereo::synth::scene::{Albedo, HeightField, SceneKind};
 
 const SIZE: usize = 96;
 const ALBEDO: f64 = 0.8;
@@ -334,7 +334,7 @@ fn sfs_command_end_to_end() {
         .iter()
         .map(|v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16)
         .collect();
-    photostereo::output::write_png16(&png, SIZE, SIZE, 1, &codes).unwrap();
+    photostereo::io::output::write_png16(&png, SIZE, SIZE, 1, &codes).unwrap();
     // The mask: without one, shadows touching the black background would be cut out.
     let mask_png = dir.path().join("mask.png");
     let mask_bytes: Vec<u8> = truth
@@ -343,7 +343,7 @@ fn sfs_command_end_to_end() {
         .iter()
         .map(|&m| u8::from(m) * 255)
         .collect();
-    photostereo::output::write_png8(&mask_png, SIZE, SIZE, 1, &mask_bytes).unwrap();
+    photostereo::io::output::write_png8(&mask_png, SIZE, SIZE, 1, &mask_bytes).unwrap();
     let mask_arg = mask_png.to_str().unwrap();
     let out = dir.path().join("out");
     let light_arg = format!("{},{},{}", l.x, l.y, l.z);
@@ -370,7 +370,7 @@ fn sfs_command_end_to_end() {
     ] {
         assert!(out.join(f).is_file(), "{f} missing");
     }
-    let normals = photostereo::input::read_normal_map(&out.join("normal.exr")).unwrap();
+    let normals = photostereo::io::decode::read_normal_map(&out.join("normal.exr")).unwrap();
     let e = angular_errors(&normals, &truth.normals, &truth.mask).unwrap();
     assert_eq!(e.pixels, truth.mask.count());
     assert!(e.mean_deg < 2.0, "CLI normals {:.2}°", e.mean_deg);
@@ -387,7 +387,7 @@ fn sfs_command_end_to_end() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let report = std::fs::read_to_string(out2.join("report.json")).unwrap();
     assert!(report.contains("\"light_source\": \"estimated"), "{report}");
-    let normals = photostereo::input::read_normal_map(&out2.join("normal.exr")).unwrap();
+    let normals = photostereo::io::decode::read_normal_map(&out2.join("normal.exr")).unwrap();
     let e = angular_errors(&normals, &truth.normals, &truth.mask).unwrap();
     println!("estimated light: {:.2}°", e.mean_deg);
     assert_eq!(e.pixels, truth.mask.count());

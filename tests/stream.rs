@@ -1,19 +1,20 @@
-//! Out-of-core streaming (`photostereo::stream`, `--max-memory`): a capture solved in row bands
+//! Out-of-core streaming (`photostereo::run::stream`, `--max-memory`): a capture solved in row bands
 //! must give what the in-memory pipeline gives, for every file format and band height.
 
 mod common;
 
-use photostereo::dataset::{CaptureFiles, ImageFormat, write_synthetic};
-use photostereo::input::{ColorMode, LoadOptions};
-use photostereo::lights::Lights;
-use photostereo::metrics::angular_errors;
-use photostereo::pipeline::{Config, reconstruct};
+use photostereo::capture::dataset::CaptureFiles;
+use photostereo::capture::lights::Lights;
+use photostereo::capture::stack::{ColorMode, LoadOptions};
+use photostereo::eval::metrics::angular_errors;
 use photostereo::progress::Silent;
-use photostereo::reflectance::Material;
-use photostereo::render::{RenderOptions, render};
-use photostereo::scene::Scene;
-use photostereo::solve::{Method, SolveOptions};
-use photostereo::stream::{StreamOptions, parse_size, reconstruct_streamed};
+use photostereo::ps::solve::{Method, SolveOptions};
+use photostereo::run::pipeline::{Config, reconstruct};
+use photostereo::run::stream::{StreamOptions, parse_size, reconstruct_streamed};
+use photostereo::synth::reflectance::Material;
+use photostereo::synth::render::{RenderOptions, render};
+use photostereo::synth::scene::Scene;
+use photostereo::synth::write::{ImageFormat, write_synthetic};
 use std::path::{Path, PathBuf};
 
 const SIZE: usize = 112;
@@ -74,7 +75,7 @@ fn streamed(
     load: &LoadOptions,
     config: &Config,
     band_rows: Option<usize>,
-) -> photostereo::stream::Streamed {
+) -> photostereo::run::stream::Streamed {
     let options = StreamOptions {
         max_memory: 1 << 30,
         band_rows,
@@ -114,7 +115,7 @@ fn bands_give_the_in_memory_result_for_png_tiff_and_exr() {
             );
             assert_eq!(
                 s.summary.saturated_samples,
-                photostereo::pipeline::InputSummary::of(&capture).saturated_samples
+                photostereo::run::pipeline::InputSummary::of(&capture).saturated_samples
             );
         }
     }
@@ -171,8 +172,8 @@ fn colour_captures_stream_per_channel() {
         ..LoadOptions::default()
     };
     for color in [
-        photostereo::color::ColorSolve::PerChannel,
-        photostereo::color::ColorSolve::SharedNormal,
+        photostereo::ps::color::ColorSolve::PerChannel,
+        photostereo::ps::color::ColorSolve::SharedNormal,
     ] {
         let config = Config {
             color,
@@ -411,18 +412,18 @@ fn assert_same_outputs(a: &Path, b: &Path, what: &str) {
 /// channels) under both colour solves, shared normal and per channel.
 #[test]
 fn outputs_written_band_by_band_equal_the_in_memory_outputs() {
-    use photostereo::color::ColorSolve;
     use photostereo::integrate::{IntegrationOptions, Integrator};
-    use photostereo::pipeline::reconstruct_and_write;
-    use photostereo::stream::reconstruct_and_write_streamed;
+    use photostereo::ps::color::ColorSolve;
+    use photostereo::run::pipeline::reconstruct_and_write;
+    use photostereo::run::stream::reconstruct_and_write_streamed;
     let dir = tempfile::tempdir().unwrap();
     let lights = Lights::fibonacci(LIGHTS, 30.0).unwrap();
     let cases = [
         (
             "vase",
-            photostereo::scene::SceneKind::Vase.build(
+            photostereo::synth::scene::SceneKind::Vase.build(
                 96,
-                photostereo::scene::Albedo::Constant(0.8),
+                photostereo::synth::scene::Albedo::Constant(0.8),
                 Material::lambertian(),
             ),
             false,
@@ -514,7 +515,7 @@ fn outputs_written_band_by_band_equal_the_in_memory_outputs() {
 /// rows were written) leaves nothing in the output folder: no file and no temporary.
 #[test]
 fn a_streamed_run_that_fails_midway_leaves_nothing() {
-    use photostereo::stream::reconstruct_and_write_streamed;
+    use photostereo::run::stream::reconstruct_and_write_streamed;
     let dir = tempfile::tempdir().unwrap();
     let (files, _) = scene(dir.path(), "png");
     let victim = &files.images[7];

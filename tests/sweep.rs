@@ -1,4 +1,4 @@
-//! The speed–accuracy sweeps (`photostereo::sweep`) and the `bench sweep` / `bench all`
+//! The speed–accuracy sweeps (`photostereo::eval::sweep`) and the `bench sweep` / `bench all`
 //! commands: the sweeps show what they claim (noise hurts, shadows bias plain least squares,
 //! three lights leave shadowed pixels unsolved, highlights need rejection, masks and
 //! discontinuities hurt the global integrators), the Pareto front matches its definition, the
@@ -7,16 +7,16 @@
 
 mod common;
 
-use photostereo::grid::Grid;
-use photostereo::integrate::Integrator;
-use photostereo::metrics::{angular_errors, depth_errors, depth_rmse_per_part};
-use photostereo::scene::{Albedo, Scene};
-use photostereo::sfs::SfsMethod;
-use photostereo::solve::Method;
-use photostereo::sweep::{
+use photostereo::eval::metrics::{angular_errors, depth_errors, depth_rmse_per_part};
+use photostereo::eval::sweep::{
     Axis, DepthRow, NormalRow, SweepOptions, depth_sweep, normal_sweep, pareto_front,
     perturb_normals, sfs_sweep,
 };
+use photostereo::grid::Grid;
+use photostereo::integrate::Integrator;
+use photostereo::ps::solve::Method;
+use photostereo::sfs::SfsMethod;
+use photostereo::synth::scene::{Albedo, Scene};
 use rand::{RngExt, SeedableRng};
 
 fn options() -> SweepOptions {
@@ -492,7 +492,7 @@ fn min_angle(dirs: &[photostereo::nalgebra::Vector3<f64>]) -> f64 {
 /// smallest separation than the first or every k-th lights of a spiral.
 #[test]
 fn spread_lights_are_well_separated() {
-    let lights = photostereo::lights::Lights::fibonacci(96, 20.0).unwrap();
+    let lights = photostereo::capture::lights::Lights::fibonacci(96, 20.0).unwrap();
     let dirs = lights.directions();
     for count in [3usize, 6, 12, 24] {
         let pick = lights.spread(count).unwrap();
@@ -516,17 +516,17 @@ fn spread_lights_are_well_separated() {
 /// truth as well as a capture rendered under those lights alone, and indices are checked.
 #[test]
 fn a_selected_capture_matches_one_rendered_with_those_lights() {
-    use photostereo::input::ColorMode;
-    use photostereo::pipeline::{Config, reconstruct};
-    use photostereo::render::{RenderOptions, render};
-    use photostereo::solve::SolveOptions;
+    use photostereo::capture::stack::ColorMode;
+    use photostereo::ps::solve::SolveOptions;
+    use photostereo::run::pipeline::{Config, reconstruct};
+    use photostereo::synth::render::{RenderOptions, render};
     let scene = Scene::sphere(64, 26.0, Albedo::Constant(0.6));
-    let all = photostereo::lights::Lights::fibonacci(48, 30.0).unwrap();
-    let render_capture = |lights: &photostereo::lights::Lights| {
+    let all = photostereo::capture::lights::Lights::fibonacci(48, 30.0).unwrap();
+    let render_capture = |lights: &photostereo::capture::lights::Lights| {
         let r = render(&scene, lights, &RenderOptions::default()).unwrap();
         let stack = r.to_stack(lights, ColorMode::Grey).unwrap();
         (
-            photostereo::dataset::Capture::from_stack(
+            photostereo::capture::dataset::Capture::from_stack(
                 stack,
                 lights.clone(),
                 Some(r.truth.mask.clone()),
@@ -540,9 +540,10 @@ fn a_selected_capture_matches_one_rendered_with_those_lights() {
     let sub = capture.select(&pick).unwrap();
     assert_eq!(sub.lights.len(), 6);
     assert_eq!(sub.stack.count(), 6);
-    let direct =
-        photostereo::lights::Lights::new(pick.iter().map(|&k| all.lights()[k].clone()).collect())
-            .unwrap();
+    let direct = photostereo::capture::lights::Lights::new(
+        pick.iter().map(|&k| all.lights()[k].clone()).collect(),
+    )
+    .unwrap();
     let (rendered, _) = render_capture(&direct);
     for k in 0..6 {
         assert_eq!(

@@ -1,15 +1,15 @@
 //! Accuracy on scenes the crate renders itself, against closed forms.
 
 use nalgebra::{Matrix3, Vector3};
-use photostereo::demo::synthesize;
+use photostereo::capture::lights::Lights;
+use photostereo::eval::demo::synthesize;
+use photostereo::eval::metrics::{albedo_relative_error, angular_errors, depth_errors};
 use photostereo::integrate::Integrator;
-use photostereo::lights::Lights;
-use photostereo::metrics::{albedo_relative_error, angular_errors, depth_errors};
-use photostereo::pipeline::{Config, reconstruct};
 use photostereo::progress::Silent;
-use photostereo::render::RenderOptions;
-use photostereo::scene::{Albedo, Object, Primitive, Scene};
-use photostereo::solve::{Method, SolveOptions};
+use photostereo::ps::solve::{Method, SolveOptions};
+use photostereo::run::pipeline::{Config, reconstruct};
+use photostereo::synth::render::RenderOptions;
+use photostereo::synth::scene::{Albedo, Object, Primitive, Scene};
 
 /// Twelve lights 30°–90° above the image plane: every sphere pixel near the rim is in attached
 /// shadow for some of them.
@@ -153,7 +153,7 @@ fn noise_matches_the_least_squares_prediction() {
 /// hemisphere, bump, pyramid and dome casting shadows on the ground) when noise-free.
 #[test]
 fn default_scene_with_cast_shadows_is_recovered() {
-    let synth = photostereo::demo::default_capture(0.0, 1).unwrap();
+    let synth = photostereo::eval::demo::default_capture(0.0, 1).unwrap();
     let cast: usize = synth.rendering.cast.iter().map(|m| m.count()).sum();
     assert!(cast > 10_000, "only {cast} cast-shadow samples");
     let config = Config {

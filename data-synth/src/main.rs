@@ -3,8 +3,8 @@
 //! One of the library's named scenes ([`SceneKind`]) made of one material — Lambertian,
 //! Oren–Nayar, or a specular lobe (Phong, Blinn–Phong, Torrance–Sparrow, Ward, mirror) over a
 //! Lambertian diffuse lobe — is rendered under a generated set of distant lights with
-//! [`photostereo::render::render`] (cast shadows, optional shot and read noise, clipping, grey or
-//! RGB), and written with [`photostereo::dataset::write_synthetic`]: one image per light
+//! [`photostereo::synth::render::render`] (cast shadows, optional shot and read noise, clipping, grey or
+//! RGB), and written with [`photostereo::synth::write::write_synthetic`]: one image per light
 //! (`img_NNN.exr` or `img_NNN.png`), `lights.json` naming them and `mask.png`, with the ground
 //! truth in `gt/`: `normal_gt.exr`, `depth_gt.exr`, `albedo_gt.exr`, and per-light shadow masks
 //! `shadow_NNN.png`.
@@ -24,13 +24,13 @@
 
 use anyhow::{Context, Result, bail, ensure};
 use clap::{Parser, ValueEnum};
-use photostereo::dataset::{ImageFormat, write_synthetic};
-use photostereo::lights::{Lights, MAX_LIGHT_CONDITION};
-use photostereo::reflectance::{
+use photostereo::capture::lights::{Lights, MAX_LIGHT_CONDITION};
+use photostereo::synth::reflectance::{
     BlinnPhong, Diffuse, Material, Mirror, Phong, Specular, TorranceSparrow, Ward,
 };
-use photostereo::render::{DEFAULT_LIGHT_RADIUS_DEG, RenderOptions, Rendering, render};
-use photostereo::scene::{Albedo, Scene, SceneKind};
+use photostereo::synth::render::{DEFAULT_LIGHT_RADIUS_DEG, RenderOptions, Rendering, render};
+use photostereo::synth::scene::{Albedo, Scene, SceneKind};
+use photostereo::synth::write::{ImageFormat, write_synthetic};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 

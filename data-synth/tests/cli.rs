@@ -1,14 +1,15 @@
 //! End-to-end tests of the `data-synth` binary: render data sets into temporary folders, load
 //! them back with the photostereo library and reconstruct them.
 
-use photostereo::dataset::Capture;
-use photostereo::input::{LoadOptions, read_image, read_normal_map};
-use photostereo::lights::Lights;
-use photostereo::metrics::{AngularErrorStats, angular_errors};
-use photostereo::pipeline::{Config, reconstruct};
+use photostereo::capture::dataset::Capture;
+use photostereo::capture::lights::Lights;
+use photostereo::capture::stack::LoadOptions;
+use photostereo::eval::metrics::{AngularErrorStats, angular_errors};
+use photostereo::io::decode::{read_image, read_normal_map};
 use photostereo::progress::Silent;
-use photostereo::scene::SceneKind;
-use photostereo::solve::{Method, SolveOptions};
+use photostereo::ps::solve::{Method, SolveOptions};
+use photostereo::run::pipeline::{Config, reconstruct};
+use photostereo::synth::scene::SceneKind;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 

@@ -12,8 +12,8 @@
 //! pulled towards the centre of the sphere.
 
 use super::sphere::CircleFit;
-use crate::metrics::median_by;
-use crate::reflectance::reflect;
+use crate::stats::median_by;
+use crate::synth::reflectance::reflect;
 use nalgebra::Vector3;
 use serde::Serialize;
 

@@ -9,9 +9,9 @@
 //! needs, are exact.
 
 use super::sphere::Circle;
+use crate::capture::stack::ImageStack;
 use crate::error::{Error, Result};
 use crate::grid::Mask;
-use crate::input::ImageStack;
 use nalgebra::{Matrix3, Vector3};
 use serde::Serialize;
 

@@ -14,10 +14,10 @@
 //!
 //! ```
 //! use photostereo::calibrate::{ChromeOptions, calibrate_chrome};
-//! use photostereo::lights::Lights;
-//! use photostereo::reflectance::{Diffuse, Material, Mirror, Specular};
-//! use photostereo::render::{RenderOptions, render};
-//! use photostereo::scene::{Albedo, Object, Primitive, Scene};
+//! use photostereo::capture::lights::Lights;
+//! use photostereo::synth::reflectance::{Diffuse, Material, Mirror, Specular};
+//! use photostereo::synth::render::{RenderOptions, render};
+//! use photostereo::synth::scene::{Albedo, Object, Primitive, Scene};
 //! use photostereo::nalgebra::Vector3;
 //!
 //! // A chrome ball of radius 60 px under two lamps of 4° radius, rendered with pixels that
@@ -34,7 +34,7 @@
 //! let truth = Lights::from_directions(&[Vector3::new(0.3, 0.2, 0.9), Vector3::new(-0.4, 0.1, 0.9)])?;
 //! let options = RenderOptions { light_radius_deg: 4.0, pixel_samples: 4, ..RenderOptions::default() };
 //! let r = render(&scene, &truth, &options)?;
-//! let stack = r.to_stack(&truth, photostereo::input::ColorMode::Grey)?;
+//! let stack = r.to_stack(&truth, photostereo::capture::stack::ColorMode::Grey)?;
 //! let mask = r.truth.mask.map(|m| f32::from(u8::from(*m)));
 //!
 //! let cal = calibrate_chrome(&stack, Some((&mask, "mask".as_ref())), &ChromeOptions::default())?;
@@ -49,10 +49,11 @@ pub mod highlight;
 pub mod intensity;
 pub mod sphere;
 
+use crate::capture::lights::{Light, Lights};
+use crate::capture::stack::{ColorMode, ImageStack, LoadOptions, Transfer, load_stack};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, ScalarMap};
-use crate::input::{ColorMode, ImageStack, LoadOptions, Transfer, load_stack, read_image};
-use crate::lights::{Light, Lights};
+use crate::io::decode::read_image;
 use crate::progress::Progress;
 use highlight::{Highlight, HighlightOptions, Missing, find_highlight};
 use nalgebra::Vector3;
@@ -285,7 +286,7 @@ pub enum IntensityCalibration {
 }
 
 /// The lights file `photostereo calibrate` writes: the JSON lights format (see
-/// [`crate::lights`]) with each light's `confidence` and `uncertainty_deg` from its highlight,
+/// [`crate::capture::lights`]) with each light's `confidence` and `uncertainty_deg` from its highlight,
 /// and a `calibration` section holding the sphere, every highlight and the intensity
 /// measurement. [`Lights::from_file`] reads it back (the extra fields are informational).
 pub fn lights_file_json(

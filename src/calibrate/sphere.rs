@@ -7,7 +7,7 @@
 
 use crate::error::{Error, Result};
 use crate::grid::ScalarMap;
-use crate::metrics::median_by;
+use crate::stats::median_by;
 use nalgebra::{Matrix3, Vector3};
 use rand::{RngExt, SeedableRng};
 use serde::Serialize;

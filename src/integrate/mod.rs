@@ -44,8 +44,8 @@ pub use sparse::LinearSolver;
 use crate::camera::Intrinsics;
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
-use crate::normals::{MIN_NZ, gradients};
 use crate::progress::Progress;
+use crate::ps::normals::{MIN_NZ, gradients};
 use rayon::prelude::*;
 use serde::Serialize;
 

@@ -33,12 +33,13 @@
 pub mod estimate;
 mod fast_marching;
 mod horn;
+pub mod reflectance_map;
 mod tsai_shah;
 
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
 use crate::integrate::sparse::{NONE, Unknowns};
-use crate::reflectance_map::{ReflectanceMap, normal_from_gradient};
+use crate::sfs::reflectance_map::{ReflectanceMap, normal_from_gradient};
 use nalgebra::Vector3;
 use serde::Serialize;
 use std::time::Instant;
@@ -240,8 +241,8 @@ pub(crate) struct Solved {
 ///
 /// # Example
 /// ```
-/// use photostereo::reflectance_map::ReflectanceMap;
-/// use photostereo::scene::{Albedo, Scene};
+/// use photostereo::sfs::reflectance_map::ReflectanceMap;
+/// use photostereo::synth::scene::{Albedo, Scene};
 /// use photostereo::sfs::{shape_from_shading, SfsOptions};
 /// use photostereo::nalgebra::Vector3;
 /// // A sphere lit from the upper right, rendered with its closed-form reflectance map.
@@ -252,7 +253,7 @@ pub(crate) struct Solved {
 ///     if n.x.is_nan() { 0.0 } else { rmap.eval(-n.x / n.z, -n.y / n.z) as f32 }
 /// });
 /// let r = shape_from_shading(&image, &truth.mask, &rmap, 1.0, &SfsOptions::default())?;
-/// let err = photostereo::metrics::angular_errors(&r.normals, &truth.normals, &truth.mask)?;
+/// let err = photostereo::eval::metrics::angular_errors(&r.normals, &truth.normals, &truth.mask)?;
 /// assert!(err.mean_deg < 5.0, "{}", err.mean_deg);
 /// # Ok::<(), photostereo::Error>(())
 /// ```
@@ -380,7 +381,7 @@ fn finish(
         }
     }
     let mean_abs_residual = if lit > 0 { abs_sum / lit as f64 } else { 0.0 };
-    let curl = crate::normals::integrability(&p_map, &q_map).summary;
+    let curl = crate::ps::normals::integrability(&p_map, &q_map).summary;
     let shadow_pixels = s.shadow.iter().filter(|&&b| b).count();
     let mut warnings = Vec::new();
     if too_bright as f64 > TOO_BRIGHT_WARN * n as f64 {

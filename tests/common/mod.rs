@@ -1,11 +1,11 @@
 //! Helpers shared by the integration tests.
 #![allow(dead_code)]
 
-use photostereo::dataset::{ImageFormat, write_synthetic};
-use photostereo::demo::synthesize;
-use photostereo::lights::Lights;
-use photostereo::render::RenderOptions;
-use photostereo::scene::{Albedo, Scene};
+use photostereo::capture::lights::Lights;
+use photostereo::eval::demo::synthesize;
+use photostereo::synth::render::RenderOptions;
+use photostereo::synth::scene::{Albedo, Scene};
+use photostereo::synth::write::{ImageFormat, write_synthetic};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 

@@ -3,12 +3,14 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use photostereo::camera::Intrinsics;
-use photostereo::color::ColorSolve;
-use photostereo::input::{ColorMode, LoadOptions, Transfer};
+use photostereo::capture::stack::{ColorMode, LoadOptions, Transfer};
 use photostereo::integrate::{BilateralParams, IntegrationOptions, Integrator, LinearSolver};
-use photostereo::pipeline::Config;
-use photostereo::robust::{DEFAULT_SPECULAR_CONE_DEG, DEFAULT_TRIM_HIGH, DEFAULT_TRIM_LOW};
-use photostereo::solve::{DEFAULT_MAX_CONDITION, DEFAULT_SHADOW_THRESHOLD, Method, SolveOptions};
+use photostereo::ps::color::ColorSolve;
+use photostereo::ps::robust::{DEFAULT_SPECULAR_CONE_DEG, DEFAULT_TRIM_HIGH, DEFAULT_TRIM_LOW};
+use photostereo::ps::solve::{
+    DEFAULT_MAX_CONDITION, DEFAULT_SHADOW_THRESHOLD, Method, SolveOptions,
+};
+use photostereo::run::pipeline::Config;
 use std::path::PathBuf;
 
 /// Photometric stereo: images of an object under known distant lights → albedo, normals, depth.
@@ -177,7 +179,7 @@ pub struct DemoArgs {
     #[arg(long)]
     pub force: bool,
     /// Standard deviation of Gaussian image noise (images peak near 1).
-    #[arg(long, default_value_t = photostereo::demo::DEFAULT_NOISE)]
+    #[arg(long, default_value_t = photostereo::eval::demo::DEFAULT_NOISE)]
     pub noise: f32,
     /// Noise seed.
     #[arg(long, default_value_t = 1)]
@@ -303,10 +305,10 @@ pub struct AllBenchArgs {
 #[derive(Debug, Args)]
 pub struct SweepBenchArgs {
     /// Image size (square) of the normal and depth sweeps.
-    #[arg(long, default_value_t = photostereo::sweep::DEFAULT_SIZE)]
+    #[arg(long, default_value_t = photostereo::eval::sweep::DEFAULT_SIZE)]
     pub size: usize,
     /// Image size (square) of the shape-from-shading sweep.
-    #[arg(long, default_value_t = photostereo::sweep::DEFAULT_SFS_SIZE)]
+    #[arg(long, default_value_t = photostereo::eval::sweep::DEFAULT_SFS_SIZE)]
     pub sfs_size: usize,
     /// Timed runs per point; medians are reported.
     #[arg(long, default_value_t = 3)]
@@ -698,7 +700,7 @@ pub struct RunConfig {
     /// What to compute.
     pub config: Config,
     /// Stream in row bands within a memory budget (`--max-memory`).
-    pub stream: Option<photostereo::stream::StreamOptions>,
+    pub stream: Option<photostereo::run::stream::StreamOptions>,
     /// `--band-rows`, for a run that streams without `--max-memory`.
     pub band_rows: Option<usize>,
 }
@@ -710,7 +712,7 @@ impl RunArgs {
             .output
             .context("no output folder: pass -o DIR (see --help)")?;
         if !self.force {
-            photostereo::output::ensure_fresh_dir(&output)?;
+            photostereo::io::output::ensure_fresh_dir(&output)?;
         }
         if self.inputs.is_empty() {
             bail!(
@@ -720,7 +722,7 @@ impl RunArgs {
         let mut list_mask = None;
         let source = if self.inputs.len() == 1 && self.inputs[0].is_dir() {
             let dir = self.inputs[0].clone();
-            if !photostereo::dataset::is_diligent_dir(&dir) {
+            if !photostereo::capture::dataset::is_diligent_dir(&dir) {
                 bail!(
                     "{} is a folder but not in the DiLiGenT layout (filenames.txt, light_directions.txt); pass image files and --lights instead",
                     dir.display()
@@ -739,9 +741,9 @@ impl RunArgs {
             // One image list (`<name>.txt`, as the classic 12-light sets have) names the
             // images and usually the mask.
             if let [list] = &self.inputs[..]
-                && photostereo::dataset::is_image_list(list)
+                && photostereo::capture::dataset::is_image_list(list)
             {
-                let list = photostereo::dataset::read_image_list(list)?;
+                let list = photostereo::capture::dataset::read_image_list(list)?;
                 list_mask = list.mask;
                 Source::Files {
                     images: list.images,
@@ -757,9 +759,9 @@ impl RunArgs {
         let stream = self
             .max_memory
             .as_deref()
-            .map(photostereo::stream::parse_size)
+            .map(photostereo::run::stream::parse_size)
             .transpose()?
-            .map(|max_memory| photostereo::stream::StreamOptions {
+            .map(|max_memory| photostereo::run::stream::StreamOptions {
                 max_memory,
                 band_rows: self.band_rows,
             });

@@ -7,16 +7,16 @@
 
 use crate::args::{BenchArgs, IntegrateArg, IntegrationBenchArgs};
 use anyhow::{Context, Result};
-use photostereo::dataset::Capture;
+use photostereo::capture::dataset::Capture;
+use photostereo::capture::stack::LoadOptions;
+use photostereo::eval::metrics::depth_errors;
 use photostereo::grid::Grid;
-use photostereo::input::LoadOptions;
 use photostereo::integrate::{
     IntegrationOptions, Integrator, LinearSolver, integrate_gradients, integrate_normals,
 };
-use photostereo::metrics::depth_errors;
-use photostereo::pipeline::{reconstruct, reconstruct_and_write};
 use photostereo::progress::Silent;
-use photostereo::scene::{Albedo, Scene};
+use photostereo::run::pipeline::{reconstruct, reconstruct_and_write};
+use photostereo::synth::scene::{Albedo, Scene};
 use rayon::prelude::*;
 use serde_json::json;
 use std::process::Command;
@@ -352,13 +352,13 @@ fn peaks_gradients(n: usize) -> (photostereo::grid::ScalarMap, photostereo::grid
 pub fn specularity(a: crate::args::SpecularityBenchArgs) -> Result<()> {
     use crate::args::MethodArg;
     use clap::ValueEnum;
-    use photostereo::input::ColorMode;
-    use photostereo::lights::Lights;
-    use photostereo::metrics::angular_errors;
-    use photostereo::pipeline::Config;
-    use photostereo::reflectance::{BlinnPhong, Material, Specular, TorranceSparrow};
-    use photostereo::render::{RenderOptions, render};
-    use photostereo::solve::SolveOptions;
+    use photostereo::capture::lights::Lights;
+    use photostereo::capture::stack::ColorMode;
+    use photostereo::eval::metrics::angular_errors;
+    use photostereo::ps::solve::SolveOptions;
+    use photostereo::run::pipeline::Config;
+    use photostereo::synth::reflectance::{BlinnPhong, Material, Specular, TorranceSparrow};
+    use photostereo::synth::render::{RenderOptions, render};
     anyhow::ensure!(a.size >= 16, "--size {}: at least 16", a.size);
     anyhow::ensure!(a.lights >= 3, "--lights {}: at least 3", a.lights);
     let methods: Vec<MethodArg> = if a.methods.is_empty() {
@@ -500,7 +500,7 @@ fn run_measured(cmd: &mut Command) -> Result<(f64, u64)> {
 /// child processes (alternating, so machine load hits both alike); medians of wall time and
 /// peak resident memory, and their ratios, as JSON.
 pub fn stream(a: crate::args::StreamBenchArgs) -> Result<()> {
-    let budget = photostereo::stream::parse_size(&a.max_memory)?;
+    let budget = photostereo::run::stream::parse_size(&a.max_memory)?;
     let mut images: Vec<std::path::PathBuf> = std::fs::read_dir(&a.dir)
         .with_context(|| format!("reading {}", a.dir.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
@@ -581,10 +581,10 @@ fn fit_line(x: &[f64], y: &[f64]) -> (f64, f64) {
 /// log(pixels × lights) fitted over them: 1 means cost linear in the samples.
 pub fn scaling(a: &crate::args::ScalingBenchArgs) -> Result<serde_json::Value> {
     use crate::args::MethodArg;
-    use photostereo::input::ColorMode;
-    use photostereo::lights::Lights;
-    use photostereo::render::{RenderOptions, render};
-    use photostereo::solve::{SolveOptions, solve};
+    use photostereo::capture::lights::Lights;
+    use photostereo::capture::stack::ColorMode;
+    use photostereo::ps::solve::{SolveOptions, solve};
+    use photostereo::synth::render::{RenderOptions, render};
     let methods: Vec<MethodArg> = if a.methods.is_empty() {
         vec![
             MethodArg::Ls,

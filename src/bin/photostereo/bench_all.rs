@@ -15,14 +15,15 @@
 use crate::args::{AllBenchArgs, BenchCommand, Cli, Command};
 use anyhow::{Context, Result, bail};
 use clap::Parser;
-use photostereo::dataset::Capture;
+use photostereo::capture::dataset::Capture;
+use photostereo::capture::stack::LoadOptions;
+use photostereo::eval::metrics::angular_errors;
+use photostereo::eval::sweep::pareto_front;
 use photostereo::grid::NormalMap;
-use photostereo::input::{LoadOptions, read_normal_map};
-use photostereo::metrics::angular_errors;
-use photostereo::pipeline::{Config, reconstruct};
+use photostereo::io::decode::read_normal_map;
 use photostereo::progress::{Progress, Silent};
-use photostereo::solve::{Method, SolveOptions};
-use photostereo::sweep::pareto_front;
+use photostereo::ps::solve::{Method, SolveOptions};
+use photostereo::run::pipeline::{Config, reconstruct};
 use serde_json::{Value, json};
 use std::ffi::OsString;
 use std::fmt::Write as _;
@@ -99,13 +100,13 @@ const VASE_NOISE: f32 = 0.005;
 /// normalised). Missing sets are skipped.
 fn integration_real(data: &Path) -> Result<Vec<Value>> {
     use photostereo::camera::Intrinsics;
+    use photostereo::eval::metrics::{depth_errors, scaled_depth_errors};
     use photostereo::grid::{Grid, ScalarMap};
-    use photostereo::input::{read_exr_channel, read_image, read_mask};
     use photostereo::integrate::{
         Censoring, IntegrationOptions, Integrator, LinearSolver, integrate_censored_gradients,
         integrate_normals,
     };
-    use photostereo::metrics::{depth_errors, scaled_depth_errors};
+    use photostereo::io::decode::{read_exr_channel, read_image, read_mask};
     use rand::SeedableRng;
     use rand_distr::{Distribution, Normal};
     let mut rows = Vec::new();
@@ -246,7 +247,7 @@ fn integration_real_chart(rows: &[Value], out: &Path) -> Result<()> {
 /// Light counts of the DiLiGenT light-count sweep (well-spread subsets of the 96).
 const DILIGENT_LIGHT_COUNTS: [usize; 7] = [4, 6, 8, 12, 24, 48, 96];
 
-/// Every estimator on well-spread subsets ([`photostereo::lights::Lights::spread`]) of one
+/// Every estimator on well-spread subsets ([`photostereo::capture::lights::Lights::spread`]) of one
 /// DiLiGenT capture's lights: mean angular error over the solved pixels and the fraction
 /// solved.
 fn diligent_lights(capture: &Capture, gt: &NormalMap, object: &str) -> Result<Vec<Value>> {
@@ -815,7 +816,7 @@ pub fn run(a: &AllBenchArgs, progress: &dyn Progress) -> Result<Value> {
     let repeat = if a.quick { "1" } else { "3" };
     for object in DILIGENT_OBJECTS {
         let dir: PathBuf = a.data.join("diligent").join(format!("{object}PNG"));
-        if !photostereo::dataset::is_diligent_dir(&dir) {
+        if !photostereo::capture::dataset::is_diligent_dir(&dir) {
             eprintln!(
                 "bench all: skipping DiLiGenT {object}: {} is absent",
                 dir.display()

@@ -9,11 +9,12 @@ use photostereo::calibrate::{
     ChromeOptions, HighlightResult, IntensityCalibration, calibrate_chrome, find_sphere,
     lights_file_json, load_reference_images, read_grey_mask,
 };
-use photostereo::dataset::{is_image_list, read_image_list};
-use photostereo::input::{Transfer, read_mask};
-use photostereo::lights::{Light, Lights};
+use photostereo::capture::dataset::{is_image_list, read_image_list};
+use photostereo::capture::lights::{Light, Lights};
+use photostereo::capture::stack::Transfer;
+use photostereo::io::decode::read_mask;
+use photostereo::io::output::ensure_fresh_file;
 use photostereo::nalgebra::Vector3;
-use photostereo::output::ensure_fresh_file;
 use photostereo::progress::Progress;
 use std::path::{Path, PathBuf};
 
@@ -113,7 +114,7 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
 /// Relative intensities from the matte sphere or card, when one is given.
 fn measure_intensities(
     a: &CalibrateArgs,
-    chrome: &photostereo::input::ImageStack,
+    chrome: &photostereo::capture::stack::ImageStack,
     lights: Lights,
     directions: &[Vector3<f64>],
     transfer: Transfer,

@@ -26,19 +26,19 @@ mod sweep;
 use anyhow::{Context, Result};
 use args::{Cli, Command, DemoArgs, DepthAlign, EvalArgs, IntegrateArgs, RunConfig, Source};
 use clap::Parser;
-use photostereo::dataset::Capture;
-use photostereo::dataset::CaptureFiles;
-use photostereo::demo;
+use photostereo::capture::dataset::Capture;
+use photostereo::capture::dataset::CaptureFiles;
+use photostereo::eval::demo;
+use photostereo::eval::metrics::{angular_errors, depth_errors, scaled_depth_errors};
 use photostereo::grid::Grid;
 use photostereo::grid::Mask;
-use photostereo::input::read_normal_map;
 use photostereo::integrate::integrate_normals;
-use photostereo::mesh::Mesh;
-use photostereo::metrics::{angular_errors, depth_errors, scaled_depth_errors};
-use photostereo::output::OutputDir;
-use photostereo::pipeline::{Config, Report, reconstruct, reconstruct_and_write};
+use photostereo::io::decode::read_normal_map;
+use photostereo::io::mesh::Mesh;
+use photostereo::io::output::OutputDir;
 use photostereo::progress::{Progress, Silent};
-use photostereo::stream::{StreamOptions, reconstruct_and_write_streamed};
+use photostereo::run::pipeline::{Config, Report, reconstruct, reconstruct_and_write};
+use photostereo::run::stream::{StreamOptions, reconstruct_and_write_streamed};
 use std::path::Path;
 use std::time::Instant;
 
@@ -57,7 +57,7 @@ const INTERRUPTED_EXIT: i32 = 130;
 /// none is, then exit. The temporaries are unnamed files, which vanish with the process.
 fn stop_cleanly_on_interrupt() {
     let handler = || {
-        let _held = photostereo::output::hold_commits();
+        let _held = photostereo::io::output::hold_commits();
         eprintln!(
             "interrupted: stopped; outputs are written all at once at the end, so none from this run is left half-written"
         );
@@ -198,14 +198,15 @@ fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOption
     let Some(first) = files.images.first() else {
         return Ok(None);
     };
-    let (w, h) = photostereo::input::image_size(first)?;
-    let channels: u64 = if rc.load.color == photostereo::input::ColorMode::PerChannel {
+    let (w, h) = photostereo::io::decode::image_size(first)?;
+    let channels: u64 = if rc.load.color == photostereo::capture::stack::ColorMode::PerChannel {
         3
     } else {
         1
     };
     let stack = files.images.len() as u64 * channels * (w * h) as u64 * 4;
-    let resident = photostereo::stream::resident_bytes(w, h, channels as usize, w * h, &rc.config);
+    let resident =
+        photostereo::run::stream::resident_bytes(w, h, channels as usize, w * h, &rc.config);
     if (stack + resident) as f64 > 0.8 * available as f64 {
         say!(
             "the stack needs {} MiB in memory and {} MiB are available: streaming it in row bands within {} MiB (set the budget with --max-memory)",
@@ -253,7 +254,7 @@ fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
 fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
     let config = a.method.config()?;
     if !a.force {
-        photostereo::output::ensure_fresh_dir(&a.output)?;
+        photostereo::io::output::ensure_fresh_dir(&a.output)?;
     }
     let t = Instant::now();
     let synth = demo::default_capture(a.noise, a.seed)?;
@@ -285,11 +286,11 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
         },
     )?;
     let eval = evaluation.context("the demo's evaluation did not run")?;
-    photostereo::dataset::write_synthetic(
+    photostereo::synth::write::write_synthetic(
         &synth.rendering,
         &synth.capture.lights,
         &a.output.join("scene"),
-        photostereo::dataset::ImageFormat::Exr,
+        photostereo::synth::write::ImageFormat::Exr,
     )?;
     print_summary(&report, &a.output);
     say!("error against ground truth:");
@@ -327,7 +328,7 @@ fn run_eval(a: EvalArgs) -> Result<()> {
     }
     let mask_for = |w: usize, h: usize| -> Result<Mask> {
         Ok(match &a.mask {
-            Some(m) => photostereo::input::read_mask(m)?,
+            Some(m) => photostereo::io::decode::read_mask(m)?,
             None => Grid::new(w, h, true),
         })
     };
@@ -370,8 +371,8 @@ fn run_eval(a: EvalArgs) -> Result<()> {
 /// `eval --diligent`: reconstruct DiLiGenT-layout folders with each method, compare with the
 /// ground truth, print JSON.
 fn eval_diligent(a: &EvalArgs) -> Result<()> {
-    use photostereo::input::LoadOptions;
-    use photostereo::solve::SolveOptions;
+    use photostereo::capture::stack::LoadOptions;
+    use photostereo::ps::solve::SolveOptions;
     let mut rows = Vec::new();
     for dir in &a.diligent {
         let t = std::time::Instant::now();
@@ -393,7 +394,7 @@ fn eval_diligent(a: &EvalArgs) -> Result<()> {
                 .gains
                 .iter()
                 .flatten()
-                .filter(|g| (**g - 1.0).abs() > photostereo::pipeline::GAIN_WARNING)
+                .filter(|g| (**g - 1.0).abs() > photostereo::run::pipeline::GAIN_WARNING)
                 .count();
             rows.push(serde_json::json!({
                 "dataset": dir,
@@ -420,7 +421,7 @@ fn eval_diligent(a: &EvalArgs) -> Result<()> {
 
 /// A single-channel depth map (EXR channel Z or any single channel).
 fn read_depth(path: &Path) -> Result<photostereo::grid::ScalarMap> {
-    let img = photostereo::input::read_image(path)?;
+    let img = photostereo::io::decode::read_image(path)?;
     anyhow::ensure!(
         img.channels == 1,
         "{}: a depth map needs one channel (Z), found {}",
@@ -432,16 +433,16 @@ fn read_depth(path: &Path) -> Result<photostereo::grid::ScalarMap> {
 
 fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
     if !a.force {
-        photostereo::output::ensure_fresh_file(&a.output)?;
+        photostereo::io::output::ensure_fresh_file(&a.output)?;
         if let Some(ply) = &a.ply {
-            photostereo::output::ensure_fresh_file(ply)?;
+            photostereo::io::output::ensure_fresh_file(ply)?;
         }
     }
     let normals = read_normal_map(&a.normals)?;
     let (w, h) = (normals.width(), normals.height());
     let mask = match &a.mask {
         Some(m) => {
-            let m = photostereo::input::read_mask(m)?;
+            let m = photostereo::io::decode::read_mask(m)?;
             anyhow::ensure!(
                 m.width() == w && m.height() == h,
                 "mask {}x{} differs from the normal map's {w}x{h}",
@@ -483,7 +484,7 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
         let mesh = Mesh::from_depth(&r.depth, &normals, options.camera.as_ref())?;
         write_file_atomic(ply, &mesh.to_ply())?;
     }
-    let mean_res = photostereo::metrics::summarize(&r.residual).mean;
+    let mean_res = photostereo::stats::summarize(&r.residual).mean;
     say!(
         "{}: {} pixels, {} in {:.3} s{}; mean integration residual {:.3e}",
         method.name(),

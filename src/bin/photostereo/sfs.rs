@@ -2,12 +2,13 @@
 
 use crate::args::SfsArgs;
 use anyhow::{Context, Result, bail};
+use photostereo::capture::stack::GREY_WEIGHTS;
 use photostereo::grid::Grid;
-use photostereo::input::{GREY_WEIGHTS, read_image, read_mask, srgb_to_linear};
+use photostereo::io::decode::{read_image, read_mask, srgb_to_linear};
+use photostereo::io::output::{OutputDir, depth_preview, normal_planes, normal_preview};
 use photostereo::nalgebra::Vector3;
-use photostereo::output::{OutputDir, depth_preview, normal_planes, normal_preview};
-use photostereo::reflectance_map::ReflectanceMap;
 use photostereo::sfs::estimate::{estimate_albedo, estimate_light};
+use photostereo::sfs::reflectance_map::ReflectanceMap;
 use photostereo::sfs::{SfsOptions, object_mask, shape_from_shading};
 
 /// Contour levels of the reflectance-map drawing.
@@ -15,10 +16,10 @@ const CONTOUR_LEVELS: [f64; 9] = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9];
 
 pub fn run(a: SfsArgs) -> Result<()> {
     if !a.force {
-        photostereo::output::ensure_fresh_dir(&a.output)?;
+        photostereo::io::output::ensure_fresh_dir(&a.output)?;
     }
     let img = read_image(&a.image)?;
-    let eight_bit = matches!(img.format, photostereo::input::SampleFormat::U8);
+    let eight_bit = matches!(img.format, photostereo::io::decode::SampleFormat::U8);
     let grey: Vec<f32> = img
         .data
         .chunks(img.channels)

@@ -1,4 +1,4 @@
-//! `photostereo bench sweep`: the speed–accuracy sweeps of [`photostereo::sweep`], written as
+//! `photostereo bench sweep`: the speed–accuracy sweeps of [`photostereo::eval::sweep`], written as
 //! CSV and JSON tables and drawn as charts (error against noise, lights and specularity; the
 //! Pareto fronts of error against time; shape from shading beside photometric stereo; depth
 //! error against normal noise per integrator).
@@ -6,10 +6,10 @@
 use crate::args::SweepBenchArgs;
 use crate::chart::{Chart, Legend, Series, Style, write};
 use anyhow::Result;
-use photostereo::progress::Progress;
-use photostereo::sweep::{
+use photostereo::eval::sweep::{
     Axis, DepthRow, NormalRow, SweepOptions, depth_sweep, normal_sweep, pareto_front, sfs_sweep,
 };
+use photostereo::progress::Progress;
 use serde_json::{Value, json};
 use std::path::Path;
 

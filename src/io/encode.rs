@@ -3,16 +3,16 @@
 //!
 //! A whole image and the same image fed in bands of any height give the same bytes: blocks
 //! are cut at the same rows and compressed the same way. So a run streamed in row bands
-//! ([`crate::stream`]) writes what an in-memory run writes from the same solution, while
+//! ([`crate::run::stream`]) writes what an in-memory run writes from the same solution, while
 //! holding at most one block of rows per file.
 //!
 //! The band writers ([`ExrRows`], [`PngRows`]) each run on a thread of their own, fed through a
 //! bounded channel: the EXR crate writes blocks from inside a closure, and a thread turns its
 //! pull into the push of a band loop. The files are [`PendingFile`]s of an
-//! [`crate::output::OutputDir`], so they appear only when the whole run commits.
+//! [`crate::io::output::OutputDir`], so they appear only when the whole run commits.
 
 use crate::error::{Error, Result};
-use crate::output::{ExrChannel, PendingFile};
+use crate::io::output::{ExrChannel, PendingFile};
 use exr::block::UncompressedBlock;
 use exr::block::writer::ChunksWriter;
 use exr::prelude::{SmallVec, Text, Vec2};
@@ -595,7 +595,7 @@ impl PngRows {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::output::OutputDir;
+    use crate::io::output::OutputDir;
 
     fn read_exr(path: &Path) -> Vec<(String, Vec<f32>)> {
         let image = exr::prelude::read_all_flat_layers_from_file(path).unwrap();

@@ -7,7 +7,7 @@
 //! (or where the surface is discontinuous).
 
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
-use crate::solve::{PixelStatus, Solution};
+use crate::ps::solve::{PixelStatus, Solution};
 use nalgebra::Vector3;
 use serde::Serialize;
 

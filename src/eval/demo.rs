@@ -1,17 +1,17 @@
 //! The built-in default scene: render it, reconstruct it, and measure the error against its
 //! ground truth.
 
-use crate::dataset::Capture;
+use crate::capture::dataset::Capture;
+use crate::capture::lights::Lights;
+use crate::capture::stack::ColorMode;
 use crate::error::Result;
-use crate::grid::Mask;
-use crate::input::ColorMode;
-use crate::lights::Lights;
-use crate::metrics::{
+use crate::eval::metrics::{
     AngularErrorStats, DepthErrorStats, albedo_relative_error, angular_errors, depth_errors,
 };
-use crate::pipeline::Reconstruction;
-use crate::render::{RenderOptions, Rendering, render};
-use crate::scene::{HeightField, Scene};
+use crate::grid::Mask;
+use crate::run::pipeline::Reconstruction;
+use crate::synth::render::{RenderOptions, Rendering, render};
+use crate::synth::scene::{HeightField, Scene};
 use serde::Serialize;
 
 /// Noise level of the default scene: σ = 0.005 (about 1% of a mid-grey pixel).

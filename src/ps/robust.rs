@@ -2,7 +2,7 @@
 //! shadows, specular highlights, interreflections, miscalibrated lights.
 //!
 //! Every estimator starts from the samples that pass shadow and saturation rejection (the
-//! [`crate::solve::Method::Threshold`] set) and then decides, sample by sample, how much each
+//! [`crate::ps::solve::Method::Threshold`] set) and then decides, sample by sample, how much each
 //! one counts:
 //! - **Rank trimming**: drop the darkest and brightest fractions of a pixel's samples and fit
 //!   the rest by least squares (the order-statistics filter used since Coleman & Jain 1982,
@@ -30,7 +30,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::linalg::{condition_at_most, condition_from_gram, solve_spd};
-use crate::solve::{MIN_SAMPLES, PixelSolution, PixelStatus};
+use crate::ps::solve::{MIN_SAMPLES, PixelSolution, PixelStatus};
 use nalgebra::{Matrix3, Vector3};
 use serde::Serialize;
 
@@ -633,7 +633,7 @@ impl Compact {
         self.abs_bits.clear();
         let kept = self.r.iter().zip(&self.keep).filter(|(_, k)| **k > 0.0);
         self.abs_bits.extend(kept.map(|(r, _)| r.abs().to_bits()));
-        let median = crate::metrics::median_by(&mut self.abs_bits, u64::cmp).map(f64::from_bits);
+        let median = crate::stats::median_by(&mut self.abs_bits, u64::cmp).map(f64::from_bits);
         MAD_TO_SIGMA * median.unwrap_or(0.0)
     }
 
@@ -785,7 +785,7 @@ pub fn chi2_upper_quantile(dof: f64, z: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::lights::Lights;
+    use crate::capture::lights::Lights;
     use rand::{RngExt, SeedableRng};
 
     fn setup() -> (Vec<Vector3<f64>>, Vec<f32>) {

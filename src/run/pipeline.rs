@@ -1,23 +1,25 @@
 //! The whole reconstruction, stage by stage: solve → normals and albedo → integrability →
 //! depth, and writing the results with a JSON report.
 //!
-//! Each stage is also callable alone (see [`crate::solve`], [`crate::normals`],
-//! [`crate::integrate`], [`crate::output`]); this module only composes them.
+//! Each stage is also callable alone (see [`crate::ps::solve`], [`crate::ps::normals`],
+//! [`crate::integrate`], [`crate::io::output`]); this module only composes them.
 
-use crate::color::{ColorSolve, solve_shared_normal};
-use crate::dataset::Capture;
+use crate::capture::dataset::Capture;
+use crate::capture::lights::MAX_LIGHT_CONDITION;
+use crate::capture::stack::ColorMode;
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
-use crate::input::ColorMode;
 use crate::integrate::{Integration, IntegrationOptions, integrate_normals};
-use crate::lights::MAX_LIGHT_CONDITION;
-use crate::normals::{IntegrabilitySummary, albedo_and_normals, combine_channels, integrability};
-use crate::output::{
+use crate::io::output::{
     ExrChannel, OutputDir, depth_preview, mask_bytes, nan_outside, normal_planes, normal_preview,
     scalar_preview,
 };
 use crate::progress::Progress;
-use crate::solve::{PixelStatus, Solution, SolveOptions, StatusCounts, solve};
+use crate::ps::color::{ColorSolve, solve_shared_normal};
+use crate::ps::normals::{
+    IntegrabilitySummary, albedo_and_normals, combine_channels, integrability,
+};
+use crate::ps::solve::{PixelStatus, Solution, SolveOptions, StatusCounts, solve};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -126,7 +128,7 @@ pub struct ModelSummary {
     /// Whether the intensity gains were estimated from the data.
     pub recalibrated: bool,
     /// Per channel, whether the estimate was applied: it converged and fitted the data better
-    /// than the stated intensities ([`crate::intensities::GainEstimate::applied`]).
+    /// than the stated intensities ([`crate::ps::intensities::GainEstimate::applied`]).
     pub gains_applied: Vec<bool>,
     /// Per channel, the estimated gains, applied or not (empty without recalibration).
     pub estimated_gains: Vec<Vec<f32>>,
@@ -136,7 +138,7 @@ pub struct ModelSummary {
 
 /// Gains further than this from 1 are reported as a likely error in the intensity file.
 pub const GAIN_WARNING: f32 = 0.1;
-/// Median |curl| per pixel (of the gradient field, see [`crate::normals::integrability`])
+/// Median |curl| per pixel (of the gradient field, see [`crate::ps::normals::integrability`])
 /// above which the run warns of poor integrability. Measured on the demo scene: 0.005 without
 /// noise, 0.028 at noise σ = 0.03 (3° mean normal error), 0.085 at σ = 0.1 (9°); DiLiGenT cat
 /// 0.010.
@@ -192,7 +194,7 @@ pub fn reconstruct_normals(
 /// What [`assemble`] needs to know of the input for its warnings.
 pub(crate) struct InputFacts<'a> {
     /// Per image, what loading found.
-    pub info: &'a [crate::input::ImageInfo],
+    pub info: &'a [crate::capture::stack::ImageInfo],
     /// Number of images.
     pub count: usize,
     /// Files were loaded without a mask (the background counts as object then).
@@ -292,7 +294,7 @@ pub(crate) fn albedo_above_one(albedo: &[ScalarMap]) -> usize {
 #[derive(Debug, Clone)]
 pub(crate) struct ChannelModel {
     /// The intensity gains, estimated or not.
-    pub gains: crate::intensities::GainEstimate,
+    pub gains: crate::ps::intensities::GainEstimate,
     /// Per-image noise σ (`auto` only; empty otherwise).
     pub noise: Vec<f32>,
 }
@@ -369,7 +371,7 @@ pub(crate) fn integrability_of(
     normals: &NormalMap,
     solved: &Mask,
     config: &Config,
-) -> crate::normals::Integrability {
+) -> crate::ps::normals::Integrability {
     let camera = config.integration.as_ref().and_then(|o| o.camera.as_ref());
     let (p, q) = crate::integrate::normal_gradients(normals, solved, camera);
     integrability(&p, &q)
@@ -464,7 +466,7 @@ pub(crate) fn warnings(
     if saturated > 0 {
         warnings.push(format!(
             "{saturated} saturated samples{}",
-            if config.solve.method == crate::solve::Method::LeastSquares {
+            if config.solve.method == crate::ps::solve::Method::LeastSquares {
                 " (used by plain least squares, which biases normals there)"
             } else {
                 " were excluded from the solve"
@@ -585,7 +587,7 @@ pub struct InputSummary {
     /// Condition number of the full light matrix.
     pub light_condition_number: f64,
     /// Storage format of the first image.
-    pub format: Option<crate::input::SampleFormat>,
+    pub format: Option<crate::io::decode::SampleFormat>,
     /// 8-bit images decoded as sRGB.
     pub linearised_images: usize,
     /// Saturated samples over all images.
@@ -619,10 +621,10 @@ impl InputSummary {
     /// left 0×0 and the colour mode grey for the caller to set.
     pub fn of_files(
         images: &[PathBuf],
-        lights: &crate::lights::Lights,
+        lights: &crate::capture::lights::Lights,
         lights_source: Option<&Path>,
         mask_source: Option<&Path>,
-        info: &[crate::input::ImageInfo],
+        info: &[crate::capture::stack::ImageInfo],
     ) -> Self {
         InputSummary {
             images: images.to_vec(),
@@ -696,7 +698,7 @@ pub struct Report {
     /// Errors against ground truth, when known (e.g. for the demo scene).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub evaluation: Option<serde_json::Value>,
-    /// How a run streamed in row bands used memory ([`crate::stream::StreamPlan`]); absent
+    /// How a run streamed in row bands used memory ([`crate::run::stream::StreamPlan`]); absent
     /// for in-memory runs.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub streaming: Option<serde_json::Value>,
@@ -787,7 +789,7 @@ pub fn reconstruct_and_write(
 /// input section.
 pub(crate) struct Described<'a> {
     /// One light per image.
-    pub lights: &'a crate::lights::Lights,
+    pub lights: &'a crate::capture::lights::Lights,
     /// The report's `inputs`.
     pub summary: InputSummary,
     /// The report's `streaming` section (how a streamed run used memory).
@@ -854,7 +856,7 @@ const ORTHOGRAPHIC_UNITS: &str =
 /// The string attributes of every EXR header: method, frame, units, light count and the light
 /// directions (a JSON list of [x, y, z] in the camera frame).
 pub(crate) fn exr_attributes(
-    lights: &crate::lights::Lights,
+    lights: &crate::capture::lights::Lights,
     config: &Config,
 ) -> Vec<(&'static str, String)> {
     vec![
@@ -1112,7 +1114,7 @@ pub(crate) fn stage_depth(
         && let Some(i) = integration
     {
         let camera = config.integration.as_ref().and_then(|o| o.camera);
-        let mesh = crate::mesh::Mesh::from_depth(&i.depth, normals, camera.as_ref())?;
+        let mesh = crate::io::mesh::Mesh::from_depth(&i.depth, normals, camera.as_ref())?;
         out.stage_bytes("mesh.ply", &mesh.to_ply())?;
     }
     out.stage_png8("depth.png", w, h, 1, &depth_preview(depth))?;
@@ -1141,7 +1143,7 @@ pub(crate) struct RunSummary {
 impl RunSummary {
     /// The summary of an in-memory reconstruction.
     fn of(recon: &Reconstruction) -> Self {
-        let res = crate::metrics::summarize(&recon.residual);
+        let res = crate::stats::summarize(&recon.residual);
         RunSummary {
             pixels: recon.counts,
             model: recon.model.clone(),
@@ -1171,7 +1173,7 @@ pub(crate) fn commit_with_report(
         outputs.push("mesh.ply".into());
     }
     let integration = integration.zip(config.integration.as_ref()).map(|(i, o)| {
-        let r = crate::metrics::summarize(&i.residual);
+        let r = crate::stats::summarize(&i.residual);
         IntegrationSummary {
             method: o.method.name(),
             perspective: o.camera.is_some(),

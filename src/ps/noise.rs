@@ -7,10 +7,10 @@
 //! mask replaces the mean, so albedo edges and occluding contours do not inflate the estimate:
 //! σ = 1.4826 · median|I * M| / 6.
 
+use crate::capture::stack::ImageStack;
 use crate::grid::Mask;
-use crate::input::ImageStack;
-use crate::metrics::median_by;
-use crate::robust::MAD_TO_SIGMA;
+use crate::ps::robust::MAD_TO_SIGMA;
+use crate::stats::median_by;
 use rayon::prelude::*;
 
 /// Norm of the Immerkær operator: the standard deviation of its response to unit white noise.

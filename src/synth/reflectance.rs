@@ -5,7 +5,7 @@
 //! [`Frame`]), pointing away from the surface: ω_i towards the light, ω_o towards the viewer.
 //! Every model returns 0 when either direction is below the surface.
 //!
-//! Rendering convention (see [`crate::render`]): a distant light of irradiance scale E gives
+//! Rendering convention (see [`crate::synth::render`]): a distant light of irradiance scale E gives
 //! pixel = E · π · f(ω_i, ω_o) · max(0, n·ω_i), so a Lambertian surface of albedo ρ (f = ρ/π)
 //! gives E ρ (n·l), the image model of the photometric-stereo solver.
 //!
@@ -205,7 +205,7 @@ impl Brdf for Ward {
 
 /// The ideal mirror: a delta lobe, f = F(θ) δ(ω_o − r(ω_i)) / cos θ_i, with Schlick's Fresnel
 /// term. It cannot be evaluated pointwise ([`Brdf::eval`] is 0); renderers handle it by
-/// reflecting the view direction (see [`crate::render`]). Its reflectance is F(θ_i) ≤ 1.
+/// reflecting the view direction (see [`crate::synth::render`]). Its reflectance is F(θ_i) ≤ 1.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Mirror {
     /// Fresnel reflectance at normal incidence F₀ ∈ [0, 1] (≈ 0.6–0.9 for chrome).

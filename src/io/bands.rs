@@ -1,5 +1,5 @@
 //! Row bands of image files, decoded without holding the whole image: the input stage of
-//! [`crate::stream`].
+//! [`crate::run::stream`].
 //!
 //! - PNG: rows come out of the zlib stream in order (non-interlaced files only; an interlaced
 //!   file spreads every row over seven passes).
@@ -8,11 +8,11 @@
 //! - EXR: the scan-line or tile blocks that hold the band's rows are found through the file's
 //!   offset table and only they are read and decompressed.
 //!
-//! Each band is returned as the same raw samples [`crate::input`] converts for a whole image,
+//! Each band is returned as the same raw samples [`crate::capture::stack`] converts for a whole image,
 //! so the conversion (transfer function, saturation, intensity, grey mix) is the same code.
 
 use crate::error::{Error, Result};
-use crate::input::{MAX_IMAGE_SAMPLES, RawDecoded, SampleFormat, Samples};
+use crate::io::decode::{MAX_IMAGE_SAMPLES, RawDecoded, SampleFormat, Samples};
 use std::fs::File;
 use std::io::BufReader;
 use std::ops::Range;

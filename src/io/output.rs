@@ -7,10 +7,10 @@
 //! cannot create unnamed files, it is a hidden `.NAME.tmp-PID` beside the destination, removed
 //! when the [`OutputDir`] is dropped uncommitted (a killed process can leave those).
 
-use crate::encode::{encode_exr, encode_png8, encode_png16};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
-use crate::input::linear_to_srgb;
+use crate::io::decode::linear_to_srgb;
+use crate::io::encode::{encode_exr, encode_png8, encode_png16};
 use std::fs::File;
 use std::io::{Seek, Write};
 use std::path::{Path, PathBuf};

@@ -21,16 +21,16 @@
 //!
 //! Which samples count, and how much (shadows, highlights, saturation), is decided once per pixel
 //! by the estimator of the [`SolveOptions`] run on the grey mix of the channels — for the default
-//! [`crate::solve::Method::Auto`], the Lambertian fit test and, where it fails, specular
+//! [`crate::ps::solve::Method::Auto`], the Lambertian fit test and, where it fails, specular
 //! rejection — so the channels share the sample weights w_k as well as the normal. The grey mix
 //! also supplies the noise estimate and the per-image intensity gains.
 
+use crate::capture::lights::Lights;
+use crate::capture::stack::ImageStack;
 use crate::error::{Error, Result};
 use crate::grid::Mask;
-use crate::input::ImageStack;
-use crate::lights::Lights;
 use crate::progress::Progress;
-use crate::solve::{
+use crate::ps::solve::{
     ImageModel, PixelSolution, PixelStatus, Solution, SolveOptions, check_inputs, check_model,
     fit_with, fitter, noise_and_gains,
 };
@@ -46,7 +46,7 @@ pub enum ColorSolve {
     #[default]
     SharedNormal,
     /// An independent g_c per channel; the normal is the direction of g_R + g_G + g_B
-    /// ([`crate::normals::combine_channels`]).
+    /// ([`crate::ps::normals::combine_channels`]).
     PerChannel,
 }
 
@@ -65,7 +65,7 @@ struct ColorPixel {
 
 /// Solves a 3-channel `stack` for one normal and an RGB albedo per masked pixel (see the module
 /// documentation). The result has one [`Solution`] per channel with g_c = ρ_c·N, so
-/// [`crate::normals::combine_channels`] returns the shared normal and the per-channel albedo;
+/// [`crate::ps::normals::combine_channels`] returns the shared normal and the per-channel albedo;
 /// residual, samples, condition, status and robust flags are the same in all three.
 ///
 /// # Errors
@@ -75,8 +75,8 @@ struct ColorPixel {
 ///
 /// # Example
 /// ```
-/// use photostereo::{color::solve_shared_normal, grid::Grid, input::ImageStack};
-/// use photostereo::{lights::Lights, progress::Silent, solve::SolveOptions};
+/// use photostereo::{ps::color::solve_shared_normal, grid::Grid, capture::stack::ImageStack};
+/// use photostereo::{capture::lights::Lights, progress::Silent, ps::solve::SolveOptions};
 /// let lights = Lights::ring(8, 45.0, 0.0)?;
 /// // A flat patch facing the camera with RGB albedo (0.6, 0.4, 0.2): I_kc = ρ_c · l_k.z.
 /// let images = lights

@@ -11,14 +11,14 @@
 //!   I_k, so diag(I)·I = diag(I)·L·g (Forsyth & Ponce, *Computer Vision: A Modern Approach*,
 //!   §5.4): shadowed samples carry no weight, dim ones little, and bright ones — including
 //!   specular highlights — the most.
-//! - Robust estimators ([`crate::robust`]): rank trimming, IRLS with Huber, Tukey or L1 loss,
+//! - Robust estimators ([`crate::ps::robust`]): rank trimming, IRLS with Huber, Tukey or L1 loss,
 //!   and half-vector specular rejection.
 //! - [`Method::Auto`] (the default) uses no more model than the data needs: every pixel is
 //!   first fitted by threshold least squares; a χ² test of its residuals against the image
-//!   noise (estimated from the images, [`crate::noise`]) decides whether Lambert's law
+//!   noise (estimated from the images, [`crate::ps::noise`]) decides whether Lambert's law
 //!   explains it, and only the pixels that fail are refitted with specular rejection. With 8
 //!   or more lights it also corrects the light intensities from the data
-//!   ([`crate::intensities`]).
+//!   ([`crate::ps::intensities`]).
 //!
 //! Measured on DiLiGenT (mean angular error, cat / bear): plain least squares 8.41° / 8.39°,
 //! threshold rejection 7.04° / 6.84°, intensity weighting 7.59° / 9.30°; see the README for
@@ -31,13 +31,13 @@
 //! every image's rows once, then solves and measures residuals from cache) and run blocks in
 //! parallel; the robust ones gather each block's samples pixel by pixel.
 
+use crate::capture::lights::Lights;
+use crate::capture::stack::ImageStack;
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, ScalarMap, Window};
-use crate::input::ImageStack;
-use crate::lights::Lights;
 use crate::linalg::{condition_from_gram, solve_spd};
 use crate::progress::Progress;
-use crate::robust::{
+use crate::ps::robust::{
     DEFAULT_MIN_LIT_COSINE, DEFAULT_SPECULAR_CONE_DEG, DEFAULT_TRIM_HIGH, DEFAULT_TRIM_LOW,
     Estimator, Loss, PixelFitter, chi2_upper_quantile,
 };
@@ -146,13 +146,13 @@ pub struct SolveOptions {
     pub specular_cone_deg: f64,
     /// [`Method::Specular`] and [`Method::Auto`]: samples with N·l below this are dropped.
     pub min_lit_cosine: f64,
-    /// Estimate per-image intensity corrections from the data ([`crate::intensities`]) and
+    /// Estimate per-image intensity corrections from the data ([`crate::ps::intensities`]) and
     /// apply them where they converge and fit better than the stated intensities; `None`:
-    /// only for [`Method::Auto`]. Never with fewer than [`crate::intensities::MIN_LIGHTS`]
+    /// only for [`Method::Auto`]. Never with fewer than [`crate::ps::intensities::MIN_LIGHTS`]
     /// images.
     pub recalibrate: Option<bool>,
     /// [`Method::Auto`]: the noise standard deviation of the (intensity-divided) samples, when
-    /// known; `None` estimates it per image ([`crate::noise`]).
+    /// known; `None` estimates it per image ([`crate::ps::noise`]).
     pub noise_sigma: Option<f32>,
     /// [`Method::Auto`]: standard-normal deviate of the χ² fit test (3.09: 0.1% false alarms).
     pub fit_test_z: f64,
@@ -193,7 +193,7 @@ impl SolveOptions {
     /// Whether intensity corrections are estimated for a stack of `count` images.
     pub fn recalibrates(&self, count: usize) -> bool {
         self.recalibrate.unwrap_or(self.method == Method::Auto)
-            && count >= crate::intensities::MIN_LIGHTS
+            && count >= crate::ps::intensities::MIN_LIGHTS
     }
 
     /// Checks parameter ranges.
@@ -307,7 +307,7 @@ pub struct Solution {
     /// failed the Lambertian fit test).
     pub robust: Grid<bool>,
     /// Per-image intensity corrections applied (all 1 unless recalibrated).
-    pub gains: crate::intensities::GainEstimate,
+    pub gains: crate::ps::intensities::GainEstimate,
     /// Per-image noise standard deviation used by the fit test ([`Method::Auto`]; empty
     /// otherwise).
     pub noise: Vec<f32>,
@@ -319,7 +319,7 @@ impl Solution {
     pub(crate) fn empty(
         width: usize,
         height: usize,
-        gains: crate::intensities::GainEstimate,
+        gains: crate::ps::intensities::GainEstimate,
         sigma: Vec<f32>,
         options: &SolveOptions,
     ) -> Self {
@@ -340,7 +340,7 @@ impl Solution {
     }
 
     /// Copies every row of `band` (a solution of the same width) into rows `y0..` of this one:
-    /// the assembly of a capture solved in row bands ([`crate::stream`]).
+    /// the assembly of a capture solved in row bands ([`crate::run::stream`]).
     ///
     /// # Errors
     /// [`Error::DimensionMismatch`] when the widths differ or the band runs past the last row.
@@ -480,7 +480,7 @@ pub fn solve_pixel(
                 .copied()
                 .filter(|v| v.is_finite() && *v > 0.0)
                 .collect();
-            let level = crate::metrics::median_by(&mut pos, f32::total_cmp).unwrap_or(1.0);
+            let level = crate::stats::median_by(&mut pos, f32::total_cmp).unwrap_or(1.0);
             MODEL_TOLERANCE * level
         }
     };
@@ -1086,7 +1086,7 @@ fn solve_any_block(
         .collect()
 }
 
-/// Per-image noise for the fit test: the user's σ, or the estimate of [`crate::noise`] with
+/// Per-image noise for the fit test: the user's σ, or the estimate of [`crate::ps::noise`] with
 /// [`MODEL_TOLERANCE`] times the image's median signal as a floor.
 pub(crate) fn test_sigmas(
     stack: &ImageStack,
@@ -1097,7 +1097,7 @@ pub(crate) fn test_sigmas(
     if let Some(s) = options.noise_sigma {
         return vec![s; stack.count()];
     }
-    crate::noise::stack_noise(stack, channel, mask)
+    crate::ps::noise::stack_noise(stack, channel, mask)
         .into_iter()
         .map(|n| {
             let floor = if n.level.is_finite() {
@@ -1156,7 +1156,7 @@ pub(crate) fn noise_and_gains(
     lights: &Lights,
     mask: &Mask,
     options: &SolveOptions,
-) -> (Vec<f32>, crate::intensities::GainEstimate) {
+) -> (Vec<f32>, crate::ps::intensities::GainEstimate) {
     let k = stack.count();
     let sigma = if options.method == Method::Auto {
         test_sigmas(stack, channel, mask, options)
@@ -1164,9 +1164,9 @@ pub(crate) fn noise_and_gains(
         vec![f32::NAN; k]
     };
     let gains = if options.recalibrates(k) {
-        crate::intensities::estimate_gains_with(stack, channel, lights, mask, options, &sigma)
+        crate::ps::intensities::estimate_gains_with(stack, channel, lights, mask, options, &sigma)
     } else {
-        crate::intensities::GainEstimate::unit(k)
+        crate::ps::intensities::GainEstimate::unit(k)
     };
     (sigma, gains)
 }
@@ -1189,20 +1189,20 @@ pub(crate) fn check_model(model: &ImageModel, count: usize) -> Result<()> {
 /// What a solve estimates once over the whole capture before fitting pixels: each image's
 /// noise σ (for [`Method::Auto`]'s fit test) and its intensity gain (when
 /// [`SolveOptions::recalibrates`]). [`solve`] estimates it from the stack it is given; a solve
-/// of the capture in parts ([`crate::stream`]) estimates it once, from a sample of rows, and
+/// of the capture in parts ([`crate::run::stream`]) estimates it once, from a sample of rows, and
 /// hands it to [`solve_with_model`] for every part, so that every part is fitted alike.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ImageModel {
     /// Noise σ per image (NaN when the method does not use it).
     pub sigma: Vec<f32>,
     /// Intensity gains per image (unit when not recalibrated).
-    pub gains: crate::intensities::GainEstimate,
+    pub gains: crate::ps::intensities::GainEstimate,
 }
 
 impl ImageModel {
     /// Estimates the model of channel `channel` of `stack` over `mask`: noise σ per image for
-    /// [`Method::Auto`] ([`crate::noise`]), intensity gains when `options` recalibrates
-    /// ([`crate::intensities`]); NaN and unit gains otherwise.
+    /// [`Method::Auto`] ([`crate::ps::noise`]), intensity gains when `options` recalibrates
+    /// ([`crate::ps::intensities`]); NaN and unit gains otherwise.
     ///
     /// # Errors
     /// As [`solve`]: mismatched sizes or counts, invalid options.
@@ -1228,7 +1228,7 @@ impl ImageModel {
     pub fn unit(count: usize) -> Self {
         ImageModel {
             sigma: vec![f32::NAN; count],
-            gains: crate::intensities::GainEstimate::unit(count),
+            gains: crate::ps::intensities::GainEstimate::unit(count),
         }
     }
 }
@@ -1242,8 +1242,8 @@ impl ImageModel {
 ///
 /// # Example
 /// ```
-/// use photostereo::{grid::Grid, input::ImageStack, lights::Lights, progress::Silent};
-/// use photostereo::solve::{solve, SolveOptions, PixelStatus};
+/// use photostereo::{grid::Grid, capture::stack::ImageStack, capture::lights::Lights, progress::Silent};
+/// use photostereo::ps::solve::{solve, SolveOptions, PixelStatus};
 /// let lights = Lights::ring(8, 45.0, 0.0)?;
 /// // A flat patch facing the camera, albedo 0.5: I_k = 0.5 · l_k.z.
 /// let images = lights.directions().iter().map(|l| vec![0.5 * l.z as f32; 4]).collect();
@@ -1268,7 +1268,7 @@ pub fn solve(
 
 /// [`solve`] with the per-image noise and gains given instead of estimated from `stack`: the
 /// solve of one part of a capture whose model was estimated over the whole
-/// ([`crate::stream`]).
+/// ([`crate::run::stream`]).
 ///
 /// # Errors
 /// As [`solve`]; [`Error::InvalidParameter`] when the model's length differs from the image

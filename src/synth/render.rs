@@ -2,7 +2,7 @@
 //!
 //! Image model: for a distant light of irradiance scale E_c (channel c) in direction l,
 //! pixel_c = E_c · π · f_c(l, v) · max(0, n·l) + ambient · ρ · d_c, with f the object's
-//! [`crate::reflectance::Material`] BRDF (diffuse colour d, specular colour s), v = (0, 0, 1) the viewing direction
+//! [`crate::synth::reflectance::Material`] BRDF (diffuse colour d, specular colour s), v = (0, 0, 1) the viewing direction
 //! of the orthographic camera looking down −z, and ρ the albedo. A Lambertian surface therefore
 //! gives E ρ (n·l): the photometric-stereo solver sees g = ρN exactly once images are divided
 //! by E. A grey rendering is the BT.601 mix of the colour one.
@@ -17,14 +17,14 @@
 //! well of N electrons at value 1), Gaussian read noise, and clipping at a saturation level;
 //! every image's noise has its own seed (`seed + 3k + c`), so the same seed gives the same
 //! images. Quantisation and sRGB encoding happen when images are written
-//! ([`crate::dataset::write_synthetic`]).
+//! ([`crate::synth::write::write_synthetic`]).
 
+use crate::capture::lights::Lights;
+use crate::capture::stack::{ColorMode, GREY_WEIGHTS, ImageStack};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, ScalarMap};
-use crate::input::{ColorMode, GREY_WEIGHTS, ImageStack};
-use crate::lights::Lights;
-use crate::reflectance::{Frame, reflect};
-use crate::scene::{HeightField, Scene};
+use crate::synth::reflectance::{Frame, reflect};
+use crate::synth::scene::{HeightField, Scene};
 use nalgebra::Vector3;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal, Poisson};
@@ -335,7 +335,7 @@ fn in_cast_shadow(
 ///
 /// # Errors
 /// [`Error::InvalidParameter`] for invalid options (see [`RenderOptions::validate`]), an
-/// unphysical material ([`crate::reflectance::Material::validate`]) or an empty image.
+/// unphysical material ([`crate::synth::reflectance::Material::validate`]) or an empty image.
 pub fn render(scene: &Scene, lights: &Lights, options: &RenderOptions) -> Result<Rendering> {
     options.validate()?;
     if scene.width == 0 || scene.height == 0 {
@@ -498,7 +498,7 @@ fn mirror_coverage(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::{Albedo, Object, Primitive};
+    use crate::synth::scene::{Albedo, Object, Primitive};
 
     #[test]
     fn lambertian_sphere_matches_closed_form() {

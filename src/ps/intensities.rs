@@ -24,14 +24,14 @@
 //! capture whose intensity file is right gets gains near 1, and a wrong entry shows up as a
 //! gain far from it.
 
+use crate::capture::lights::Lights;
+use crate::capture::stack::ImageStack;
 use crate::error::Result;
 use crate::grid::Mask;
-use crate::input::ImageStack;
-use crate::lights::Lights;
 use crate::linalg::solve_spd;
-use crate::metrics::median_by;
-use crate::robust::half_vector;
-use crate::solve::{PixelStatus, SolveOptions, fit_with, fitter};
+use crate::ps::robust::half_vector;
+use crate::ps::solve::{PixelStatus, SolveOptions, fit_with, fitter};
+use crate::stats::median_by;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -108,8 +108,8 @@ impl GainEstimate {
 }
 
 /// Estimates per-image gains for channel `channel` of `stack`, with the per-pixel estimator of
-/// `options` (its recalibration setting is ignored; for [`crate::solve::Method::Auto`] the fit
-/// test uses the noise estimated from the images, as [`crate::solve::solve`] does).
+/// `options` (its recalibration setting is ignored; for [`crate::ps::solve::Method::Auto`] the fit
+/// test uses the noise estimated from the images, as [`crate::ps::solve::solve`] does).
 ///
 /// # Errors
 /// [`crate::Error::LightsMismatch`] when the light count differs from the image count;
@@ -122,8 +122,8 @@ pub fn estimate_gains(
     mask: &Mask,
     options: &SolveOptions,
 ) -> Result<GainEstimate> {
-    crate::solve::check_inputs(stack, channel, lights, mask, options)?;
-    let sigma = crate::solve::test_sigmas(stack, channel, mask, options);
+    crate::ps::solve::check_inputs(stack, channel, lights, mask, options)?;
+    let sigma = crate::ps::solve::test_sigmas(stack, channel, mask, options);
     Ok(estimate_gains_with(
         stack, channel, lights, mask, options, &sigma,
     ))

@@ -7,7 +7,7 @@
 //! ground is simply a [`Primitive::Plane`] object.
 
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
-use crate::reflectance::Material;
+use crate::synth::reflectance::Material;
 use nalgebra::Vector3;
 use std::f64::consts::PI;
 

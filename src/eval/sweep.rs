@@ -1,4 +1,4 @@
-//! Speed against accuracy: sweeps of the normal estimators ([`crate::solve`]), shape from
+//! Speed against accuracy: sweeps of the normal estimators ([`crate::ps::solve`]), shape from
 //! shading ([`crate::sfs`]) and the integrators ([`crate::integrate`]) over image noise, number
 //! of lights and specular strength, on crate-rendered scenes with ground truth.
 //!
@@ -19,22 +19,22 @@
 //!   (a non-rectangular mask) and on a sphere floating above a plane. Its silhouette is a
 //!   depth discontinuity of [`FLOAT_HEIGHT`]·size.
 
-use crate::dataset::Capture;
+use crate::capture::dataset::Capture;
+use crate::capture::lights::{Light, Lights};
+use crate::capture::stack::ColorMode;
 use crate::error::{Error, Result};
+use crate::eval::metrics::{angular_errors, depth_errors, depth_rmse_per_part};
 use crate::grid::NormalMap;
-use crate::input::ColorMode;
 use crate::integrate::{IntegrationOptions, Integrator, integrate_normals};
-use crate::lights::{Light, Lights};
-use crate::metrics::{angular_errors, depth_errors, depth_rmse_per_part};
 use crate::nalgebra::Vector3;
-use crate::pipeline::{Config, reconstruct};
 use crate::progress::{Progress, Silent};
-use crate::reflectance::{BlinnPhong, Material, Specular};
-use crate::reflectance_map::ReflectanceMap;
-use crate::render::{RenderOptions, render};
-use crate::scene::{Albedo, Object, Primitive, Scene, SceneKind};
+use crate::ps::solve::{Method, SolveOptions};
+use crate::run::pipeline::{Config, reconstruct};
+use crate::sfs::reflectance_map::ReflectanceMap;
 use crate::sfs::{SfsMethod, SfsOptions, shape_from_shading};
-use crate::solve::{Method, SolveOptions};
+use crate::synth::reflectance::{BlinnPhong, Material, Specular};
+use crate::synth::render::{RenderOptions, render};
+use crate::synth::scene::{Albedo, Object, Primitive, Scene, SceneKind};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use serde::Serialize;
@@ -289,7 +289,7 @@ fn capture(
     lights: &Lights,
     sigma: f32,
     seed: u64,
-) -> Result<(Capture, crate::scene::HeightField)> {
+) -> Result<(Capture, crate::synth::scene::HeightField)> {
     let options = RenderOptions {
         noise_sigma: sigma,
         seed,
@@ -352,8 +352,8 @@ fn photometric_rows(
 ///
 /// # Example
 /// ```
-/// use photostereo::sweep::{normal_sweep, Axis, SweepOptions};
-/// use photostereo::solve::Method;
+/// use photostereo::eval::sweep::{normal_sweep, Axis, SweepOptions};
+/// use photostereo::ps::solve::Method;
 /// let options = SweepOptions {
 ///     size: 48,
 ///     noise_levels: vec![0.0, 0.05],
@@ -612,7 +612,7 @@ pub fn depth_sweep(options: &SweepOptions, progress: &dyn Progress) -> Result<Ve
 ///
 /// # Example
 /// ```
-/// use photostereo::sweep::pareto_front;
+/// use photostereo::eval::sweep::pareto_front;
 /// // (time, error): the second is slower and worse than the first.
 /// let pts = [(1.0, 5.0), (2.0, 6.0), (3.0, 1.0), (0.5, 9.0)];
 /// assert_eq!(pareto_front(&pts), vec![3, 0, 2]);

@@ -5,7 +5,7 @@
 //! A surface z(x, y) with gradient p = ∂z/∂x, q = ∂z/∂y (x right, y up) has the unit normal
 //! n = (−p, −q, 1)/√(1 + p² + q²). With the light direction s = (−p_s, −q_s, 1)/√(1 + p_s² + q_s²)
 //! (pointing from the surface towards the light) and the rendering convention of
-//! [`crate::render`], a Lambertian surface of unit albedo gives
+//! [`crate::synth::render`], a Lambertian surface of unit albedo gives
 //!
 //! R(p, q) = max(0, n·s) = max(0, (1 + p p_s + q q_s) / (√(1 + p² + q²) √(1 + p_s² + q_s²))),
 //!
@@ -17,10 +17,10 @@
 //! through their BRDF and differentiated by central differences. Iso-brightness contours in the
 //! (p, q) plane are drawn by [`ReflectanceMap::contour_svg`] (marching squares).
 
+use crate::capture::stack::GREY_WEIGHTS;
 use crate::error::{Error, Result};
 use crate::grid::{Grid, ScalarMap};
-use crate::input::GREY_WEIGHTS;
-use crate::reflectance::{Diffuse, Frame, Material};
+use crate::synth::reflectance::{Diffuse, Frame, Material};
 use nalgebra::Vector3;
 use std::f64::consts::PI;
 use std::fmt::Write as _;
@@ -69,7 +69,7 @@ impl ReflectanceMap {
     ///
     /// # Example
     /// ```
-    /// use photostereo::reflectance_map::ReflectanceMap;
+    /// use photostereo::sfs::reflectance_map::ReflectanceMap;
     /// use photostereo::nalgebra::Vector3;
     /// let r = ReflectanceMap::lambertian(Vector3::new(0.5, 0.0, 1.0))?;
     /// // A surface facing the light, gradient (p_s, q_s) = (−0.5, 0), is brightest.
@@ -396,7 +396,7 @@ fn marching_squares(values: &[f64], n: usize, level: f64) -> Vec<((f64, f64), (f
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::reflectance::{Phong, Specular};
+    use crate::synth::reflectance::{Phong, Specular};
     use approx::assert_relative_eq;
 
     /// The closed form of the issue, written independently of `eval`.

@@ -2,13 +2,13 @@
 //!
 //! The Lambertian solve is per pixel, so the stack never has to be held whole. Every image is
 //! opened once (`bands.rs`); a band of rows is decoded from all of them at once
-//! (images in parallel), converted exactly as [`crate::input::load_stack`] converts whole
+//! (images in parallel), converted exactly as [`crate::capture::stack::load_stack`] converts whole
 //! images, and solved, and the band's memory is reused for the next. Where the solved band
 //! goes is the caller's choice: [`reconstruct_and_write_streamed`] writes its rows of every
 //! per-pixel output file at once and keeps only what needs the whole image (normals, mask,
 //! albedo and residuals: [`RESIDENT_BYTES_PER_PIXEL`]); [`reconstruct_streamed`] pastes it
 //! into the full-size solution and returns that. Integration then runs on the assembled
-//! field as in [`crate::pipeline`].
+//! field as in [`crate::run::pipeline`].
 //!
 //! What is estimated over the whole capture before pixels are fitted — each image's noise σ
 //! and intensity gain ([`ImageModel`]) — is estimated once from a sample of row blocks spread
@@ -19,26 +19,27 @@
 //! maps and the integrator's working memory ([`resident_bytes`]) are taken off first, the rest
 //! holds the band (with, when writing, its rows in flight to the writers). The plan is reported ([`StreamPlan`]).
 
-use crate::band_output::BandOutput;
-use crate::bands::BandReader;
-use crate::color::{ColorSolve, solve_shared_normal_with_model};
-use crate::dataset::CaptureFiles;
+use crate::capture::dataset::CaptureFiles;
+use crate::capture::lights::MAX_LIGHT_CONDITION;
+use crate::capture::stack::{
+    ColorMode, Convert, ImageInfo, ImageStack, LoadOptions, convert_into, srgb_lut,
+};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, Window};
-use crate::input::{
-    ColorMode, Convert, ImageInfo, ImageStack, LoadOptions, convert_into, read_mask, srgb_lut,
-};
 use crate::integrate::Integrator;
 use crate::integrate::integrate_normals;
-use crate::lights::MAX_LIGHT_CONDITION;
-use crate::output::OutputDir;
-use crate::pipeline::{
+use crate::io::bands::BandReader;
+use crate::io::decode::read_mask;
+use crate::io::output::OutputDir;
+use crate::progress::{Progress, Silent};
+use crate::ps::color::{ColorSolve, solve_shared_normal_with_model};
+use crate::ps::solve::{ImageModel, Solution, solve_with_model};
+use crate::run::band_output::BandOutput;
+use crate::run::pipeline::{
     Config, Described, InputFacts, InputSummary, Reconstruction, Report, RunSummary, Timings,
     assemble, commit_with_report, exr_attributes, integrability_of, model_summary, stage_depth,
     warnings,
 };
-use crate::progress::{Progress, Silent};
-use crate::solve::{ImageModel, Solution, solve_with_model};
 use rayon::prelude::*;
 use serde::Serialize;
 use std::path::Path;
@@ -110,7 +111,7 @@ pub struct StreamPlan {
     pub band_bytes: u64,
     /// Bytes held for the whole run: resident maps and the integrator's working memory.
     pub resident_bytes: u64,
-    /// Bytes the whole stack would take in memory ([`crate::input::ImageStack`], f32).
+    /// Bytes the whole stack would take in memory ([`crate::capture::stack::ImageStack`], f32).
     pub in_memory_stack_bytes: u64,
     /// Rows sampled by the model pass (0: the method needs no model pass).
     pub sample_rows: usize,
@@ -569,7 +570,7 @@ pub(crate) struct Setup<'a> {
     pub plan: &'a StreamPlan,
     models: &'a [ImageModel],
     shared: bool,
-    options: &'a crate::solve::SolveOptions,
+    options: &'a crate::ps::solve::SolveOptions,
 }
 
 impl Setup<'_> {
@@ -787,7 +788,7 @@ impl BandSink for Paste {
 }
 
 /// Solves a capture streamed in row bands: the same [`Reconstruction`] as
-/// [`crate::pipeline::reconstruct_normals`] (without depth), within `options.max_memory`.
+/// [`crate::run::pipeline::reconstruct_normals`] (without depth), within `options.max_memory`.
 /// The whole solution is held ([`ASSEMBLED_BYTES_PER_PIXEL`]); to write the outputs of a
 /// stack whose maps are large too, use [`reconstruct_and_write_streamed`], which writes them
 /// band by band. Returns the reconstruction with the plan, the per-image load records and the
@@ -848,7 +849,7 @@ pub struct Streamed {
 }
 
 /// Solves a capture streamed in row bands and writes the outputs of
-/// [`crate::pipeline::reconstruct_and_write`] (atomically) as the bands are solved: the
+/// [`crate::run::pipeline::reconstruct_and_write`] (atomically) as the bands are solved: the
 /// per-pixel maps (`normal.exr`, `albedo.exr`, `residual.exr`, `mask.png`, `normal.png`) go
 /// to their files a band at a time and are not kept. What is kept for the whole run is what
 /// needs the whole image ([`RESIDENT_BYTES_PER_PIXEL`]): the normals and the solved mask for

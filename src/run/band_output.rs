@@ -1,24 +1,24 @@
 //! The outputs of a streamed run, written band by band as the bands are solved
-//! ([`crate::stream::reconstruct_and_write_streamed`]).
+//! ([`crate::run::stream::reconstruct_and_write_streamed`]).
 //!
 //! Each band's per-pixel maps become rows of `normal.exr`, `albedo.exr`, `residual.exr`,
-//! `mask.png` and `normal.png` on writer threads ([`crate::encode`]) and are then dropped.
+//! `mask.png` and `normal.png` on writer threads ([`crate::io::encode`]) and are then dropped.
 //! Rows outside the mask's bounding box, which no band covers, are written as the empty
 //! solution an in-memory run has there. What needs the whole image is kept: the normals and
 //! solved mask (integrability, integration), the albedo (the 99th-percentile scaling of
 //! `albedo.png`) and the finite residuals (their median).
 
-use crate::encode::{ExrRows, PngRows};
 use crate::error::Result;
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
-use crate::metrics::summarize_values;
-use crate::output::OutputDir;
-use crate::pipeline::{
+use crate::io::encode::{ExrRows, PngRows};
+use crate::io::output::OutputDir;
+use crate::ps::solve::Solution;
+use crate::run::pipeline::{
     ChannelModel, NORMAL_CHANNELS, RESIDUAL_CHANNELS, ResidualSummary, Tallies, albedo_channels,
     albedo_png, map_rows, pixel_maps,
 };
-use crate::solve::Solution;
-use crate::stream::{BandSink, Setup};
+use crate::run::stream::{BandSink, Setup};
+use crate::stats::summarize_values;
 
 /// Writes the per-pixel outputs of a streamed run band by band.
 pub(crate) struct BandOutput {

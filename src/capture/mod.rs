@@ -1,0 +1,16 @@
+//! Capture: what was photographed, as the solver sees it — the images converted to linear
+//! radiance ([`stack`]), the lights ([`lights`]) and the mask, assembled from files or folders
+//! ([`dataset`]).
+//!
+//! Files are resolved first ([`dataset::CaptureFiles`]: paths, lights, mask, nothing decoded),
+//! then loaded whole ([`dataset::Capture`]) or read in row bands by [`crate::run::stream`].
+//! Decoding of each file format lives in [`crate::io`]; this folder converts samples
+//! (transfer curve, saturation, light intensity, colour mix) and keeps the stack.
+
+pub mod dataset;
+pub mod lights;
+pub mod stack;
+
+pub use dataset::{Capture, CaptureFiles};
+pub use lights::{Light, Lights};
+pub use stack::{ColorMode, ImageStack, LoadOptions};

@@ -1,0 +1,20 @@
+//! Photometric stereo proper: per-pixel fits of g = ρN to the samples of a
+//! [`crate::capture::ImageStack`] under known [`crate::capture::Lights`].
+//!
+//! - [`solve`]: options, the per-pixel fit, the block kernel, the capture-wide image model
+//!   ([`solve::ImageModel`]: noise and intensity gains, kept apart from the pixel fit) and the
+//!   per-pixel solution maps.
+//! - [`robust`]: the robust estimators (trimmed, Huber, Tukey, L1, specular cone).
+//! - [`noise`]: per-image noise σ from the data; [`intensities`]: per-image intensity gains.
+//! - [`color`]: one normal from three colour channels.
+//! - [`normals`]: albedo and unit normals from g, gradients and the integrability check.
+
+pub mod color;
+pub mod intensities;
+pub mod noise;
+pub mod normals;
+pub mod robust;
+pub mod solve;
+
+pub use color::ColorSolve;
+pub use solve::{ImageModel, Method, PixelStatus, Solution, SolveOptions, solve};

@@ -1,0 +1,15 @@
+//! A whole run, from a capture to the files on disk: configuration, the stages in order,
+//! the per-pixel maps, the outputs and the report.
+//!
+//! - [`pipeline`]: [`pipeline::Config`], [`pipeline::reconstruct`] (in memory) and
+//!   [`pipeline::reconstruct_and_write`]; the finishing stage (integrability, integration,
+//!   depth outputs, report) shared with streamed runs.
+//! - [`stream`]: the same run on stacks larger than memory, read and solved in row bands
+//!   within a memory budget; `band_output` (private) writes the per-pixel files band by band.
+
+pub(crate) mod band_output;
+pub mod pipeline;
+pub mod stream;
+
+pub use pipeline::{Config, Reconstruction, Report, reconstruct, reconstruct_and_write};
+pub use stream::{StreamOptions, StreamPlan};

@@ -1,0 +1,69 @@
+//! Order statistics of maps and samples: median, mean and median summaries, used by every
+//! stage that reports or thresholds a distribution.
+
+use crate::grid::ScalarMap;
+use serde::Serialize;
+
+/// Mean and median of a map's finite values.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct MapSummary {
+    /// Mean.
+    pub mean: f64,
+    /// Median (upper middle value for an even count).
+    pub median: f64,
+    /// Finite values counted.
+    pub pixels: usize,
+}
+
+/// The upper median of `values` (the element at index len/2 in `cmp` order), reordering them;
+/// `None` when empty.
+pub(crate) fn median_by<T: Copy>(
+    values: &mut [T],
+    cmp: impl FnMut(&T, &T) -> std::cmp::Ordering,
+) -> Option<T> {
+    if values.is_empty() {
+        return None;
+    }
+    let mid = values.len() / 2;
+    Some(*values.select_nth_unstable_by(mid, cmp).1)
+}
+
+/// The finite values of `map`, ascending.
+pub(crate) fn finite_sorted(map: &ScalarMap) -> Vec<f64> {
+    let mut v: Vec<f64> = map
+        .data()
+        .iter()
+        .filter(|v| v.is_finite())
+        .map(|v| f64::from(*v))
+        .collect();
+    v.sort_by(f64::total_cmp);
+    v
+}
+
+/// Mean and median of the finite values of `map` (NaN for both when there are none).
+pub fn summarize(map: &ScalarMap) -> MapSummary {
+    summarize_values(map.data().iter().copied())
+}
+
+/// [`summarize`] of values gathered in any order (e.g. band by band): mean and median of the
+/// finite ones, summed in sorted order so that the result does not depend on the order.
+pub fn summarize_values(values: impl IntoIterator<Item = f32>) -> MapSummary {
+    let mut v: Vec<f64> = values
+        .into_iter()
+        .filter(|v| v.is_finite())
+        .map(f64::from)
+        .collect();
+    v.sort_by(f64::total_cmp);
+    if v.is_empty() {
+        return MapSummary {
+            mean: f64::NAN,
+            median: f64::NAN,
+            pixels: 0,
+        };
+    }
+    MapSummary {
+        mean: v.iter().sum::<f64>() / v.len() as f64,
+        median: v[v.len() / 2],
+        pixels: v.len(),
+    }
+}

@@ -1,0 +1,13 @@
+//! Synthetic data with ground truth: reflectance models ([`reflectance`]), scenes of height
+//! fields and primitives ([`scene`]) and a renderer with cast shadows and noise ([`render`]).
+//! The tests run on scenes rendered here; `data-synth` writes them as data sets.
+
+pub mod light_sets;
+pub mod reflectance;
+pub mod render;
+pub mod scene;
+pub mod write;
+
+pub use reflectance::Material;
+pub use render::{Rendering, render};
+pub use scene::Scene;
