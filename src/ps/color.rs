@@ -124,9 +124,7 @@ pub fn solve_shared_normal_with_model(
     model: ImageModel,
     progress: &dyn Progress,
 ) -> Result<Vec<Solution>> {
-    check_rgb_inputs(stack, lights, mask, options)?;
-    check_model(&model, stack.count())?;
-    fit_shared(
+    solve_shared_normal_with_grey(
         stack,
         &stack.grey_mix(),
         lights,
@@ -137,8 +135,24 @@ pub fn solve_shared_normal_with_model(
     )
 }
 
+/// [`solve_shared_normal_with_model`] with the grey mix of `stack` ([`ImageStack::grey_mix`])
+/// already made (an in-memory run makes it once, for the model and the fit).
+pub(crate) fn solve_shared_normal_with_grey(
+    stack: &ImageStack,
+    grey: &ImageStack,
+    lights: &Lights,
+    mask: &Mask,
+    options: &SolveOptions,
+    model: ImageModel,
+    progress: &dyn Progress,
+) -> Result<Vec<Solution>> {
+    check_rgb_inputs(stack, lights, mask, options)?;
+    check_model(&model, stack.count())?;
+    fit_shared(stack, grey, lights, mask, options, model, progress)
+}
+
 /// The checks of [`check_inputs`], and that the stack is RGB.
-fn check_rgb_inputs(
+pub(crate) fn check_rgb_inputs(
     stack: &ImageStack,
     lights: &Lights,
     mask: &Mask,

@@ -21,8 +21,8 @@
 //!   ([`crate::ps::intensities`]).
 //!
 //! Measured on DiLiGenT (mean angular error, cat / bear): plain least squares 8.41° / 8.39°,
-//! threshold rejection 7.04° / 6.84°, intensity weighting 7.59° / 9.30°; see the README for
-//! the robust estimators and `auto`.
+//! threshold rejection 7.04° / 6.84°, intensity weighting 7.59° / 9.30°; see
+//! `docs/photometric-stereo.md` for the robust estimators and `auto`.
 //!
 //! A pixel with fewer than [`MIN_SAMPLES`] usable samples, or whose used light directions have a
 //! condition number above the limit, is flagged and left unsolved rather than guessed.

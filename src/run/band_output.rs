@@ -13,11 +13,11 @@ use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
 use crate::io::encode::{ExrRows, PngRows};
 use crate::io::output::OutputDir;
 use crate::ps::solve::Solution;
+use crate::run::bands::{BandSink, Setup};
 use crate::run::pipeline::{
     ChannelModel, NORMAL_CHANNELS, RESIDUAL_CHANNELS, ResidualSummary, Tallies, albedo_channels,
     albedo_png, map_rows, pixel_maps,
 };
-use crate::run::stream::{BandSink, Setup};
 use crate::stats::summarize_values;
 
 /// Writes the per-pixel outputs of a streamed run band by band.
@@ -69,7 +69,7 @@ impl BandOutput {
         attributes: &[(&str, String)],
     ) -> Result<Self> {
         let (w, h) = (setup.width, setup.height);
-        let blank_rows = setup.plan.band_rows.clamp(1, h.max(1));
+        let blank_rows = setup.band_rows.clamp(1, h.max(1));
         let blank = setup.empty(blank_rows);
         let models = ChannelModel::of(&blank);
         // One albedo map per solved channel (grey, or R, G, B for either colour solve).

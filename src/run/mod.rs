@@ -8,6 +8,7 @@
 //!   within a memory budget; `band_output` (private) writes the per-pixel files band by band.
 
 pub(crate) mod band_output;
+pub(crate) mod bands;
 pub mod pipeline;
 pub mod stream;
 

@@ -15,11 +15,12 @@ use crate::io::output::{
     scalar_preview,
 };
 use crate::progress::Progress;
-use crate::ps::color::{ColorSolve, solve_shared_normal};
+use crate::ps::color::ColorSolve;
 use crate::ps::normals::{
     IntegrabilitySummary, albedo_and_normals, combine_channels, integrability,
 };
-use crate::ps::solve::{PixelStatus, Solution, SolveOptions, StatusCounts, solve};
+use crate::ps::solve::{PixelStatus, Solution, SolveOptions, StatusCounts};
+use crate::run::bands::{Assemble, WholeStack, solve_bands};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -155,7 +156,8 @@ pub fn reconstruct(
     progress: &dyn Progress,
 ) -> Result<Reconstruction> {
     let mut recon = reconstruct_normals(capture, config, progress)?;
-    let (integration, integrate_s) = integrate_stage(&recon, config, progress)?;
+    let (integration, integrate_s) =
+        integrate_stage(&recon.normals, &recon.solved, config, progress)?;
     recon.integration = integration;
     recon.timings.integrate = integrate_s;
     Ok(recon)
@@ -172,23 +174,21 @@ pub fn reconstruct_normals(
     progress: &dyn Progress,
 ) -> Result<Reconstruction> {
     capture.lights.check_usable(MAX_LIGHT_CONDITION)?;
-    let t = Instant::now();
-    let (stack, lights, mask) = (&capture.stack, &capture.lights, &capture.mask);
-    let solutions: Vec<Solution> =
-        if stack.channels() == 3 && config.color == ColorSolve::SharedNormal {
-            solve_shared_normal(stack, lights, mask, &config.solve, progress)?
-        } else {
-            (0..stack.channels())
-                .map(|c| solve(stack, c, lights, mask, &config.solve, progress))
-                .collect::<Result<_>>()?
-        };
-    let solve_s = t.elapsed().as_secs_f64();
+    let mut source = WholeStack::new(&capture.stack, &capture.mask);
+    let (sink, times) = solve_bands(&mut source, &capture.lights, config, progress, |setup| {
+        Ok(Assemble::new(setup))
+    })?;
     let facts = InputFacts {
         info: capture.stack.info(),
         count: capture.stack.count(),
         unmasked_files: capture.mask_source.is_none() && !capture.images.is_empty(),
     };
-    Ok(assemble(solutions, solve_s, &facts, config))
+    Ok(assemble(
+        sink.into_solutions(),
+        times.model + times.solve + times.sink,
+        &facts,
+        config,
+    ))
 }
 
 /// What [`assemble`] needs to know of the input for its warnings.
@@ -549,21 +549,19 @@ pub(crate) fn warnings(
     warnings
 }
 
-/// Integrates the normals of `recon` as `config` says (`None` without integration or without
+/// Integrates `normals` over `solved` as `config` says (`None` without integration or without
 /// solved pixels); returns the result and its time in seconds.
 fn integrate_stage(
-    recon: &Reconstruction,
+    normals: &NormalMap,
+    solved: &Mask,
     config: &Config,
     progress: &dyn Progress,
 ) -> Result<(Option<Integration>, f64)> {
     let t = Instant::now();
     let integration = match &config.integration {
-        Some(options) if recon.solved.count() > 0 => Some(integrate_normals(
-            &recon.normals,
-            &recon.solved,
-            options,
-            progress,
-        )?),
+        Some(options) if solved.count() > 0 => {
+            Some(integrate_normals(normals, solved, options, progress)?)
+        }
         _ => None,
     };
     Ok((integration, t.elapsed().as_secs_f64()))
@@ -806,8 +804,8 @@ impl<'a> Described<'a> {
     }
 }
 
-/// The second half of [`reconstruct_and_write`]: integrates `recon` beside the writing of the
-/// maps that do not need depth, then writes depth and the report, atomically.
+/// The second half of [`reconstruct_and_write`]: the finishing stage on an in-memory
+/// reconstruction, whose per-pixel maps are written beside the integration.
 pub(crate) fn integrate_and_write(
     mut recon: Reconstruction,
     source: &Described,
@@ -817,26 +815,18 @@ pub(crate) fn integrate_and_write(
     evaluate: impl FnOnce(&Reconstruction) -> Result<Option<serde_json::Value>>,
 ) -> Result<(Reconstruction, Report)> {
     let mut out = OutputDir::create(dir)?;
-    let (integrated, staged) = rayon::join(
-        || integrate_stage(&recon, config, progress),
-        || {
-            let t = Instant::now();
-            stage_maps(&mut out, &recon, source, config).map(|()| t.elapsed().as_secs_f64())
-        },
-    );
-    let (integration, integrate_s) = integrated?;
-    let maps_s = staged?;
-    recon.integration = integration;
-    recon.timings.integrate = integrate_s;
-    let t = Instant::now();
-    stage_depth(
+    let finished = finish(
         &mut out,
         &recon.normals,
-        recon.integration.as_ref(),
+        &recon.solved,
         source,
         config,
+        progress,
+        |out| stage_maps(out, &recon, source, config),
     )?;
-    recon.timings.write = maps_s + t.elapsed().as_secs_f64();
+    recon.integration = finished.integration;
+    recon.timings.integrate = finished.integrate_s;
+    recon.timings.write = finished.write_s;
     let evaluation = evaluate(&recon)?;
     let report = commit_with_report(
         out,
@@ -847,6 +837,49 @@ pub(crate) fn integrate_and_write(
         evaluation,
     )?;
     Ok((recon, report))
+}
+
+/// What the finishing stage made.
+pub(crate) struct Finished {
+    /// Depth and its diagnostics, when integration was asked for.
+    pub integration: Option<Integration>,
+    /// Seconds integrating.
+    pub integrate_s: f64,
+    /// Seconds staging files (the maps beside the integration, then depth).
+    pub write_s: f64,
+}
+
+/// The finishing stage of every run that writes its outputs, in memory or streamed: the
+/// integration of `normals` over `solved` runs beside `stage_rest`, which stages what does not
+/// need depth and is not written yet (for an in-memory run, every per-pixel map; for a
+/// streamed run, whose bands wrote their rows already, the curl); then the depth outputs are
+/// staged. The two concurrent parts are the longest after the solve and use about one core
+/// each. The report is the caller's, since it needs what the caller kept.
+pub(crate) fn finish(
+    out: &mut OutputDir,
+    normals: &NormalMap,
+    solved: &Mask,
+    source: &Described,
+    config: &Config,
+    progress: &dyn Progress,
+    stage_rest: impl FnOnce(&mut OutputDir) -> Result<()> + Send,
+) -> Result<Finished> {
+    let (integrated, staged) = rayon::join(
+        || integrate_stage(normals, solved, config, progress),
+        || {
+            let t = Instant::now();
+            stage_rest(out).map(|()| t.elapsed().as_secs_f64())
+        },
+    );
+    let (integration, integrate_s) = integrated?;
+    let staged_s = staged?;
+    let t = Instant::now();
+    stage_depth(out, normals, integration.as_ref(), source, config)?;
+    Ok(Finished {
+        integration,
+        integrate_s,
+        write_s: staged_s + t.elapsed().as_secs_f64(),
+    })
 }
 
 /// The `photostereo:units` header attribute of an orthographic depth map.

@@ -20,28 +20,28 @@
 //! holds the band (with, when writing, its rows in flight to the writers). The plan is reported ([`StreamPlan`]).
 
 use crate::capture::dataset::CaptureFiles;
-use crate::capture::lights::MAX_LIGHT_CONDITION;
+use crate::capture::lights::{Lights, MAX_LIGHT_CONDITION};
 use crate::capture::stack::{
     ColorMode, Convert, ImageInfo, ImageStack, LoadOptions, convert_into, srgb_lut,
 };
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, Window};
 use crate::integrate::Integrator;
-use crate::integrate::integrate_normals;
 use crate::io::bands::BandReader;
 use crate::io::decode::read_mask;
 use crate::io::output::OutputDir;
-use crate::progress::{Progress, Silent};
-use crate::ps::color::{ColorSolve, solve_shared_normal_with_model};
-use crate::ps::solve::{ImageModel, Solution, solve_with_model};
+use crate::progress::Progress;
+use crate::ps::solve::ImageModel;
 use crate::run::band_output::BandOutput;
+use crate::run::bands::{Assemble, Band, BandSink, BandSource, Setup, shared_normal, solve_bands};
 use crate::run::pipeline::{
     Config, Described, InputFacts, InputSummary, Reconstruction, Report, RunSummary, Timings,
-    assemble, commit_with_report, exr_attributes, integrability_of, model_summary, stage_depth,
+    assemble, commit_with_report, exr_attributes, finish, integrability_of, model_summary,
     warnings,
 };
 use rayon::prelude::*;
 use serde::Serialize;
+use std::borrow::Cow;
 use std::path::Path;
 use std::time::Instant;
 
@@ -451,7 +451,7 @@ fn estimate_models(
     lut: &[f32; 256],
 ) -> Result<Vec<ImageModel>> {
     let count = files.images.len();
-    let solved_channels = if o.channels == 3 && config.color == ColorSolve::SharedNormal {
+    let solved_channels = if shared_normal(o.channels, config) {
         1
     } else {
         o.channels
@@ -558,64 +558,190 @@ fn stack_rows(parts: Vec<(ImageStack, Mask)>, channels: usize) -> Result<(ImageS
     ))
 }
 
-/// What a [`BandSink`] is told before the first band.
-pub(crate) struct Setup<'a> {
-    /// Image width.
-    pub width: usize,
-    /// Image height.
-    pub height: usize,
-    /// Solutions per band (1 grey, 3 per channel).
-    pub channels: usize,
-    /// The plan the run follows.
-    pub plan: &'a StreamPlan,
-    models: &'a [ImageModel],
-    shared: bool,
-    options: &'a crate::ps::solve::SolveOptions,
+/// The source of a streamed run: every image opened once, the model estimated from sampled
+/// row blocks, then bands decoded from all images at once; what each image held is tallied
+/// over the bands.
+struct FileBands<'a> {
+    files: &'a CaptureFiles,
+    load: &'a LoadOptions,
+    opened: Opened,
+    plan: StreamPlan,
+    lut: [f32; 256],
+    /// The next band's first row.
+    next: usize,
+    /// The band being solved.
+    band: Option<(ImageStack, Mask)>,
+    tally: Vec<Tally>,
+    /// Seconds decoding, model pass included.
+    read_s: f64,
 }
 
-impl Setup<'_> {
-    /// Solutions of `rows` rows with every pixel outside the mask, under the run's models:
-    /// what the rows outside the mask's bounding box hold.
-    pub(crate) fn empty(&self, rows: usize) -> Vec<Solution> {
-        (0..self.channels)
-            .map(|c| {
-                let m = &self.models[if self.shared { 0 } else { c }];
-                Solution::empty(
-                    self.width,
-                    rows,
-                    m.gains.clone(),
-                    m.sigma.clone(),
-                    self.options,
-                )
-            })
-            .collect()
+impl<'a> FileBands<'a> {
+    /// Opens every image and plans the run within `options`' budget.
+    fn open(
+        files: &'a CaptureFiles,
+        load: &'a LoadOptions,
+        config: &Config,
+        options: &StreamOptions,
+        keep: Keep,
+    ) -> Result<Self> {
+        files.lights.check_usable(MAX_LIGHT_CONDITION)?;
+        config.solve.validate()?;
+        let opened = open_all(files, load)?;
+        let plan = plan_for(&opened, files.images.len(), config, options, keep)?;
+        let next = opened.window.y0;
+        Ok(FileBands {
+            files,
+            load,
+            opened,
+            plan,
+            lut: srgb_lut(),
+            next,
+            band: None,
+            tally: vec![
+                Tally {
+                    info: None,
+                    lit: false,
+                    saturated: 0,
+                    non_finite: 0,
+                    pixels: 0,
+                };
+                files.images.len()
+            ],
+            read_s: 0.0,
+        })
+    }
+
+    /// Per image, what the bands held; [`Error::BadImage`] for an image that is dark
+    /// everywhere in the mask's rows or saturated everywhere.
+    fn finish(self) -> Result<(StreamPlan, Vec<ImageInfo>, InputSummary, f64)> {
+        let files = self.files;
+        let mut info = Vec::with_capacity(self.tally.len());
+        for (index, t) in self.tally.into_iter().enumerate() {
+            let path = &files.images[index];
+            if !t.lit {
+                return Err(Error::BadImage {
+                    path: path.clone(),
+                    index,
+                    reason: "the image is entirely dark in the rows the mask spans: no sample above 0, so it says nothing about the shape; check the exposure, or remove it and its light".into(),
+                });
+            }
+            if t.saturated >= t.pixels {
+                return Err(Error::BadImage {
+                    path: path.clone(),
+                    index,
+                    reason: "every pixel is saturated in the rows the mask spans; lower the exposure, or remove the image and its light".into(),
+                });
+            }
+            let mut i = t
+                .info
+                .ok_or_else(|| Error::param("bands", "no band was read"))?;
+            i.saturated = t.saturated;
+            i.non_finite = t.non_finite;
+            info.push(i);
+        }
+        let mut summary = InputSummary::of_files(
+            &files.images,
+            &files.lights,
+            files.lights_source.as_deref(),
+            files.mask_source.as_deref(),
+            &info,
+        );
+        summary.width = self.opened.width;
+        summary.height = self.opened.height;
+        summary.color = self.load.color;
+        Ok((self.plan, info, summary, self.read_s))
     }
 }
 
-/// Where the solved bands of a streamed run go, top to bottom.
-pub(crate) trait BandSink {
-    /// Takes the per-channel solutions of the full-width rows from `y0` on.
-    fn band(&mut self, y0: usize, solutions: Vec<Solution>) -> Result<()>;
+impl BandSource for FileBands<'_> {
+    fn size(&self) -> (usize, usize) {
+        (self.opened.width, self.opened.height)
+    }
+
+    fn channels(&self) -> usize {
+        self.opened.channels
+    }
+
+    fn band_rows(&self) -> usize {
+        self.plan.band_rows
+    }
+
+    fn bands(&self) -> usize {
+        self.plan.bands
+    }
+
+    fn models(&mut self, _lights: &Lights, config: &Config) -> Result<Vec<ImageModel>> {
+        let t = Instant::now();
+        let models = estimate_models(
+            self.files,
+            self.load,
+            config,
+            &self.opened,
+            &self.plan,
+            &self.lut,
+        );
+        self.read_s += t.elapsed().as_secs_f64();
+        models
+    }
+
+    fn next_band(&mut self) -> Result<Option<Band<'_>>> {
+        self.band = None;
+        let win = self.opened.window;
+        let y = self.next;
+        if y >= win.y1 {
+            return Ok(None);
+        }
+        let e = (y + self.plan.band_rows).min(win.y1);
+        let t = Instant::now();
+        let o = &mut self.opened;
+        let (stack, info) = read_band(
+            &mut o.readers,
+            self.files,
+            self.load,
+            o.channels,
+            win,
+            y..e,
+            &self.lut,
+        )?;
+        for (k, (tl, i)) in self.tally.iter_mut().zip(info).enumerate() {
+            tl.lit |= (0..o.channels).any(|c| stack.plane(k, c).iter().any(|v| *v > 0.0));
+            tl.saturated += i.saturated;
+            tl.non_finite += i.non_finite;
+            tl.pixels += stack.window().len();
+            tl.info.get_or_insert(i);
+        }
+        let mask = mask_rows(&o.mask, y..e);
+        self.read_s += t.elapsed().as_secs_f64();
+        self.next = e;
+        let (stack, mask) = self.band.insert((stack, mask));
+        Ok(Some(Band {
+            y0: y,
+            stack: Cow::Borrowed(stack),
+            mask: Cow::Borrowed(mask),
+            grey: None,
+        }))
+    }
 }
 
 /// What a streamed run found besides the solutions.
-pub(crate) struct BandRun {
-    pub plan: StreamPlan,
+struct BandRun {
+    plan: StreamPlan,
     /// Per image, what loading found (summed over bands).
-    pub info: Vec<ImageInfo>,
+    info: Vec<ImageInfo>,
     /// The report's input section.
-    pub summary: InputSummary,
+    summary: InputSummary,
     /// Seconds decoding (model pass included).
-    pub read_s: f64,
+    read_s: f64,
     /// Seconds solving.
-    pub solve_s: f64,
+    solve_s: f64,
     /// Seconds in the sink.
-    pub sink_s: f64,
+    sink_s: f64,
 }
 
 impl BandRun {
     /// What the warnings need to know of the input.
-    pub(crate) fn facts(&self, files: &CaptureFiles) -> InputFacts<'_> {
+    fn facts(&self, files: &CaptureFiles) -> InputFacts<'_> {
         InputFacts {
             info: &self.info,
             count: self.info.len(),
@@ -633,8 +759,7 @@ enum Keep {
     Written,
 }
 
-/// The band loop of a streamed run: plan, model pass, then each band decoded, solved and
-/// handed to the sink that `start` makes.
+/// The band loop ([`solve_bands`]) over the files of a capture, with the sink `start` makes.
 fn run_bands<S: BandSink>(
     files: &CaptureFiles,
     load: &LoadOptions,
@@ -644,122 +769,11 @@ fn run_bands<S: BandSink>(
     progress: &dyn Progress,
     start: impl FnOnce(&Setup) -> Result<S>,
 ) -> Result<(S, BandRun)> {
-    files.lights.check_usable(MAX_LIGHT_CONDITION)?;
-    config.solve.validate()?;
-    let mut o = open_all(files, load)?;
-    let plan = plan_for(&o, files.images.len(), config, options, keep)?;
-    let lut = srgb_lut();
-    let t = Instant::now();
-    let models = estimate_models(files, load, config, &o, &plan, &lut)?;
-    let model_s = t.elapsed().as_secs_f64();
-    let count = files.images.len();
-    let shared = o.channels == 3 && config.color == ColorSolve::SharedNormal;
-    let setup = Setup {
-        width: o.width,
-        height: o.height,
-        channels: o.channels,
-        plan: &plan,
-        models: &models,
-        shared,
-        options: &config.solve,
-    };
-    let mut sink = start(&setup)?;
-    let mut tally = vec![
-        Tally {
-            info: None,
-            lit: false,
-            saturated: 0,
-            non_finite: 0,
-            pixels: 0,
-        };
-        count
-    ];
-    let (mut read_s, mut solve_s, mut sink_s) = (model_s, 0.0, 0.0);
-    let win = o.window;
-    progress.begin("bands", plan.bands as u64);
-    let mut y = win.y0;
-    while y < win.y1 {
-        let e = (y + plan.band_rows).min(win.y1);
-        let t = Instant::now();
-        let (stack, info) = read_band(&mut o.readers, files, load, o.channels, win, y..e, &lut)?;
-        for (k, (tl, i)) in tally.iter_mut().zip(info).enumerate() {
-            tl.lit |= (0..o.channels).any(|c| stack.plane(k, c).iter().any(|v| *v > 0.0));
-            tl.saturated += i.saturated;
-            tl.non_finite += i.non_finite;
-            tl.pixels += stack.window().len();
-            tl.info.get_or_insert(i);
-        }
-        read_s += t.elapsed().as_secs_f64();
-        let t = Instant::now();
-        let mask = mask_rows(&o.mask, y..e);
-        let bands: Vec<Solution> = if shared {
-            solve_shared_normal_with_model(
-                &stack,
-                &files.lights,
-                &mask,
-                &config.solve,
-                models[0].clone(),
-                &Silent,
-            )?
-        } else {
-            (0..o.channels)
-                .map(|c| {
-                    solve_with_model(
-                        &stack,
-                        c,
-                        &files.lights,
-                        &mask,
-                        &config.solve,
-                        models[c].clone(),
-                        &Silent,
-                    )
-                })
-                .collect::<Result<_>>()?
-        };
-        drop(stack);
-        solve_s += t.elapsed().as_secs_f64();
-        let t = Instant::now();
-        sink.band(y, bands)?;
-        sink_s += t.elapsed().as_secs_f64();
-        progress.advance(1);
-        y = e;
-    }
-    progress.end();
-    drop(o.readers);
-    let mut info = Vec::with_capacity(count);
-    for (index, t) in tally.into_iter().enumerate() {
-        let path = &files.images[index];
-        if !t.lit {
-            return Err(Error::BadImage {
-                path: path.clone(),
-                index,
-                reason: "the image is entirely dark in the rows the mask spans: no sample above 0, so it says nothing about the shape; check the exposure, or remove it and its light".into(),
-            });
-        }
-        if t.saturated >= t.pixels {
-            return Err(Error::BadImage {
-                path: path.clone(),
-                index,
-                reason: "every pixel is saturated in the rows the mask spans; lower the exposure, or remove the image and its light".into(),
-            });
-        }
-        let mut i = t
-            .info
-            .ok_or_else(|| Error::param("bands", "no band was read"))?;
-        i.saturated = t.saturated;
-        i.non_finite = t.non_finite;
-        info.push(i);
-    }
-    let mut summary = InputSummary::of_files(
-        &files.images,
-        &files.lights,
-        files.lights_source.as_deref(),
-        files.mask_source.as_deref(),
-        &info,
-    );
-    summary.width = o.width;
-    summary.height = o.height;
-    summary.color = load.color;
+    let mut source = FileBands::open(files, load, config, options, keep)?;
+    let (sink, times) = solve_bands(&mut source, &files.lights, config, progress, start)?;
+    source.band = None;
+    drop(std::mem::take(&mut source.opened.readers));
+    let (plan, info, summary, read_s) = source.finish()?;
     Ok((
         sink,
         BandRun {
@@ -767,24 +781,10 @@ fn run_bands<S: BandSink>(
             info,
             summary,
             read_s,
-            solve_s,
-            sink_s,
+            solve_s: times.solve,
+            sink_s: times.sink,
         },
     ))
-}
-
-/// The sink of [`reconstruct_streamed`]: bands pasted into full-size solutions.
-struct Paste {
-    full: Vec<Solution>,
-}
-
-impl BandSink for Paste {
-    fn band(&mut self, y0: usize, solutions: Vec<Solution>) -> Result<()> {
-        for (f, b) in self.full.iter_mut().zip(&solutions) {
-            f.paste_rows(b, y0)?;
-        }
-        Ok(())
-    }
 }
 
 /// Solves a capture streamed in row bands: the same [`Reconstruction`] as
@@ -813,14 +813,10 @@ pub fn reconstruct_streamed(
         options,
         Keep::Assembled,
         progress,
-        |setup| {
-            Ok(Paste {
-                full: setup.empty(setup.height),
-            })
-        },
+        |setup| Ok(Assemble::new(setup)),
     )?;
     let mut recon = assemble(
-        sink.full,
+        sink.into_solutions(),
         run.solve_s + run.sink_s,
         &run.facts(files),
         config,
@@ -854,9 +850,10 @@ pub struct Streamed {
 /// to their files a band at a time and are not kept. What is kept for the whole run is what
 /// needs the whole image ([`RESIDENT_BYTES_PER_PIXEL`]): the normals and the solved mask for
 /// the integrability check and integration, the albedo for the 99th-percentile scaling of
-/// `albedo.png`, and the residuals for their median. After the bands: `albedo.png`, the
-/// integrability check (`curl.exr`), integration (`depth.exr`, `depth.png`, `mesh.ply`) and
-/// `report.json`, whose `streaming` section holds the plan. Returns the report and the plan.
+/// `albedo.png`, and the residuals for their median. After the bands, the finishing stage of
+/// every run ([`crate::run::pipeline::finish`]): integration beside `curl.exr`, then
+/// `depth.exr`, `depth.png`, `mesh.ply` and `report.json`, whose `streaming` section holds the
+/// plan. Returns the report and the plan.
 ///
 /// # Errors
 /// The errors of [`reconstruct_streamed`], of integration and of writing; nothing is left in
@@ -886,43 +883,33 @@ pub fn reconstruct_and_write_streamed(
     let t_normals = Instant::now();
     let integ = integrability_of(&written.normals, &written.solved, config);
     let normals_s = t_normals.elapsed().as_secs_f64();
-    let (w, h) = (written.normals.width(), written.normals.height());
-    out.stage_exr("curl.exr", w, h, &[("curl", integ.curl.data())], &attrs)?;
-    let integrability = integ.summary;
-    drop(integ);
     let model = model_summary(&written.models, &written.tallies, facts.count, config);
     let warnings = warnings(
         &facts,
         &written.tallies,
         &written.models,
-        &integrability,
+        &integ.summary,
         config,
     );
     let write_s = run.sink_s + t.elapsed().as_secs_f64() - normals_s;
-    let t = Instant::now();
-    let integration = match &config.integration {
-        Some(o) if written.tallies.counts.solved > 0 => Some(integrate_normals(
-            &written.normals,
-            &written.solved,
-            o,
-            progress,
-        )?),
-        _ => None,
-    };
-    let integrate_s = t.elapsed().as_secs_f64();
-    let t = Instant::now();
     let source = Described {
         lights: &files.lights,
         summary: run.summary.clone(),
         streaming: serde_json::to_value(run.plan).ok(),
     };
-    stage_depth(
+    let (w, h) = (written.normals.width(), written.normals.height());
+    let integrability = integ.summary;
+    let curl = integ.curl;
+    let finished = finish(
         &mut out,
         &written.normals,
-        integration.as_ref(),
+        &written.solved,
         &source,
         config,
+        progress,
+        |out| out.stage_exr("curl.exr", w, h, &[("curl", curl.data())], &attrs),
     )?;
+    drop(curl);
     let summary = RunSummary {
         pixels: written.tallies.counts,
         model,
@@ -933,12 +920,19 @@ pub fn reconstruct_and_write_streamed(
             load: run.read_s,
             solve: run.solve_s,
             normals: normals_s,
-            integrate: integrate_s,
-            write: write_s + t.elapsed().as_secs_f64(),
+            integrate: finished.integrate_s,
+            write: write_s + finished.write_s,
         },
         warnings,
     };
-    let report = commit_with_report(out, summary, integration.as_ref(), &source, config, None)?;
+    let report = commit_with_report(
+        out,
+        summary,
+        finished.integration.as_ref(),
+        &source,
+        config,
+        None,
+    )?;
     Ok((report, run.plan))
 }
 
