@@ -328,3 +328,214 @@ fn shared_fit(
         grey,
     }
 }
+
+/// The shared-normal solve on noise-free synthetic RGB stacks whose channels share one normal
+/// but differ in albedo: it returns that normal and the three albedos to the accuracy of the
+/// f32 inputs (the closed form of the module documentation is exact for such data), with the
+/// per-image gains of a given model applied to every channel; and the channel, light, mask,
+/// option and model checks refuse what they should.
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::capture::stack::ImageStack;
+    use crate::grid::Grid;
+    use crate::progress::Silent;
+    use crate::ps::intensities::GainEstimate;
+    use crate::synth::test_support::{lambertian_stack, sphere};
+
+    /// Unit roundoff of f32 (2⁻²⁴).
+    const U: f64 = f32::EPSILON as f64 / 2.0;
+
+    /// Angle in radians between two vectors (atan2 form: accurate at small angles).
+    fn angle(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+        a.cross(b).norm().atan2(a.dot(b))
+    }
+
+    /// Errors of a solve of exact data, over the masked pixels and the channels.
+    #[derive(Debug)]
+    struct Worst {
+        /// Largest angle (radians) between a channel's g and the true normal.
+        angle: f64,
+        /// Largest relative error of a channel's |g| against its albedo (absolute where the
+        /// albedo is 0).
+        albedo: f64,
+        /// Largest of both errors divided by the pixel's bound (below 1 when within bounds).
+        ratio: f64,
+    }
+
+    /// The errors of `sol` against `truth` and `albedo`, each measured against its pixel's bound:
+    /// the samples carry `roundings` f32 roundings (relative error ≤ `roundings`·u each, u =
+    /// 2⁻²⁴), so |δI| ≤ `roundings`·u·|I| ≤ `roundings`·u·σ_max·|g|, and least squares turns
+    /// that into |δg|/|g| ≤ `roundings`·κ·u with κ = σ_max/σ_min of the used light directions
+    /// (the solution's condition); storing g in f32 adds u to the direction and the length, and
+    /// the length's norm one more u. Asserts every masked pixel is solved in every channel and
+    /// every other pixel is outside.
+    fn worst_errors(
+        sol: &[Solution],
+        truth: &Grid<Vector3<f64>>,
+        mask: &Mask,
+        albedo: [f64; 3],
+        roundings: f64,
+    ) -> Worst {
+        assert_eq!(sol.len(), 3);
+        let mut w = Worst {
+            angle: 0.0,
+            albedo: 0.0,
+            ratio: 0.0,
+        };
+        for p in 0..mask.len() {
+            for (c, s) in sol.iter().enumerate() {
+                if !mask.data()[p] {
+                    assert_eq!(s.status.data()[p], PixelStatus::Outside);
+                    continue;
+                }
+                assert_eq!(s.status.data()[p], PixelStatus::Solved, "pixel {p}");
+                let bound = (roundings * f64::from(s.condition.data()[p]) + 2.0) * U;
+                let g = s.g.data()[p].cast::<f64>();
+                let rho = g.norm();
+                let (a, r) = if albedo[c] > 0.0 {
+                    (
+                        angle(&g, &truth.data()[p]),
+                        (rho - albedo[c]).abs() / albedo[c],
+                    )
+                } else {
+                    // No signal: g must be zero, not noise.
+                    (0.0, rho)
+                };
+                w.angle = w.angle.max(a);
+                w.albedo = w.albedo.max(r);
+                w.ratio = w.ratio.max(a.max(r) / bound);
+            }
+        }
+        w
+    }
+
+    /// A 16×16 sphere (normals up to 60° from the view) under 12 lights at 30°–90° elevation,
+    /// with three different albedos per pixel — including a channel without signal, whose
+    /// albedo must come out 0 rather than negative — is solved exactly: every channel's g
+    /// points along the true normal and has the channel's albedo as its length, within the
+    /// f32 bound of [`worst_errors`].
+    #[test]
+    fn recovers_the_shared_normal_and_three_albedos() {
+        let (normals, mask) = sphere(16, 60.0);
+        assert!(mask.count() > 100, "{} pixels", mask.count());
+        let lights = Lights::fibonacci(12, 30.0).unwrap();
+        for albedo in [[0.8, 0.45, 0.1], [0.6, 0.3, 0.0]] {
+            let stack = lambertian_stack(&normals, &mask, &lights, &albedo, &[1.0; 12]);
+            let sol =
+                solve_shared_normal(&stack, &lights, &mask, &SolveOptions::default(), &Silent)
+                    .unwrap();
+            // Each sample is one rounding of the exact value to f32.
+            let w = worst_errors(&sol, &normals, &mask, albedo, 1.0);
+            println!("albedo {albedo:?}: {w:?}");
+            assert!(w.ratio < 1.0, "albedo {albedo:?}: {w:?}");
+        }
+    }
+
+    /// Images that read brighter or dimmer than their stated intensity by known factors are
+    /// solved exactly when the model carries the inverse factors as gains: the gains multiply
+    /// every channel's samples, not only the grey mix that chooses the samples. (Without them
+    /// the data are not Lambertian and no normal fits them exactly.)
+    #[test]
+    fn model_gains_scale_every_channel() {
+        let (normals, mask) = sphere(16, 60.0);
+        let lights = Lights::fibonacci(12, 30.0).unwrap();
+        let mut scale = [1.0; 12];
+        for (k, s) in [(1, 0.8), (4, 1.25), (7, 0.9), (10, 1.15)] {
+            scale[k] = s;
+        }
+        let albedo = [0.7, 0.5, 0.25];
+        let stack = lambertian_stack(&normals, &mask, &lights, &albedo, &scale);
+        let model = ImageModel {
+            sigma: vec![1e-3; 12],
+            gains: GainEstimate {
+                gains: scale.iter().map(|s| (1.0 / s) as f32).collect(),
+                ..GainEstimate::unit(12)
+            },
+        };
+        let options = SolveOptions::default();
+        let sol = solve_shared_normal_with_model(&stack, &lights, &mask, &options, model, &Silent)
+            .unwrap();
+        // Two roundings per sample: the sample's and the f32 gain's (their product is exact
+        // in f64).
+        let w = worst_errors(&sol, &normals, &mask, albedo, 2.0);
+        println!("with gains: {w:?}");
+        assert!(w.ratio < 1.0, "{w:?}");
+    }
+
+    /// A grey stack, a light count or mask size that differs from the stack's, invalid options
+    /// and a model of the wrong length are refused with the error that names them.
+    #[test]
+    fn refuses_inputs_that_do_not_fit() {
+        let (normals, mask) = sphere(16, 60.0);
+        let lights = Lights::fibonacci(12, 30.0).unwrap();
+        let rgb = lambertian_stack(&normals, &mask, &lights, &[0.5, 0.5, 0.5], &[1.0; 12]);
+        let grey = lambertian_stack(&normals, &mask, &lights, &[0.5], &[1.0; 12]);
+        let options = SolveOptions::default();
+        let solve = |stack: &ImageStack, lights: &Lights, mask: &Mask, options: &SolveOptions| {
+            solve_shared_normal(stack, lights, mask, options, &Silent)
+        };
+
+        let e = solve(&grey, &lights, &mask, &options).unwrap_err();
+        assert!(
+            matches!(&e, Error::InvalidParameter { name: "stack", reason } if reason.contains("1 channel(s)")),
+            "{e}"
+        );
+        let eleven = Lights::fibonacci(11, 30.0).unwrap();
+        let e = solve(&rgb, &eleven, &mask, &options).unwrap_err();
+        assert!(
+            matches!(&e, Error::LightsMismatch { reason } if reason.contains("11 lights for 12 images")),
+            "{e}"
+        );
+        let narrow = Grid::new(15, 16, true);
+        let e = solve(&rgb, &lights, &narrow, &options).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                Error::DimensionMismatch {
+                    width: 16,
+                    height: 16,
+                    found_width: 15,
+                    found_height: 16,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        let bad = SolveOptions {
+            shadow_threshold: 1.0,
+            ..SolveOptions::default()
+        };
+        let e = solve(&rgb, &lights, &mask, &bad).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                Error::InvalidParameter {
+                    name: "shadow-threshold",
+                    ..
+                }
+            ),
+            "{e}"
+        );
+
+        let model = |n: usize| ImageModel {
+            sigma: vec![1e-3; n],
+            gains: GainEstimate::unit(n),
+        };
+        let with_model = |stack: &ImageStack, m: ImageModel| {
+            solve_shared_normal_with_model(stack, &lights, &mask, &options, m, &Silent)
+        };
+        let e = with_model(&rgb, model(11)).unwrap_err();
+        assert!(
+            matches!(&e, Error::InvalidParameter { name: "model", reason } if reason.contains("for 12 images")),
+            "{e}"
+        );
+        let e = with_model(&grey, model(12)).unwrap_err();
+        assert!(
+            matches!(e, Error::InvalidParameter { name: "stack", .. }),
+            "{e}"
+        );
+        // The right inputs pass the same checks.
+        assert!(with_model(&rgb, model(12)).is_ok());
+    }
+}

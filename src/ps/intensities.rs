@@ -355,3 +355,205 @@ fn refit_fixed(
             *fit = solve_spd(a, b).or(*fit);
         });
 }
+
+/// Semi-calibrated estimation on noise-free synthetic Lambertian stacks: gains put on some
+/// images lead to an estimate that converges and is applied under the module's rules, exact
+/// intensities keep gains of 1 that are not applied (the simpler model stands), with fewer than
+/// [`MIN_LIGHTS`] images nothing is estimated, and bad inputs are refused. The accuracy of the
+/// recovered gains is checked by an ignored test: it fails today (see its reason).
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::Grid;
+    use crate::ps::solve::Method;
+    use crate::synth::test_support::{lambertian_stack, sphere};
+
+    /// `count` lights at 30°–90° elevation and a 24×24 sphere with normals up to 70° from the
+    /// view (332 pixels): each image is well lit (N·l ≥ 0.3) in far more than [`MIN_RATIOS`].
+    fn scene(count: usize) -> (Lights, Grid<Vector3<f64>>, Mask) {
+        let lights = Lights::fibonacci(count, 30.0).unwrap();
+        let (normals, mask) = sphere(24, 70.0);
+        (lights, normals, mask)
+    }
+
+    /// Per-image brightness factors for `count` images: images 1, 4, 7 and 10 read 0.8, 1.25,
+    /// 0.9 and 1.15 times their stated intensity, the others (the majority, hence the median)
+    /// exactly it. The gains that undo this are 1/factor, and the normalisation to median 1
+    /// leaves them unscaled.
+    fn wrong_intensities(count: usize) -> Vec<f64> {
+        let mut scale = vec![1.0; count];
+        for (k, s) in [(1, 0.8), (4, 1.25), (7, 0.9), (10, 1.15)] {
+            scale[k] = s;
+        }
+        scale
+    }
+
+    /// The largest relative error of the estimated gains against 1/`scale`.
+    fn worst_gain_error(e: &GainEstimate, scale: &[f64]) -> f64 {
+        e.estimated
+            .iter()
+            .zip(scale)
+            .map(|(g, s)| (f64::from(*g) * s - 1.0).abs())
+            .fold(0.0, f64::max)
+    }
+
+    /// Twelve images, four of them with wrong intensities: for the default estimator and for
+    /// threshold least squares the estimate uses every pixel, converges, explains the data
+    /// better than unit gains (a lower median relative misfit of the robust fits) and is
+    /// therefore applied, and its factors have median exactly 1.
+    #[test]
+    fn wrong_intensities_give_an_applied_estimate() {
+        let (lights, normals, mask) = scene(12);
+        let scale = wrong_intensities(12);
+        let stack = lambertian_stack(&normals, &mask, &lights, &[0.6], &scale);
+        for method in [Method::Auto, Method::Threshold] {
+            let e = estimate_gains(
+                &stack,
+                0,
+                &lights,
+                &mask,
+                &SolveOptions::with_method(method),
+            )
+            .unwrap();
+            println!(
+                "{}: misfit {:.2e} vs unit {:.2e}, worst gain error {:.2e}, {} rounds, {} refits",
+                method.name(),
+                e.misfit,
+                e.unit_misfit,
+                worst_gain_error(&e, &scale),
+                e.rounds,
+                e.refits
+            );
+            assert_eq!(e.pixels, mask.count(), "every pixel is in the subsample");
+            assert!(e.converged, "{}: {e:?}", method.name());
+            assert!(e.misfit < e.unit_misfit, "{}: {e:?}", method.name());
+            assert!(e.applied, "{}: {e:?}", method.name());
+            assert_eq!(e.gains, e.estimated);
+            let mut sorted = e.estimated.clone();
+            sorted.sort_by(f32::total_cmp);
+            assert_eq!(sorted[sorted.len() / 2], 1.0, "{}: {e:?}", method.name());
+        }
+    }
+
+    /// The estimate should recover the gains put on the images (1/0.8, 1/1.25, 1/0.9, 1/1.15
+    /// and eight 1s) within [`TOLERANCE`]: on exact data the true gains are an exact fixed point
+    /// of the alternation (every ratio is 1), which stops once an update corrects no gain by
+    /// more than [`TOLERANCE`]; a contracting alternation (rate below 1/2) then leaves an error
+    /// below that last correction. Checked for 12 and 32 lights, default and threshold
+    /// estimators.
+    ///
+    /// It fails today, in two ways. (1) Near the true gains the fixed-weight alternation is not
+    /// a contraction: a 10⁻³ perturbation of the true gains grows to 3·10⁻² in 50 rounds, so
+    /// where [`TOLERANCE`] stops it decides the error (12 lights: 0.97% for the default
+    /// estimator, 4.5% for threshold least squares; 32 lights, threshold: 1.4%). (2) With 32
+    /// lights the default estimator's robust fit rejects the four wrong images as outliers, so
+    /// they get no ratios, keep gain 1, and the estimate reports convergence with a 25% error.
+    #[test]
+    #[ignore = "known failure: the gain alternation does not contract near the true gains, and \
+                images the robust fit rejects are never corrected (see the doc comment)"]
+    fn wrong_intensities_are_recovered_within_the_tolerance() {
+        let mut failures = Vec::new();
+        for count in [12, 32] {
+            let (lights, normals, mask) = scene(count);
+            let scale = wrong_intensities(count);
+            let stack = lambertian_stack(&normals, &mask, &lights, &[0.6], &scale);
+            for method in [Method::Auto, Method::Threshold] {
+                let options = SolveOptions::with_method(method);
+                let e = estimate_gains(&stack, 0, &lights, &mask, &options).unwrap();
+                let worst = worst_gain_error(&e, &scale);
+                println!(
+                    "{count} lights, {}: worst gain error {worst:.2e}, {e:?}",
+                    method.name()
+                );
+                if !(worst < TOLERANCE && e.converged && e.applied) {
+                    failures.push(format!("{count} lights, {}: {worst:.2e}", method.name()));
+                }
+            }
+        }
+        assert!(
+            failures.is_empty(),
+            "gain errors above {TOLERANCE}: {failures:?}"
+        );
+    }
+
+    /// Exact intensities: the first update already finds nothing to correct (every ratio is 1
+    /// to f32 rounding), so the estimate converges after one refit and one round with factors
+    /// of 1 to within the rounding of the samples (κ·u with κ ≈ 2 the condition number of the
+    /// lights and u = 2⁻²⁴; 10⁻⁶ allows κ up to 16). Its misfit is the unit misfit, so it does
+    /// not explain the data better and is not applied: the gains used are exactly 1.
+    #[test]
+    fn exact_intensities_keep_unit_gains_unapplied() {
+        let (lights, normals, mask) = scene(12);
+        let stack = lambertian_stack(&normals, &mask, &lights, &[0.6], &[1.0; 12]);
+        let e = estimate_gains(&stack, 0, &lights, &mask, &SolveOptions::default()).unwrap();
+        let worst = e
+            .estimated
+            .iter()
+            .map(|g| (g - 1.0).abs())
+            .fold(0.0f32, f32::max);
+        println!("exact: estimated within {worst:.2e} of 1, {e:?}");
+        assert!(e.converged && e.refits == 1 && e.rounds == 1, "{e:?}");
+        assert!(worst < 1e-6, "{e:?}");
+        assert_eq!(e.misfit, e.unit_misfit);
+        assert!(!e.applied);
+        assert!(e.gains.iter().all(|&g| g == 1.0));
+        assert!(e.outliers(0.0).is_empty());
+    }
+
+    /// With one light fewer than [`MIN_LIGHTS`] the factors are not estimated, however wrong
+    /// an intensity is: the estimate is [`GainEstimate::unit`].
+    #[test]
+    fn too_few_lights_are_not_estimated() {
+        let (lights, normals, mask) = scene(MIN_LIGHTS - 1);
+        let mut scale = vec![1.0; MIN_LIGHTS - 1];
+        scale[2] = 1.5;
+        let stack = lambertian_stack(&normals, &mask, &lights, &[0.6], &scale);
+        let e = estimate_gains(&stack, 0, &lights, &mask, &SolveOptions::default()).unwrap();
+        // NaN misfits compare unequal: check them apart.
+        assert!(e.misfit.is_nan() && e.unit_misfit.is_nan(), "{e:?}");
+        let finite = |e: GainEstimate| GainEstimate {
+            misfit: 0.0,
+            unit_misfit: 0.0,
+            ..e
+        };
+        assert_eq!(finite(e), finite(GainEstimate::unit(MIN_LIGHTS - 1)));
+    }
+
+    /// The checks of the public entry: a light count or mask size that differs from the stack's
+    /// and a channel the stack does not have are refused.
+    #[test]
+    fn refuses_inputs_that_do_not_fit() {
+        let (lights, normals, mask) = scene(12);
+        let stack = lambertian_stack(&normals, &mask, &lights, &[0.6], &[1.0; 12]);
+        let options = SolveOptions::default();
+        let eleven = Lights::fibonacci(11, 30.0).unwrap();
+        let e = estimate_gains(&stack, 0, &eleven, &mask, &options).unwrap_err();
+        assert!(
+            matches!(&e, crate::Error::LightsMismatch { reason } if reason.contains("11 lights for 12 images")),
+            "{e}"
+        );
+        let narrow = Grid::new(23, 24, true);
+        let e = estimate_gains(&stack, 0, &lights, &narrow, &options).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                crate::Error::DimensionMismatch {
+                    found_width: 23,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        let e = estimate_gains(&stack, 1, &lights, &mask, &options).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                crate::Error::InvalidParameter {
+                    name: "channel",
+                    ..
+                }
+            ),
+            "{e}"
+        );
+    }
+}

@@ -6,6 +6,8 @@ pub mod light_sets;
 pub mod reflectance;
 pub mod render;
 pub mod scene;
+#[cfg(test)]
+pub(crate) mod test_support;
 pub mod write;
 
 pub use reflectance::Material;

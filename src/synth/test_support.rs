@@ -1,0 +1,66 @@
+//! Synthetic inputs shared by the unit tests of several modules: a sphere's exact normals and
+//! the noise-free Lambertian images of it under a light set, built in closed form (not with
+//! the renderer, so that a test of a solver does not also test the renderer).
+
+use crate::capture::lights::Lights;
+use crate::capture::stack::ImageStack;
+use crate::grid::{Grid, Mask};
+use nalgebra::Vector3;
+
+/// A sphere of radius 0.45·`size` centred in a `size`×`size` image, seen from above (x right,
+/// y up): its unit normals, and the mask of the pixels whose normal is within `max_tilt_deg`
+/// of the view (outside it the normal is NaN).
+pub(crate) fn sphere(size: usize, max_tilt_deg: f64) -> (Grid<Vector3<f64>>, Mask) {
+    let radius = 0.45 * size as f64;
+    let centre = (size as f64 - 1.0) / 2.0;
+    let min_z = max_tilt_deg.to_radians().cos();
+    let normals = Grid::from_fn(size, size, |c, r| {
+        let (x, y) = ((c as f64 - centre) / radius, (centre - r as f64) / radius);
+        let z2 = 1.0 - x * x - y * y;
+        if z2 >= min_z * min_z {
+            Vector3::new(x, y, z2.sqrt())
+        } else {
+            Vector3::repeat(f64::NAN)
+        }
+    });
+    let mask = normals.map(|n| n.z.is_finite());
+    (normals, mask)
+}
+
+/// The noise-free Lambertian images I_{k,c}(p) = scale_k·ρ_c·max(0, N_p·l_k) of `normals`
+/// under `lights`, one channel per entry of `albedo` (1 or 3), 0 outside `mask`: a stack whose
+/// image k reads `scale[k]` times brighter than its stated intensity.
+pub(crate) fn lambertian_stack(
+    normals: &Grid<Vector3<f64>>,
+    mask: &Mask,
+    lights: &Lights,
+    albedo: &[f64],
+    scale: &[f64],
+) -> ImageStack {
+    assert_eq!(scale.len(), lights.len(), "one scale per light");
+    let images = lights
+        .directions()
+        .iter()
+        .zip(scale)
+        .map(|(l, s)| {
+            albedo
+                .iter()
+                .flat_map(|rho| {
+                    normals
+                        .data()
+                        .iter()
+                        .zip(mask.data())
+                        .map(move |(n, &inside)| {
+                            if inside {
+                                (s * rho * n.dot(l).max(0.0)) as f32
+                            } else {
+                                0.0
+                            }
+                        })
+                })
+                .collect()
+        })
+        .collect();
+    ImageStack::from_images(normals.width(), normals.height(), albedo.len(), images)
+        .expect("one plane of width × height per albedo")
+}
