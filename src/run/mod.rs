@@ -6,11 +6,16 @@
 //!   depth outputs, report) shared with streamed runs.
 //! - [`stream`]: the same run on stacks larger than memory, read and solved in row bands
 //!   within a memory budget; `band_output` (private) writes the per-pixel files band by band.
+//! - `bands` (private): the band loop both kinds of run go through — a source of bands (the
+//!   whole stack, or bands decoded from the files), the solve under one image model, a sink.
+//! - [`warnings`]: what the user should know about a finished run, as data.
 
 pub(crate) mod band_output;
 pub(crate) mod bands;
 pub mod pipeline;
 pub mod stream;
+pub mod warnings;
 
 pub use pipeline::{Config, Reconstruction, Report, reconstruct, reconstruct_and_write};
 pub use stream::{StreamOptions, StreamPlan};
+pub use warnings::Warning;

@@ -21,6 +21,7 @@ use crate::ps::normals::{
 };
 use crate::ps::solve::{PixelStatus, Solution, SolveOptions, StatusCounts};
 use crate::run::bands::{Assemble, WholeStack, solve_bands};
+use crate::run::warnings::{Warning, warnings};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -103,7 +104,7 @@ pub struct Reconstruction {
     /// Stage timings.
     pub timings: Timings,
     /// Things the user should know (saturation, flagged pixels, …).
-    pub warnings: Vec<String>,
+    pub warnings: Vec<Warning>,
 }
 
 impl Reconstruction {
@@ -444,111 +445,6 @@ pub(crate) fn assemble(
     }
 }
 
-/// The warnings of a run: input conversions, saturation, unsolved pixels, intensity
-/// corrections, integrability, albedo above 1.
-pub(crate) fn warnings(
-    facts: &InputFacts,
-    tallies: &Tallies,
-    models: &[ChannelModel],
-    integrability: &IntegrabilitySummary,
-    config: &Config,
-) -> Vec<String> {
-    let counts = &tallies.counts;
-    let recalibrated = config.solve.recalibrates(facts.count);
-    let mut warnings = Vec::new();
-    let linearised = facts.info.iter().filter(|i| i.linearised).count();
-    if linearised > 0 {
-        warnings.push(format!(
-            "{linearised} 8-bit image(s) were decoded as sRGB-encoded (gamma) data; pass --linear if they hold linear radiance"
-        ));
-    }
-    let saturated: usize = facts.info.iter().map(|i| i.saturated).sum();
-    if saturated > 0 {
-        warnings.push(format!(
-            "{saturated} saturated samples{}",
-            if config.solve.method == crate::ps::solve::Method::LeastSquares {
-                " (used by plain least squares, which biases normals there)"
-            } else {
-                " were excluded from the solve"
-            }
-        ));
-    }
-    let non_finite: usize = facts.info.iter().map(|i| i.non_finite).sum();
-    if non_finite > 0 {
-        warnings.push(format!(
-            "{non_finite} NaN or infinite samples were excluded"
-        ));
-    }
-    let flagged = counts.too_few_samples + counts.ill_conditioned + counts.dark;
-    if flagged > 0 {
-        let hint = if facts.unmasked_files {
-            " (no mask was given, so the background counts too: pass --mask)"
-        } else {
-            ""
-        };
-        warnings.push(format!(
-            "{flagged} of {} pixels have no normal: {} with fewer than 3 usable samples, {} with ill-conditioned lights, {} dark{hint}",
-            counts.masked, counts.too_few_samples, counts.ill_conditioned, counts.dark
-        ));
-    }
-    if recalibrated {
-        let mut off: Vec<(usize, f32)> = Vec::new();
-        for s in models {
-            for k in s.gains.outliers(GAIN_WARNING) {
-                let g = s.gains.gains[k];
-                match off.iter_mut().find(|(i, _)| *i == k) {
-                    Some(e) if (g - 1.0).abs() > (e.1 - 1.0).abs() => e.1 = g,
-                    Some(_) => {}
-                    None => off.push((k, g)),
-                }
-            }
-        }
-        off.sort_by_key(|e| e.0);
-        if !off.is_empty() {
-            let worst = off.iter().map(|e| e.1).fold(1.0f32, |a, g| {
-                if (g - 1.0).abs() > (a - 1.0).abs() {
-                    g
-                } else {
-                    a
-                }
-            });
-            let list: Vec<String> = off.iter().take(12).map(|e| (e.0 + 1).to_string()).collect();
-            warnings.push(format!(
-                "the images' brightness disagrees with the light intensities for {} image(s) (numbered from 1: {}{}); corrected from the data by factors up to {:.2} — check the intensity file (--no-recalibrate keeps it as given)",
-                off.len(),
-                list.join(", "),
-                if off.len() > 12 { ", …" } else { "" },
-                worst
-            ));
-        }
-    }
-    if recalibrated && models.iter().any(|s| !s.gains.applied) {
-        let far = models
-            .iter()
-            .filter(|s| !s.gains.applied)
-            .flat_map(|s| s.gains.estimated.iter())
-            .any(|g| (g - 1.0).abs() > GAIN_WARNING);
-        if far {
-            warnings.push(
-                "the light intensities estimated from the images differ from the stated ones but did not converge or fit the data better, so the stated intensities were kept (estimate in report.json → model.estimated_gains); strong highlights or interreflections can cause this".to_string(),
-            );
-        }
-    }
-    if integrability.pixels > 0 && integrability.median_abs_curl > POOR_CURL {
-        warnings.push(format!(
-            "poor integrability: median |curl| {:.3} per pixel (above {POOR_CURL}): the normals are noisy or the surface has discontinuities, so depth from them will be distorted; more or better-spread lights help, and --integrate bilateral keeps discontinuities",
-            integrability.median_abs_curl
-        ));
-    }
-    if config.albedo_normalised && tallies.albedo_above_one > 0 {
-        warnings.push(format!(
-            "{} pixels have albedo > 1 although intensities were declared normalised: check the light intensities or exposure",
-            tallies.albedo_above_one
-        ));
-    }
-    warnings
-}
-
 /// Integrates `normals` over `solved` as `config` says (`None` without integration or without
 /// solved pixels); returns the result and its time in seconds.
 fn integrate_stage(
@@ -687,8 +583,8 @@ pub struct Report {
     pub integrability: IntegrabilitySummary,
     /// Stage timings in seconds.
     pub timings_s: Timings,
-    /// Warnings raised.
-    pub warnings: Vec<String>,
+    /// Warnings raised (in the file, as their text).
+    pub warnings: Vec<Warning>,
     /// Normal integration: method, solver and how well the depth fits the normals.
     pub integration: Option<IntegrationSummary>,
     /// Files written (names within the output folder).
@@ -1169,8 +1065,8 @@ pub(crate) struct RunSummary {
     pub integrability: IntegrabilitySummary,
     /// Stage timings.
     pub timings: Timings,
-    /// Warnings raised.
-    pub warnings: Vec<String>,
+    /// Warnings raised (in the file, as their text).
+    pub warnings: Vec<Warning>,
 }
 
 impl RunSummary {

@@ -37,8 +37,8 @@ use crate::run::bands::{Assemble, Band, BandSink, BandSource, Setup, shared_norm
 use crate::run::pipeline::{
     Config, Described, InputFacts, InputSummary, Reconstruction, Report, RunSummary, Timings,
     assemble, commit_with_report, exr_attributes, finish, integrability_of, model_summary,
-    warnings,
 };
+use crate::run::warnings::warnings;
 use rayon::prelude::*;
 use serde::Serialize;
 use std::borrow::Cow;
@@ -333,7 +333,7 @@ fn plan_for(
         return Err(Error::param(
             "max-memory",
             format!(
-                "{} MiB cannot hold the outputs and integration of a {}x{} image ({} MiB) plus a band of {MIN_BAND_ROWS} rows of {count} images ({} MiB); raise it, or integrate with a method that needs less memory (--integrate poisson or none)",
+                "{} MiB cannot hold the outputs and integration of a {}x{} image ({} MiB) plus a band of {MIN_BAND_ROWS} rows of {count} images ({} MiB); raise it, or integrate with a method that needs less memory (Poisson, or none)",
                 options.max_memory >> 20,
                 o.width,
                 o.height,

@@ -569,6 +569,18 @@ fn print_summary(report: &Report, dir: &Path) {
     );
     say!("  wrote {} ({})", dir.display(), report.outputs.join(", "));
     for w in &report.warnings {
-        eprintln!("warning: {w}");
+        eprintln!("warning: {w}{}", flag_hint(w));
+    }
+}
+
+/// What the user can pass to act on a warning, in this tool's flags.
+fn flag_hint(w: &photostereo::run::Warning) -> &'static str {
+    use photostereo::run::Warning;
+    match w {
+        Warning::SrgbDecoded { .. } => " (pass --linear)",
+        Warning::Unsolved { no_mask: true, .. } => "; pass --mask to solve the object only",
+        Warning::IntensitiesCorrected { .. } => " (--no-recalibrate keeps it as given)",
+        Warning::PoorIntegrability { .. } => " (--integrate bilateral)",
+        _ => "",
     }
 }

@@ -1,0 +1,241 @@
+//! The warnings of a run: what the user should know about a result that was still computed
+//! (input conversions, saturation, unsolved pixels, intensity corrections, integrability,
+//! albedo above 1), as data.
+//!
+//! Each [`Warning`] carries its numbers and displays as a sentence in the library's own terms;
+//! `report.json` holds that sentence. A front end adds what its user can do about it: the
+//! command-line tool names the flag (`--linear`, `--mask`, …), a notebook would name the
+//! argument.
+
+use crate::ps::normals::IntegrabilitySummary;
+use crate::ps::solve::Method;
+use crate::run::pipeline::{ChannelModel, Config, GAIN_WARNING, InputFacts, POOR_CURL, Tallies};
+use serde::{Serialize, Serializer};
+use std::fmt;
+
+/// Something the user should know about a run whose result was still computed.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Warning {
+    /// 8-bit images were decoded as sRGB-encoded data (they may hold linear radiance).
+    SrgbDecoded {
+        /// Images decoded so.
+        images: usize,
+    },
+    /// Samples at or above the saturation level.
+    Saturated {
+        /// Saturated samples over all images.
+        samples: usize,
+        /// Whether the estimator used them (plain least squares) instead of excluding them.
+        used: bool,
+    },
+    /// NaN or infinite samples, excluded from the solve.
+    NonFinite {
+        /// Such samples over all images.
+        samples: usize,
+    },
+    /// Pixels of the mask left without a normal.
+    Unsolved {
+        /// Pixels without a normal.
+        unsolved: usize,
+        /// Pixels in the mask.
+        masked: usize,
+        /// With fewer than three usable samples.
+        too_few_samples: usize,
+        /// With ill-conditioned lights.
+        ill_conditioned: usize,
+        /// Dark in every image.
+        dark: usize,
+        /// No mask was given, so the background counts as object.
+        no_mask: bool,
+    },
+    /// The images' brightness disagrees with the stated light intensities; the estimated
+    /// corrections were applied.
+    IntensitiesCorrected {
+        /// The images (numbered from 0) whose gain is further than [`GAIN_WARNING`] from 1.
+        images: Vec<usize>,
+        /// The gain furthest from 1.
+        worst: f32,
+    },
+    /// Intensities estimated from the images differ from the stated ones but were not applied
+    /// (they did not converge or did not fit the data better).
+    IntensitiesNotApplied,
+    /// The median |curl| of the gradient field is above [`POOR_CURL`].
+    PoorIntegrability {
+        /// Median |curl| per pixel.
+        median_abs_curl: f64,
+    },
+    /// Pixels with albedo above 1 although the intensities were declared normalised.
+    AlbedoAboveOne {
+        /// Such pixels.
+        pixels: usize,
+    },
+}
+
+/// Image numbers listed in a warning at most.
+const LISTED_IMAGES: usize = 12;
+
+impl fmt::Display for Warning {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Warning::SrgbDecoded { images } => write!(
+                f,
+                "{images} 8-bit image(s) were decoded as sRGB-encoded (gamma) data; if they hold linear radiance, declare them linear"
+            ),
+            Warning::Saturated { samples, used } => write!(
+                f,
+                "{samples} saturated samples{}",
+                if *used {
+                    " (used by plain least squares, which biases normals there)"
+                } else {
+                    " were excluded from the solve"
+                }
+            ),
+            Warning::NonFinite { samples } => {
+                write!(f, "{samples} NaN or infinite samples were excluded")
+            }
+            Warning::Unsolved {
+                unsolved,
+                masked,
+                too_few_samples,
+                ill_conditioned,
+                dark,
+                no_mask,
+            } => write!(
+                f,
+                "{unsolved} of {masked} pixels have no normal: {too_few_samples} with fewer than 3 usable samples, {ill_conditioned} with ill-conditioned lights, {dark} dark{}",
+                if *no_mask {
+                    " (no mask was given, so the background counts too)"
+                } else {
+                    ""
+                }
+            ),
+            Warning::IntensitiesCorrected { images, worst } => {
+                let list: Vec<String> = images
+                    .iter()
+                    .take(LISTED_IMAGES)
+                    .map(|k| (k + 1).to_string())
+                    .collect();
+                write!(
+                    f,
+                    "the images' brightness disagrees with the light intensities for {} image(s) (numbered from 1: {}{}); corrected from the data by factors up to {worst:.2} — check the intensity file",
+                    images.len(),
+                    list.join(", "),
+                    if images.len() > LISTED_IMAGES {
+                        ", …"
+                    } else {
+                        ""
+                    },
+                )
+            }
+            Warning::IntensitiesNotApplied => f.write_str(
+                "the light intensities estimated from the images differ from the stated ones but did not converge or fit the data better, so the stated intensities were kept (estimate in report.json → model.estimated_gains); strong highlights or interreflections can cause this",
+            ),
+            Warning::PoorIntegrability { median_abs_curl } => write!(
+                f,
+                "poor integrability: median |curl| {median_abs_curl:.3} per pixel (above {POOR_CURL}): the normals are noisy or the surface has discontinuities, so depth from them will be distorted; more or better-spread lights help, and bilateral integration keeps discontinuities"
+            ),
+            Warning::AlbedoAboveOne { pixels } => write!(
+                f,
+                "{pixels} pixels have albedo > 1 although intensities were declared normalised: check the light intensities or exposure"
+            ),
+        }
+    }
+}
+
+/// Written as its sentence (the `warnings` of `report.json` are strings).
+impl Serialize for Warning {
+    fn serialize<S: Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        serializer.collect_str(self)
+    }
+}
+
+/// The warnings of a run, from what loading found, the whole-image tallies, each channel's
+/// model and the integrability check.
+pub(crate) fn warnings(
+    facts: &InputFacts,
+    tallies: &Tallies,
+    models: &[ChannelModel],
+    integrability: &IntegrabilitySummary,
+    config: &Config,
+) -> Vec<Warning> {
+    let counts = &tallies.counts;
+    let recalibrated = config.solve.recalibrates(facts.count);
+    let mut warnings = Vec::new();
+    let linearised = facts.info.iter().filter(|i| i.linearised).count();
+    if linearised > 0 {
+        warnings.push(Warning::SrgbDecoded { images: linearised });
+    }
+    let saturated: usize = facts.info.iter().map(|i| i.saturated).sum();
+    if saturated > 0 {
+        warnings.push(Warning::Saturated {
+            samples: saturated,
+            used: config.solve.method == Method::LeastSquares,
+        });
+    }
+    let non_finite: usize = facts.info.iter().map(|i| i.non_finite).sum();
+    if non_finite > 0 {
+        warnings.push(Warning::NonFinite {
+            samples: non_finite,
+        });
+    }
+    let unsolved = counts.too_few_samples + counts.ill_conditioned + counts.dark;
+    if unsolved > 0 {
+        warnings.push(Warning::Unsolved {
+            unsolved,
+            masked: counts.masked,
+            too_few_samples: counts.too_few_samples,
+            ill_conditioned: counts.ill_conditioned,
+            dark: counts.dark,
+            no_mask: facts.unmasked_files,
+        });
+    }
+    if recalibrated {
+        // Per image, the gain furthest from 1 over the channels.
+        let mut off: Vec<(usize, f32)> = Vec::new();
+        for s in models {
+            for k in s.gains.outliers(GAIN_WARNING) {
+                let g = s.gains.gains[k];
+                match off.iter_mut().find(|(i, _)| *i == k) {
+                    Some(e) if (g - 1.0).abs() > (e.1 - 1.0).abs() => e.1 = g,
+                    Some(_) => {}
+                    None => off.push((k, g)),
+                }
+            }
+        }
+        off.sort_by_key(|e| e.0);
+        if !off.is_empty() {
+            let worst = off.iter().map(|e| e.1).fold(1.0f32, |a, g| {
+                if (g - 1.0).abs() > (a - 1.0).abs() {
+                    g
+                } else {
+                    a
+                }
+            });
+            warnings.push(Warning::IntensitiesCorrected {
+                images: off.iter().map(|e| e.0).collect(),
+                worst,
+            });
+        }
+    }
+    if recalibrated && models.iter().any(|s| !s.gains.applied) {
+        let far = models
+            .iter()
+            .filter(|s| !s.gains.applied)
+            .flat_map(|s| s.gains.estimated.iter())
+            .any(|g| (g - 1.0).abs() > GAIN_WARNING);
+        if far {
+            warnings.push(Warning::IntensitiesNotApplied);
+        }
+    }
+    if integrability.pixels > 0 && integrability.median_abs_curl > POOR_CURL {
+        warnings.push(Warning::PoorIntegrability {
+            median_abs_curl: integrability.median_abs_curl,
+        });
+    }
+    if config.albedo_normalised && tallies.albedo_above_one > 0 {
+        warnings.push(Warning::AlbedoAboveOne {
+            pixels: tallies.albedo_above_one,
+        });
+    }
+    warnings
+}
