@@ -25,6 +25,22 @@ pub enum Error {
         /// What the decoder reported.
         reason: String,
     },
+    /// An image cannot be read in row bands (a run streamed within a memory budget), though it
+    /// can be loaded whole.
+    #[error("{path}: cannot be read in row bands: {reason}")]
+    NotBandReadable {
+        /// The image file.
+        path: PathBuf,
+        /// What prevents it.
+        reason: String,
+    },
+    /// No sphere was found in calibration images given without a mask of the sphere (with
+    /// one, the sphere is not searched for).
+    #[error("no sphere outline found in the images ({reason})")]
+    SphereNotFound {
+        /// What the search found instead.
+        reason: String,
+    },
     /// An image decoded but its layout is not one this tool reads.
     #[error("{path}: unsupported image: {reason}")]
     UnsupportedImage {
@@ -63,10 +79,8 @@ pub enum Error {
         reason: String,
     },
     /// An output folder already holds files (or an output file exists) and overwriting was
-    /// not asked for.
-    #[error(
-        "{path}: {what}; choose another output or pass --force to overwrite the files this tool writes"
-    )]
+    /// not asked for. Nothing was written.
+    #[error("{path}: {what}")]
     OutputExists {
         /// The folder or file.
         path: PathBuf,

@@ -67,3 +67,22 @@ pub fn summarize_values(values: impl IntoIterator<Item = f32>) -> MapSummary {
         pixels: v.len(),
     }
 }
+
+/// The median of `values` (the mean of the two middle ones for an even count; NaN when there
+/// are none), as benchmarks report repeated timings.
+///
+/// # Example
+/// ```
+/// use photostereo::stats::median;
+/// assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
+/// assert_eq!(median(vec![4.0, 1.0, 2.0, 3.0]), 2.5);
+/// assert!(median(vec![]).is_nan());
+/// ```
+pub fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    match values.len() {
+        0 => f64::NAN,
+        n if n % 2 == 1 => values[n / 2],
+        n => (values[n / 2 - 1] + values[n / 2]) / 2.0,
+    }
+}

@@ -170,8 +170,8 @@ impl ChromeCalibration {
 ///
 /// # Errors
 /// [`Error::DimensionMismatch`] when the mask's size differs from the images';
-/// [`Error::Mask`] when the mask's outline is not a circle; [`Error::InvalidParameter`]
-/// (`images`) when no sphere is detected; [`Error::TooFewImages`] for an empty stack.
+/// [`Error::Mask`] when the mask's outline is not a circle; [`Error::SphereNotFound`] when no
+/// sphere is detected; [`Error::TooFewImages`] for an empty stack.
 pub fn calibrate_chrome(
     stack: &ImageStack,
     mask: Option<(&ScalarMap, &Path)>,

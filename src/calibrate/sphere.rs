@@ -301,16 +301,11 @@ struct Edge {
 /// [`fit_circle`] on the best circle's support. Deterministic (seeded).
 ///
 /// # Errors
-/// [`Error::InvalidParameter`] (`images`) when no circle of radius ≥ 8 px whose edge covers at
-/// least half its circumference is found.
+/// [`Error::SphereNotFound`] when no circle of radius ≥ 8 px whose edge covers at least half
+/// its circumference is found.
 pub fn detect_circle(evidence: &ScalarMap) -> Result<CircleFit> {
     let edges = edge_points(evidence);
-    let not_found = |why: String| {
-        Error::param(
-            "images",
-            format!("no sphere outline found ({why}); give the sphere's mask with --mask"),
-        )
-    };
+    let not_found = |why: String| Error::SphereNotFound { reason: why };
     if edges.len() < 3 {
         return Err(not_found(format!("{} edge points", edges.len())));
     }

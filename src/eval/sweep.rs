@@ -24,6 +24,7 @@ use crate::capture::lights::{Light, Lights};
 use crate::capture::stack::ColorMode;
 use crate::error::{Error, Result};
 use crate::eval::metrics::{angular_errors, depth_errors, depth_rmse_per_part};
+use crate::eval::timed;
 use crate::grid::NormalMap;
 use crate::integrate::{IntegrationOptions, Integrator, integrate_normals};
 use crate::nalgebra::Vector3;
@@ -38,7 +39,6 @@ use crate::synth::scene::{Albedo, Object, Primitive, Scene, SceneKind};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use serde::Serialize;
-use std::time::Instant;
 
 /// Default image size (square) of the normal and depth sweeps.
 pub const DEFAULT_SIZE: usize = 256;
@@ -62,6 +62,12 @@ pub const SFS_REFERENCE_LIGHTS: [usize; 2] = [3, 8];
 pub const SFS_REFERENCE_METHOD: Method = Method::Auto;
 /// Height of the floating sphere's silhouette above the plane, as a fraction of the size.
 pub const FLOAT_HEIGHT: f64 = 0.12;
+/// Specular strength of the glossy comparison of error against time: every sweep measures it,
+/// the [`SweepOptions::quick`] one included.
+pub const GLOSSY_KS: f64 = 0.2;
+/// Normal noise (per component; about 2.3° mean error) of the integrators' comparison of error
+/// against time: every depth sweep measures it, the [`SweepOptions::quick`] one included.
+pub const DEPTH_PARETO_NOISE: f64 = 0.05;
 
 /// What a row varies.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -189,6 +195,20 @@ impl SweepOptions {
         Ok(())
     }
 
+    /// These options cut down for a smoke run of a few seconds: 64² images and a few levels of
+    /// each axis (still with [`GLOSSY_KS`] and [`DEPTH_PARETO_NOISE`]).
+    pub fn quick(self) -> Self {
+        SweepOptions {
+            size: 64,
+            sfs_size: 64,
+            noise_levels: vec![0.0, 0.01, 0.05],
+            light_counts: vec![3, 6, 32],
+            ks_levels: vec![0.0, GLOSSY_KS],
+            normal_noise_levels: vec![0.0, DEPTH_PARETO_NOISE],
+            ..self
+        }
+    }
+
     fn runs(&self) -> usize {
         self.repeat.max(1)
     }
@@ -245,30 +265,6 @@ pub struct DepthRow {
     pub pixels: usize,
     /// Median wall time of the integration, seconds.
     pub seconds: f64,
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    match v.len() {
-        0 => f64::NAN,
-        n if n % 2 == 1 => v[n / 2],
-        n => (v[n / 2 - 1] + v[n / 2]) / 2.0,
-    }
-}
-
-/// Runs `f` `runs` times; its last value and the median wall time.
-fn timed<T>(runs: usize, mut f: impl FnMut() -> Result<T>) -> Result<(T, f64)> {
-    let mut times = Vec::with_capacity(runs);
-    let mut last = None;
-    for _ in 0..runs {
-        let t = Instant::now();
-        last = Some(f()?);
-        times.push(t.elapsed().as_secs_f64());
-    }
-    match last {
-        Some(v) => Ok((v, median(times))),
-        None => Err(Error::param("repeat", "no run")),
-    }
 }
 
 /// The material of specular strength `ks` (Lambertian at 0).

@@ -62,6 +62,13 @@ fn decode_error(path: &Path, reason: impl std::fmt::Display) -> Error {
     }
 }
 
+fn not_band_readable(path: &Path, reason: impl Into<String>) -> Error {
+    Error::NotBandReadable {
+        path: path.to_path_buf(),
+        reason: reason.into(),
+    }
+}
+
 fn unsupported(path: &Path, reason: impl Into<String>) -> Error {
     Error::UnsupportedImage {
         path: path.to_path_buf(),
@@ -78,9 +85,10 @@ impl BandReader {
     /// Opens `path` (PNG, TIFF or EXR, by its extension) and reads its header.
     ///
     /// # Errors
-    /// [`Error::Io`] or [`Error::Decode`] naming the file; [`Error::UnsupportedImage`] for a
-    /// file that cannot be read in bands (interlaced PNG, chunk-planar TIFF, subsampled EXR
-    /// channels) or an unsupported sample type.
+    /// [`Error::Io`] or [`Error::Decode`] naming the file; [`Error::NotBandReadable`] for a
+    /// file that can only be loaded whole (not PNG, TIFF or EXR; interlaced PNG; chunk-planar
+    /// TIFF); [`Error::UnsupportedImage`] for subsampled EXR channels or an unsupported sample
+    /// type.
     pub(crate) fn open(path: &Path) -> Result<Self> {
         if extension_is(path, "exr") {
             Self::open_exr(path)
@@ -89,10 +97,7 @@ impl BandReader {
         } else if extension_is(path, "png") {
             Self::open_png(path)
         } else {
-            Err(unsupported(
-                path,
-                "only PNG, TIFF and EXR files can be read in row bands (--max-memory)",
-            ))
+            Err(not_band_readable(path, "only PNG, TIFF and EXR files can"))
         }
     }
 
@@ -120,9 +125,9 @@ impl BandReader {
         let reader = decoder.read_info().map_err(bad)?;
         let (width, height) = (reader.info().width, reader.info().height);
         if reader.info().interlaced {
-            return Err(unsupported(
+            return Err(not_band_readable(
                 path,
-                "an interlaced PNG cannot be read in row bands; re-save it without interlacing, or run without --max-memory",
+                "it is an interlaced PNG; re-save it without interlacing",
             ));
         }
         let line = reader
@@ -204,10 +209,10 @@ impl BandReader {
             tiff::decoder::ChunkType::Tile => decoder.tile_count().map_err(bad)?,
         } as usize;
         if count != expected {
-            return Err(unsupported(
+            return Err(not_band_readable(
                 path,
                 format!(
-                    "{count} strips or tiles where one plane needs {expected}: a TIFF with separate colour planes cannot be read in row bands; run without --max-memory"
+                    "it is a TIFF with separate colour planes ({count} strips or tiles where one plane needs {expected})"
                 ),
             ));
         }

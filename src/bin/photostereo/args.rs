@@ -4,6 +4,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use photostereo::camera::Intrinsics;
 use photostereo::capture::stack::{ColorMode, LoadOptions, Transfer};
+use photostereo::eval::bench::{integration, scaling, specularity, stages, stream};
 use photostereo::integrate::{BilateralParams, IntegrationOptions, Integrator, LinearSolver};
 use photostereo::ps::color::ColorSolve;
 use photostereo::ps::robust::{DEFAULT_SPECULAR_CONE_DEG, DEFAULT_TRIM_HIGH, DEFAULT_TRIM_LOW};
@@ -311,7 +312,7 @@ pub struct SweepBenchArgs {
     #[arg(long, default_value_t = photostereo::eval::sweep::DEFAULT_SFS_SIZE)]
     pub sfs_size: usize,
     /// Timed runs per point; medians are reported.
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = photostereo::eval::bench::DEFAULT_REPEAT)]
     pub repeat: usize,
     /// Estimators (default: all).
     #[arg(long, value_enum, value_delimiter = ',')]
@@ -328,16 +329,16 @@ pub struct SweepBenchArgs {
 #[derive(Debug, Args)]
 pub struct ScalingBenchArgs {
     /// Image sizes (square; the sphere fills 0.45 of it).
-    #[arg(long, num_args = 1.., default_values_t = [128usize, 256, 512, 1024])]
+    #[arg(long, num_args = 1.., default_values_t = scaling::DEFAULT_SIZES)]
     pub sizes: Vec<usize>,
     /// Light counts (Fibonacci spiral, elevation ≥ 30°).
-    #[arg(long, num_args = 1.., default_values_t = [8usize, 24, 96])]
+    #[arg(long, num_args = 1.., default_values_t = scaling::DEFAULT_LIGHTS)]
     pub lights: Vec<usize>,
     /// Estimators (default: ls, threshold, auto, trim, huber).
     #[arg(long, value_enum, num_args = 1..)]
     pub methods: Vec<MethodArg>,
     /// Runs per point; medians are reported.
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = photostereo::eval::bench::DEFAULT_REPEAT)]
     pub repeat: usize,
     /// Also write the rows as CSV here.
     #[arg(long, value_name = "FILE")]
@@ -358,7 +359,7 @@ pub struct StreamBenchArgs {
     #[arg(value_name = "DIR")]
     pub dir: PathBuf,
     /// Budget of the streamed run.
-    #[arg(long, default_value = "2G", value_name = "SIZE")]
+    #[arg(long, default_value = stream::DEFAULT_MAX_MEMORY, value_name = "SIZE")]
     pub max_memory: String,
     /// Ignore the folder's mask.png (solve the whole frame).
     #[arg(long)]
@@ -367,7 +368,7 @@ pub struct StreamBenchArgs {
     #[arg(long, value_enum, default_value_t = IntegrateArg::Poisson)]
     pub integrate: IntegrateArg,
     /// Runs of each; medians are reported.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = stream::DEFAULT_REPEAT)]
     pub repeat: usize,
 }
 
@@ -375,16 +376,16 @@ pub struct StreamBenchArgs {
 #[derive(Debug, Args)]
 pub struct SpecularityBenchArgs {
     /// Image size (square).
-    #[arg(long, default_value_t = 128)]
+    #[arg(long, default_value_t = specularity::DEFAULT_SIZE)]
     pub size: usize,
     /// Number of lights (Fibonacci spiral up to 60° from the view direction).
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, default_value_t = specularity::DEFAULT_LIGHTS)]
     pub lights: usize,
     /// Specular reflectances k_s to sweep.
-    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.05, 0.1, 0.2, 0.4, 0.8])]
+    #[arg(long, value_delimiter = ',', default_values_t = specularity::DEFAULT_KS)]
     pub ks: Vec<f64>,
     /// Gaussian image noise σ (images peak near 1).
-    #[arg(long, default_value_t = 0.005)]
+    #[arg(long, default_value_t = specularity::DEFAULT_NOISE)]
     pub noise: f32,
     /// Estimators to compare (default: all).
     #[arg(long, value_enum, value_delimiter = ',')]
@@ -398,13 +399,13 @@ pub struct SpecularityBenchArgs {
 #[derive(Debug, Args)]
 pub struct IntegrationBenchArgs {
     /// Image sizes (square).
-    #[arg(long, value_delimiter = ',', default_values_t = [256usize, 512, 1024, 2048])]
+    #[arg(long, value_delimiter = ',', default_values_t = integration::DEFAULT_SIZES)]
     pub sizes: Vec<usize>,
     /// Methods to time (default: all).
     #[arg(long, value_enum, value_delimiter = ',')]
     pub methods: Vec<IntegrateArg>,
     /// Repetitions at sizes up to 512² (one run above); medians are reported.
-    #[arg(long, default_value_t = 3)]
+    #[arg(long, default_value_t = photostereo::eval::bench::DEFAULT_REPEAT)]
     pub repeat: usize,
     /// The numpy peer.
     #[command(flatten)]
@@ -443,7 +444,7 @@ pub struct BenchArgs {
     #[command(flatten)]
     pub peer: PeerArgs,
     /// Repetitions; medians are reported.
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = stages::DEFAULT_REPEAT)]
     pub repeat: usize,
     /// Solver and integration options.
     #[command(flatten)]

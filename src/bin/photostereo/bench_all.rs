@@ -1,4 +1,5 @@
-//! `photostereo bench all`: every benchmark that feeds `docs/bench`, in one run. It writes
+//! `photostereo bench all`: every benchmark that feeds `docs/bench`, in one run, as the
+//! library's [`SuitePlan`] lays it out (with `--quick`, its smoke-run settings). It writes
 //! their tables (CSV, JSON) and charts (SVG, PNG), and a generated `README.md` that gathers
 //! the numbers.
 //!
@@ -7,197 +8,33 @@
 //! - solver scaling (`bench scaling`);
 //! - integrator timing and DCT Poisson beside numpy (`bench integration`);
 //! - on DiLiGenT cat and bear, when `--data` holds them: every estimator's error and time, and
-//!   the load and solve stages beside the numpy peer (`bench diligent --method ls`).
+//!   the load and solve stages beside the numpy peer (`bench diligent --method ls`);
+//! - every integrator on the shared depth data.
 //!
-//! Each part runs through the same command-line parser as the command of the same name, so it
-//! uses the same defaults.
+//! Each part's defaults are the library's, which the command of the same name also uses.
 
-use crate::args::{AllBenchArgs, BenchCommand, Cli, Command};
-use anyhow::{Context, Result, bail};
-use clap::Parser;
-use photostereo::capture::dataset::Capture;
-use photostereo::capture::stack::LoadOptions;
-use photostereo::eval::metrics::angular_errors;
+use crate::args::AllBenchArgs;
+use anyhow::{Context, Result};
+use photostereo::capture::dataset::is_diligent_dir;
+use photostereo::eval::bench::diligent::{
+    OBJECTS as DILIGENT_OBJECTS, Object, light_subset_rows, method_rows, object_dir,
+};
+use photostereo::eval::bench::real_depth::real_depth;
+use photostereo::eval::bench::suite::SuitePlan;
 use photostereo::eval::sweep::pareto_front;
-use photostereo::grid::NormalMap;
-use photostereo::io::decode::read_normal_map;
-use photostereo::progress::{Progress, Silent};
-use photostereo::ps::solve::{Method, SolveOptions};
-use photostereo::run::pipeline::{Config, reconstruct};
+use photostereo::progress::Progress;
+use photostereo::ps::solve::Method;
 use serde_json::{Value, json};
-use std::ffi::OsString;
 use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
-use std::time::Instant;
-
-/// The DiLiGenT objects of `../shared/data`.
-const DILIGENT_OBJECTS: [&str; 2] = ["cat", "bear"];
-
-/// The bench subcommand that `photostereo bench <args…>` would run.
-fn parse(args: &[OsString]) -> Result<BenchCommand> {
-    let argv = ["photostereo".into(), "bench".into()]
-        .into_iter()
-        .chain(args.iter().cloned());
-    match Cli::try_parse_from(argv)?.command {
-        Some(Command::Bench(b)) => Ok(b),
-        _ => bail!("internal: not a bench command"),
-    }
-}
-
-fn argv(parts: &[&str]) -> Vec<OsString> {
-    parts.iter().map(OsString::from).collect()
-}
+use std::path::Path;
 
 fn write_json(path: &Path, v: &Value) -> Result<()> {
     crate::write_file_atomic(path, serde_json::to_string_pretty(v)?.as_bytes())
 }
 
-/// Every estimator on one DiLiGenT folder: mean angular error against `normal_gt.exr` and the
-/// median solve + normals time of `repeat` runs.
-fn diligent_methods(
-    capture: &Capture,
-    gt: &NormalMap,
-    object: &str,
-    repeat: usize,
-) -> Result<Vec<Value>> {
-    let mut rows = Vec::new();
-    for m in Method::ALL {
-        let config = Config {
-            solve: SolveOptions::with_method(m),
-            integration: None,
-            ..Config::default()
-        };
-        let mut times = Vec::new();
-        let mut error = None;
-        for _ in 0..repeat.max(1) {
-            let t = Instant::now();
-            let recon = reconstruct(capture, &config, &Silent)?;
-            times.push(t.elapsed().as_secs_f64());
-            error = Some(angular_errors(&recon.normals, gt, &capture.mask)?);
-        }
-        times.sort_by(f64::total_cmp);
-        let e = error.context("no run")?;
-        rows.push(json!({
-            "object": object,
-            "method": m.name(),
-            "mean_deg": e.mean_deg,
-            "median_deg": e.median_deg,
-            "p95_deg": e.p95_deg,
-            "seconds": times[times.len() / 2],
-        }));
-    }
-    Ok(rows)
-}
-
-/// Relative gradient noise of the vase row (the 0.5% of the largest gradient).
-const VASE_NOISE: f32 = 0.005;
-
-/// Every integrator on the shared integration data: DiLiGenT cat and bear (ground-truth
-/// normals, perspective with `K.txt`; mean absolute depth error in mm after the median scale
-/// fit, the bilateral-integration benchmark's metric) and the vase (its exact gradients and
-/// with Gaussian noise of [`VASE_NOISE`] of the largest gradient, one draw; RMSE after the mean
-/// offset, pixel units; bilateral integration, which takes normals, gets (−p, −q, 1)
-/// normalised). Missing sets are skipped.
-fn integration_real(data: &Path) -> Result<Vec<Value>> {
-    use photostereo::camera::Intrinsics;
-    use photostereo::eval::metrics::{depth_errors, scaled_depth_errors};
-    use photostereo::grid::{Grid, ScalarMap};
-    use photostereo::integrate::{
-        Censoring, IntegrationOptions, Integrator, LinearSolver, integrate_censored_gradients,
-        integrate_normals,
-    };
-    use photostereo::io::decode::{read_exr_channel, read_image, read_mask};
-    use rand::SeedableRng;
-    use rand_distr::{Distribution, Normal};
-    let mut rows = Vec::new();
-    for object in DILIGENT_OBJECTS {
-        let dir = data.join("integration").join(object);
-        if !dir.join("K.txt").is_file() {
-            eprintln!(
-                "bench all: skipping integration on {object}: {} is absent",
-                dir.display()
-            );
-            continue;
-        }
-        let normals = read_normal_map(&dir.join("normal_map.png"))?;
-        let mask = read_mask(&dir.join("mask.png"))?;
-        let gt = read_image(&dir.join("depth_gt.exr"))?;
-        let gt = Grid::from_vec(gt.width, gt.height, gt.data)?;
-        let camera = Intrinsics::from_file(&dir.join("K.txt"))?;
-        for m in Integrator::ALL {
-            let o = IntegrationOptions {
-                method: m,
-                camera: Some(camera),
-                ..IntegrationOptions::default()
-            };
-            let t = Instant::now();
-            let r = integrate_normals(&normals, &mask, &o, &Silent)?;
-            let seconds = t.elapsed().as_secs_f64();
-            let e = scaled_depth_errors(&r.depth, &gt, &mask)?;
-            rows.push(
-                json!({"dataset": object, "method": m.name(), "error": e.mean_abs,
-                "metric": "mean abs. depth error after median scale (mm)", "seconds": seconds}),
-            );
-        }
-    }
-    let vase = data.join("integration/vase/vase.exr");
-    if !vase.is_file() {
-        eprintln!(
-            "bench all: skipping integration on the vase: {} is absent",
-            vase.display()
-        );
-        return Ok(rows);
-    }
-    let exr = |name: &str| read_exr_channel(&vase, name);
-    let (z, pv, qv, mv) = (exr("Z")?, exr("p")?, exr("q")?, exr("mask")?);
-    let mask = mv.map(|v| *v > 0.5);
-    // The file's p = ∂Z/∂row and q = ∂Z/∂column; ours: p = ∂z/∂x, q = ∂z/∂y (y up).
-    let (p, q): (ScalarMap, ScalarMap) = (qv.clone(), pv.map(|v| -v));
-    let max = p
-        .data()
-        .iter()
-        .chain(q.data())
-        .filter(|v| v.is_finite())
-        .fold(0f32, |m, v| m.max(v.abs()));
-    // The file's gradients are clipped at their largest magnitude (±10).
-    let clipped = Censoring::ClippedAt(max);
-    let noise = Normal::new(0.0f32, VASE_NOISE * max)?;
-    let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(0);
-    let noisy = (
-        p.map(|v| v + noise.sample(&mut rng)),
-        q.map(|v| v + noise.sample(&mut rng)),
-    );
-    for (name, (p, q)) in [
-        ("vase", (&p, &q)),
-        ("vase with 0.5% noise", (&noisy.0, &noisy.1)),
-    ] {
-        // Bilateral integration takes normals: n ∝ (−p, −q, 1).
-        let normals = Grid::from_fn(p.width(), p.height(), |c, r| {
-            let (a, b) = (*p.at(c, r), *q.at(c, r));
-            if *mask.at(c, r) && a.is_finite() && b.is_finite() {
-                photostereo::nalgebra::Vector3::new(-a, -b, 1.0).normalize()
-            } else {
-                photostereo::nalgebra::Vector3::repeat(f32::NAN)
-            }
-        });
-        for m in Integrator::ALL {
-            let t = Instant::now();
-            let d = if m == Integrator::Bilateral {
-                let o = IntegrationOptions {
-                    method: m,
-                    ..IntegrationOptions::default()
-                };
-                integrate_normals(&normals, &mask, &o, &Silent)?.depth
-            } else {
-                integrate_censored_gradients(p, q, &clipped, &mask, m, LinearSolver::Auto)?.0
-            };
-            let seconds = t.elapsed().as_secs_f64();
-            let e = depth_errors(&d, &z, &mask)?;
-            rows.push(json!({"dataset": name, "method": m.name(), "error": e.rmse,
-                "metric": "RMSE after the mean offset (px)", "seconds": seconds}));
-        }
-    }
-    Ok(rows)
+/// Each of `rows` as JSON.
+fn values<T: serde::Serialize>(rows: &[T]) -> Vec<Value> {
+    rows.iter().map(|r| json!(r)).collect()
 }
 
 /// Error against time of every integrator on DiLiGenT cat and bear (perspective).
@@ -242,43 +79,6 @@ fn integration_real_chart(rows: &[Value], out: &Path) -> Result<()> {
         },
         &out.join("integration_diligent"),
     )
-}
-
-/// Light counts of the DiLiGenT light-count sweep (well-spread subsets of the 96).
-const DILIGENT_LIGHT_COUNTS: [usize; 7] = [4, 6, 8, 12, 24, 48, 96];
-
-/// Every estimator on well-spread subsets ([`photostereo::capture::lights::Lights::spread`]) of one
-/// DiLiGenT capture's lights: mean angular error over the solved pixels and the fraction
-/// solved.
-fn diligent_lights(capture: &Capture, gt: &NormalMap, object: &str) -> Result<Vec<Value>> {
-    let mut rows = Vec::new();
-    for count in DILIGENT_LIGHT_COUNTS {
-        if count > capture.lights.len() {
-            continue;
-        }
-        let subset = capture.select(&capture.lights.spread(count)?)?;
-        for m in Method::ALL {
-            let config = Config {
-                solve: SolveOptions::with_method(m),
-                integration: None,
-                ..Config::default()
-            };
-            let t = Instant::now();
-            let recon = reconstruct(&subset, &config, &Silent)?;
-            let seconds = t.elapsed().as_secs_f64();
-            let e = angular_errors(&recon.normals, gt, &subset.mask)?;
-            rows.push(json!({
-                "object": object,
-                "method": m.name(),
-                "lights": count,
-                "mean_deg": e.mean_deg,
-                "median_deg": e.median_deg,
-                "coverage": e.pixels as f64 / (e.pixels + e.missing).max(1) as f64,
-                "seconds": seconds,
-            }));
-        }
-    }
-    Ok(rows)
 }
 
 /// Error against light count per estimator, one chart per object.
@@ -758,65 +558,35 @@ fn summary(
 /// Runs every part and writes `docs/bench` (or `--out`).
 pub fn run(a: &AllBenchArgs, progress: &dyn Progress) -> Result<Value> {
     let out = &a.out;
-    let peer: Vec<OsString> = vec![
-        "--peer".into(),
-        a.peer.script.clone().into(),
-        "--python".into(),
-        a.peer.python.clone().into(),
-    ];
+    let plan = SuitePlan::new(a.quick);
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     // 1. The sweeps.
     eprintln!("bench all: sweeps");
-    let mut args = argv(&["sweep", "--out"]);
-    args.push(out.into());
-    if a.quick {
-        args.push("--quick".into());
-    }
-    let sweep = match parse(&args)? {
-        BenchCommand::Sweep(s) => crate::sweep::run(&s, progress)?,
-        _ => bail!("internal: sweep"),
-    };
+    let sweep = crate::sweep::write_sweeps(&plan.sweep, out, progress)?;
     // 2. Solver scaling.
     eprintln!("bench all: solver scaling");
-    let mut args = argv(&["scaling", "--csv"]);
-    args.extend([
-        out.join("scaling.csv").into(),
-        "--chart".into(),
-        out.join("scaling").into(),
-    ]);
-    if a.quick {
-        args.extend(argv(&["--sizes", "64", "128", "--repeat", "1"]));
-    }
-    let scaling = match parse(&args)? {
-        BenchCommand::Scaling(s) => crate::bench::scaling(&s)?,
-        _ => bail!("internal: scaling"),
-    };
+    let scaling = crate::bench::scaling_report(
+        &plan.scaling,
+        Some(&out.join("scaling.csv")),
+        Some(&out.join("scaling")),
+    )?;
     write_json(&out.join("scaling.json"), &scaling)?;
     // 3. Integrators.
     eprintln!("bench all: integrators");
-    let mut args = argv(&["integration", "--csv"]);
-    args.extend([
-        out.join("integration.csv").into(),
-        "--chart".into(),
-        out.join("integration_time").into(),
-    ]);
-    args.extend(peer.iter().cloned());
-    if a.quick {
-        args.extend(argv(&["--sizes", "64,128", "--repeat", "1"]));
-    }
-    let integration = match parse(&args)? {
-        BenchCommand::Integration(s) => crate::bench::integration(&s)?,
-        _ => bail!("internal: integration"),
-    };
+    let integration = crate::bench::integration_report(
+        &plan.integration,
+        &a.peer,
+        Some(&out.join("integration.csv")),
+        Some(&out.join("integration_time")),
+    )?;
     write_json(&out.join("integration.json"), &integration)?;
     // 4. Real data.
     let mut diligent = Vec::new();
     let mut methods = Vec::new();
     let mut lights = Vec::new();
-    let repeat = if a.quick { "1" } else { "3" };
     for object in DILIGENT_OBJECTS {
-        let dir: PathBuf = a.data.join("diligent").join(format!("{object}PNG"));
-        if !photostereo::capture::dataset::is_diligent_dir(&dir) {
+        let dir = object_dir(&a.data, object);
+        if !is_diligent_dir(&dir) {
             eprintln!(
                 "bench all: skipping DiLiGenT {object}: {} is absent",
                 dir.display()
@@ -824,35 +594,23 @@ pub fn run(a: &AllBenchArgs, progress: &dyn Progress) -> Result<Value> {
             continue;
         }
         eprintln!("bench all: DiLiGenT {object}");
-        let mut args = argv(&["diligent"]);
-        args.push(dir.clone().into());
-        args.extend(argv(&[
-            "--method",
-            "ls",
-            "--integrate",
-            "none",
-            "--repeat",
-            repeat,
-        ]));
-        args.extend(peer.iter().cloned());
-        let v = match parse(&args)? {
-            BenchCommand::Diligent(s) => crate::bench::run(&s)?,
-            _ => bail!("internal: diligent"),
-        };
+        let v = crate::bench::diligent(&dir, &plan.stages, plan.diligent_repeat, &a.peer)?;
         write_json(&out.join(format!("diligent_{object}.json")), &v)?;
         diligent.push((object.to_string(), v));
-        let capture = Capture::from_diligent(&dir, &LoadOptions::default(), &Silent)?;
-        let gt = read_normal_map(&dir.join("normal_gt.exr"))?;
-        methods.extend(diligent_methods(
-            &capture,
-            &gt,
-            object,
-            repeat.parse().unwrap_or(1),
-        )?);
-        lights.extend(diligent_lights(&capture, &gt, object)?);
+        let loaded = Object::load(&dir, object)?;
+        methods.extend(values(&method_rows(&loaded, plan.diligent_repeat)?));
+        lights.extend(values(&light_subset_rows(&loaded)?));
     }
     eprintln!("bench all: integrators on the shared depth data");
-    let integration_rows = integration_real(&a.data)?;
+    let real = real_depth(&a.data)?;
+    for absent in &real.absent {
+        eprintln!(
+            "bench all: skipping integration on {}: {} is absent",
+            absent.name,
+            absent.path.display()
+        );
+    }
+    let integration_rows = values(&real.rows);
     if !integration_rows.is_empty() {
         crate::sweep::write_csv(
             &out.join("integration_real.csv"),

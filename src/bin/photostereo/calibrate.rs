@@ -33,6 +33,16 @@ fn expand(paths: &[PathBuf]) -> Result<(Vec<PathBuf>, Option<PathBuf>)> {
     Ok((paths.to_vec(), None))
 }
 
+/// `e`, with the flag `flag` that gives the sphere's mask when the sphere was not found.
+fn mask_hint(e: photostereo::Error, flag: &str) -> anyhow::Error {
+    match e {
+        photostereo::Error::SphereNotFound { .. } => {
+            anyhow::anyhow!("{e}; give the sphere's mask with {flag}")
+        }
+        e => e.into(),
+    }
+}
+
 pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
     if !a.force {
         ensure_fresh_file(&a.output)?;
@@ -50,7 +60,8 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
         &stack,
         mask.as_ref().zip(chrome_mask.as_deref()),
         &ChromeOptions::default(),
-    )?;
+    )
+    .map_err(|e| mask_hint(e, "--mask"))?;
     let c = cal.sphere.circle;
     say!(
         "chrome sphere ({}): centre ({:.2}, {:.2}) px, radius {:.2} px, ± ({:.2}, {:.2}, {:.2}) px, edge rms {:.2} px, {} edge points ({} outliers)",
@@ -155,7 +166,8 @@ fn measure_intensities(
     } else {
         let mask_path = a.matte_mask.clone().or(list_mask);
         let mask = mask_path.as_deref().map(read_grey_mask).transpose()?;
-        let (sphere, sphere_source) = find_sphere(stack, mask.as_ref().zip(mask_path.as_deref()))?;
+        let (sphere, sphere_source) = find_sphere(stack, mask.as_ref().zip(mask_path.as_deref()))
+            .map_err(|e| mask_hint(e, "--matte-mask"))?;
         let fits =
             intensities_from_sphere(stack, &sphere.circle, directions, &MatteOptions::default())?;
         let c = sphere.circle;

@@ -45,8 +45,25 @@ use std::time::Instant;
 fn main() {
     let cli = Cli::parse();
     if let Err(e) = run(cli) {
-        eprintln!("error: {e:#}");
+        eprintln!("error: {e:#}{}", hint(&e));
         std::process::exit(1);
+    }
+}
+
+/// The flag that avoids the library error behind `e`, for the errors the command line has one
+/// for (the library says what is wrong, in its own terms).
+fn hint(e: &anyhow::Error) -> &'static str {
+    match e
+        .chain()
+        .find_map(|c| c.downcast_ref::<photostereo::Error>())
+    {
+        Some(photostereo::Error::OutputExists { .. }) => {
+            "; choose another output or pass --force to overwrite the files this tool writes"
+        }
+        Some(photostereo::Error::NotBandReadable { .. }) => {
+            " (to load the images whole instead, run without --max-memory)"
+        }
+        _ => "",
     }
 }
 

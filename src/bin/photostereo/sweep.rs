@@ -7,27 +7,12 @@ use crate::args::SweepBenchArgs;
 use crate::chart::{Chart, Legend, Series, Style, write};
 use anyhow::Result;
 use photostereo::eval::sweep::{
-    Axis, DepthRow, NormalRow, SweepOptions, depth_sweep, normal_sweep, pareto_front, sfs_sweep,
+    Axis, DEPTH_PARETO_NOISE, DepthRow, GLOSSY_KS, NormalRow, SweepOptions, depth_sweep,
+    normal_sweep, pareto_front, sfs_sweep,
 };
 use photostereo::progress::Progress;
 use serde_json::{Value, json};
 use std::path::Path;
-
-/// Specular strength of the glossy Pareto chart.
-const PARETO_KS: f64 = 0.2;
-/// Normal noise of the integrators' Pareto chart (per component; about 2.3° mean error).
-const DEPTH_PARETO_NOISE: f64 = 0.05;
-
-/// The options of a `--quick` run: a 64² image and a few levels, for smoke tests.
-fn quick(mut o: SweepOptions) -> SweepOptions {
-    o.size = 64;
-    o.sfs_size = 64;
-    o.noise_levels = vec![0.0, 0.01, 0.05];
-    o.light_counts = vec![3, 6, 32];
-    o.ks_levels = vec![0.0, PARETO_KS];
-    o.normal_noise_levels = vec![0.0, 0.05];
-    o
-}
 
 /// Writes `rows` as CSV with `columns` to `path`, atomically.
 pub fn write_csv(path: &Path, rows: &[Value], columns: &[&str]) -> Result<()> {
@@ -207,7 +192,7 @@ fn normal_charts(rows: &[NormalRow], o: &SweepOptions, out: &Path) -> Result<()>
     // Pareto at one specular strength: where rejecting highlights pays for its time.
     let glossy: Vec<&NormalRow> = rows
         .iter()
-        .filter(|r| r.axis == Axis::Specularity && (r.ks - PARETO_KS).abs() < 1e-12)
+        .filter(|r| r.axis == Axis::Specularity && (r.ks - GLOSSY_KS).abs() < 1e-12)
         .collect();
     if !glossy.is_empty() {
         let pts: Vec<(f64, f64)> = glossy.iter().map(|r| (r.seconds, r.mean_deg)).collect();
@@ -222,7 +207,7 @@ fn normal_charts(rows: &[NormalRow], o: &SweepOptions, out: &Path) -> Result<()>
         write(
             &chart(
                 format!(
-                    "Normals: error vs time, glossy (k_s = {PARETO_KS}, {} lights, σ = {}, {}²)",
+                    "Normals: error vs time, glossy (k_s = {GLOSSY_KS}, {} lights, σ = {}, {}²)",
                     o.lights, o.noise, o.size
                 ),
                 "solve + normals time (s)",
@@ -363,19 +348,25 @@ fn options(a: &SweepBenchArgs) -> SweepOptions {
         o.methods = a.methods.iter().map(|m| m.method()).collect();
     }
     if a.quick {
-        o = quick(o);
+        o = o.quick();
     }
     o
 }
 
-/// Runs the three sweeps, writes the tables and charts into `a.out`, and returns a summary.
+/// Runs the three sweeps `a` asks for, writes the tables and charts into `a.out`, and returns
+/// a summary.
 pub fn run(a: &SweepBenchArgs, progress: &dyn Progress) -> Result<Value> {
-    let o = options(a);
+    write_sweeps(&options(a), &a.out, progress)
+}
+
+/// Runs the three sweeps of `o`, writes the tables and charts into `out`, and returns a
+/// summary.
+pub fn write_sweeps(o: &SweepOptions, out: &Path, progress: &dyn Progress) -> Result<Value> {
     o.validate()?;
-    std::fs::create_dir_all(&a.out)?;
-    let normals = normal_sweep(&o, progress)?;
-    let sfs = sfs_sweep(&o, progress)?;
-    let depth = depth_sweep(&o, progress)?;
+    std::fs::create_dir_all(out)?;
+    let normals = normal_sweep(o, progress)?;
+    let sfs = sfs_sweep(o, progress)?;
+    let depth = depth_sweep(o, progress)?;
     let nv: Vec<Value> = normals.iter().map(|r| json!(r)).collect();
     let sv: Vec<Value> = sfs.iter().map(|r| json!(r)).collect();
     let dv: Vec<Value> = depth.iter().map(|r| json!(r)).collect();
@@ -394,10 +385,10 @@ pub fn run(a: &SweepBenchArgs, progress: &dyn Progress) -> Result<Value> {
         "coverage",
         "seconds",
     ];
-    write_csv(&a.out.join("sweep_normals.csv"), &nv, &normal_columns)?;
-    write_csv(&a.out.join("sweep_sfs.csv"), &sv, &normal_columns)?;
+    write_csv(&out.join("sweep_normals.csv"), &nv, &normal_columns)?;
+    write_csv(&out.join("sweep_sfs.csv"), &sv, &normal_columns)?;
     write_csv(
-        &a.out.join("sweep_depth.csv"),
+        &out.join("sweep_depth.csv"),
         &dv,
         &[
             "scene",
@@ -410,9 +401,9 @@ pub fn run(a: &SweepBenchArgs, progress: &dyn Progress) -> Result<Value> {
             "seconds",
         ],
     )?;
-    normal_charts(&normals, &o, &a.out)?;
-    sfs_chart(&sfs, &o, &a.out)?;
-    depth_charts(&depth, &o, &a.out)?;
+    normal_charts(&normals, o, out)?;
+    sfs_chart(&sfs, o, out)?;
+    depth_charts(&depth, o, out)?;
     let lights: Vec<(f64, f64)> = normals
         .iter()
         .filter(|r| r.axis == Axis::Lights)
@@ -439,7 +430,7 @@ pub fn run(a: &SweepBenchArgs, progress: &dyn Progress) -> Result<Value> {
         "depth": dv,
     });
     crate::write_file_atomic(
-        &a.out.join("sweep.json"),
+        &out.join("sweep.json"),
         serde_json::to_string_pretty(&summary)?.as_bytes(),
     )?;
     Ok(summary)

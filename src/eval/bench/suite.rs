@@ -1,0 +1,77 @@
+//! What `bench all` runs to regenerate `docs/bench` ([`SuitePlan`]), in order: the
+//! speed–accuracy sweeps ([`crate::eval::sweep`]), solver scaling ([`super::scaling`]),
+//! integrator timing ([`super::integration`]), then on each DiLiGenT object present the
+//! stages beside the numpy peer ([`super::stages`]) and every estimator with all lights and
+//! light subsets ([`super::diligent`]), and last every integrator on the shared depth data
+//! ([`super::real_depth`]). The quick plan is a smoke run of the whole chain, not for
+//! publishing.
+
+use super::integration::IntegrationBenchOptions;
+use super::scaling::ScalingOptions;
+use crate::eval::sweep::SweepOptions;
+use crate::ps::solve::SolveOptions;
+use crate::run::pipeline::Config;
+
+/// The settings of every part of `bench all`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SuitePlan {
+    /// The speed–accuracy sweeps.
+    pub sweep: SweepOptions,
+    /// Solver scaling.
+    pub scaling: ScalingOptions,
+    /// Integrator timing.
+    pub integration: IntegrationBenchOptions,
+    /// The DiLiGenT stage timing beside the peer: plain least squares ([`super::stages::PEER_METHOD`]),
+    /// normals only.
+    pub stages: Config,
+    /// Runs of the DiLiGenT stage timing and of each estimator on DiLiGenT; medians are
+    /// reported.
+    pub diligent_repeat: usize,
+}
+
+impl SuitePlan {
+    /// The plan that regenerates `docs/bench`: every part at its defaults, three timed runs per
+    /// point.
+    pub fn full() -> Self {
+        SuitePlan {
+            sweep: SweepOptions {
+                repeat: super::DEFAULT_REPEAT,
+                ..SweepOptions::default()
+            },
+            scaling: ScalingOptions::default(),
+            integration: IntegrationBenchOptions::default(),
+            stages: Config {
+                solve: SolveOptions::with_method(super::stages::PEER_METHOD),
+                integration: None,
+                ..Config::default()
+            },
+            diligent_repeat: super::DEFAULT_REPEAT,
+        }
+    }
+
+    /// A smoke run of the whole chain: small images ([`SweepOptions::quick`]; scaling at 64²
+    /// and 128², integrators at 64² and 128²) and single runs, except the sweeps' three.
+    pub fn quick() -> Self {
+        let full = Self::full();
+        SuitePlan {
+            sweep: full.sweep.quick(),
+            scaling: ScalingOptions {
+                sizes: vec![64, 128],
+                repeat: 1,
+                ..full.scaling
+            },
+            integration: IntegrationBenchOptions {
+                sizes: vec![64, 128],
+                repeat: 1,
+                ..full.integration
+            },
+            diligent_repeat: 1,
+            ..full
+        }
+    }
+
+    /// [`Self::quick`] when `quick`, else [`Self::full`].
+    pub fn new(quick: bool) -> Self {
+        if quick { Self::quick() } else { Self::full() }
+    }
+}
