@@ -1,0 +1,501 @@
+//! The block kernel: pixels solved a block at a time with their samples gathered into
+//! contiguous scratch, Gram matrices cached by lit-light set, and the shadow-weighted
+//! accumulation specialised at compile time for weighting and saturation flags.
+
+use super::*;
+
+/// Pixels per work block: the block's samples for all images should stay in the L2 cache.
+pub(super) const BLOCK_PIXELS: usize = 1024;
+
+/// The condition number and inverse of the last Gram matrix seen: neighbouring pixels usually
+/// use the same lights (plain least squares: all pixels), so the eigenvalues and inverse are
+/// computed once per distinct light subset rather than per pixel.
+pub(super) struct GramCache {
+    pub(super) key: [f32; 6],
+    pub(super) condition: f64,
+    pub(super) inverse: Option<Matrix3<f64>>,
+}
+
+impl GramCache {
+    pub(super) fn new() -> Self {
+        GramCache {
+            key: [f32::NAN; 6],
+            condition: f64::NAN,
+            inverse: None,
+        }
+    }
+
+    pub(super) fn get(
+        &mut self,
+        key: [f32; 6],
+        gram: &Matrix3<f64>,
+    ) -> (f64, Option<Matrix3<f64>>) {
+        if key != self.key {
+            self.key = key;
+            self.condition = condition_from_gram(gram);
+            self.inverse = gram.try_inverse();
+        }
+        (self.condition, self.inverse)
+    }
+}
+
+/// A run of consecutive masked pixels `[start, start + len)` in row-major order, at
+/// `[local, local + len)` in the stack's planes.
+#[derive(Clone, Copy)]
+pub(super) struct Span {
+    pub(super) start: usize,
+    pub(super) local: usize,
+    pub(super) len: usize,
+}
+
+/// Splits the mask into blocks of at most [`BLOCK_PIXELS`] masked pixels made of row spans;
+/// `window` (the stack's, covering the mask) gives their place in the planes.
+pub(super) fn blocks(mask: &Mask, window: Window) -> Vec<Vec<Span>> {
+    let (w, h) = (mask.width(), mask.height());
+    let mut out = Vec::new();
+    let mut current = Vec::new();
+    let mut filled = 0;
+    for y in 0..h {
+        let row = &mask.data()[y * w..(y + 1) * w];
+        let mut x = 0;
+        while x < w {
+            if !row[x] {
+                x += 1;
+                continue;
+            }
+            let mut end = x;
+            while end < w && row[end] {
+                end += 1;
+            }
+            let mut s = x;
+            while s < end {
+                let take = (end - s).min(BLOCK_PIXELS - filled);
+                current.push(Span {
+                    start: y * w + s,
+                    local: (y - window.y0) * window.width() + (s - window.x0),
+                    len: take,
+                });
+                filled += take;
+                s += take;
+                if filled == BLOCK_PIXELS {
+                    out.push(std::mem::take(&mut current));
+                    filled = 0;
+                }
+            }
+            x = end;
+        }
+    }
+    if !current.is_empty() {
+        out.push(current);
+    }
+    out
+}
+
+/// Per-block accumulators in structure-of-arrays form (one entry per block pixel).
+#[derive(Default)]
+pub(super) struct Scratch {
+    pub(super) threshold: Vec<f32>,
+    /// Unweighted Gram matrix of used directions: xx, xy, xz, yy, yz, zz.
+    pub(super) gram: [Vec<f32>; 6],
+    /// Weighted normal matrix (same order); equals `gram` for plain least squares.
+    pub(super) a: [Vec<f32>; 6],
+    /// Right-hand side.
+    pub(super) b: [Vec<f32>; 3],
+    pub(super) count: Vec<u32>,
+    pub(super) g: Vec<[f32; 3]>,
+    pub(super) ss: Vec<f32>,
+    /// Σ r²/σ² over used samples (the fit-test statistic).
+    pub(super) chi2: Vec<f32>,
+    /// Gathered samples of the block, [pixel][image], for the per-pixel estimators.
+    pub(super) values: Vec<f32>,
+    /// Saturation flags, laid out as `values`.
+    pub(super) saturated: Vec<bool>,
+}
+
+impl Scratch {
+    pub(super) fn reset(&mut self, len: usize) {
+        for v in self
+            .gram
+            .iter_mut()
+            .chain(self.a.iter_mut())
+            .chain(self.b.iter_mut())
+            .chain([&mut self.ss, &mut self.chi2, &mut self.threshold])
+        {
+            v.clear();
+            v.resize(len, 0.0);
+        }
+        self.count.clear();
+        self.count.resize(len, 0);
+        self.g.clear();
+        self.g.resize(len, [f32::NAN; 3]);
+    }
+}
+
+impl Scratch {
+    /// Gathered samples and saturation flags of block pixel `i` (of `k` images).
+    pub(super) fn pixel(&self, i: usize, k: usize) -> (&[f32], &[bool]) {
+        (
+            &self.values[i * k..(i + 1) * k],
+            &self.saturated[i * k..(i + 1) * k],
+        )
+    }
+}
+
+/// Output of one block, scattered into the solution grids afterwards.
+pub(super) struct BlockOut {
+    pub(super) spans: Vec<Span>,
+    pub(super) pixels: Vec<PixelSolution>,
+}
+
+/// Whether sample `pixel` of an image with saturation `bits` is clipped.
+#[inline(always)]
+pub(super) fn sat_bit(bits: &[u64], pixel: usize) -> bool {
+    bits[pixel / 64] >> (pixel % 64) & 1 == 1
+}
+
+/// Accumulator slices of one span (all of the span's length).
+pub(super) struct Acc<'a> {
+    pub(super) gram: [&'a mut [f32]; 6],
+    pub(super) a: [&'a mut [f32]; 6],
+    pub(super) b: [&'a mut [f32]; 3],
+    pub(super) count: &'a mut [u32],
+}
+
+/// Adds one image's samples `src` (pixels `start..start + src.len()`) with light `l` to the
+/// normal equations of the span. `WEIGHTED`: weights v² (diag(I) rows); `SAT`: consult `bits`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn accumulate<const WEIGHTED: bool, const SAT: bool>(
+    src: &[f32],
+    gain: f32,
+    thr: &[f32],
+    bits: &[u64],
+    start: usize,
+    l: &[f32; 3],
+    ll: &[f32; 6],
+    acc: Acc,
+) {
+    let n = src.len();
+    let Acc { gram, a, b, count } = acc;
+    let [g0, g1, g2, g3, g4, g5] = gram;
+    let [a0, a1, a2, a3, a4, a5] = a;
+    let [b0, b1, b2] = b;
+    let (thr, count) = (&thr[..n], &mut count[..n]);
+    let (g0, g1, g2, g3, g4, g5) = (
+        &mut g0[..n],
+        &mut g1[..n],
+        &mut g2[..n],
+        &mut g3[..n],
+        &mut g4[..n],
+        &mut g5[..n],
+    );
+    let (a0, a1, a2, a3, a4, a5) = (
+        &mut a0[..n],
+        &mut a1[..n],
+        &mut a2[..n],
+        &mut a3[..n],
+        &mut a4[..n],
+        &mut a5[..n],
+    );
+    let (b0, b1, b2) = (&mut b0[..n], &mut b1[..n], &mut b2[..n]);
+    for j in 0..n {
+        let v = src[j] * gain;
+        let ok = v > thr[j] && !(SAT && sat_bit(bits, start + j));
+        let u = if ok { 1.0 } else { 0.0 };
+        let vv = if ok { v } else { 0.0 };
+        count[j] += u32::from(ok);
+        g0[j] += u * ll[0];
+        g1[j] += u * ll[1];
+        g2[j] += u * ll[2];
+        g3[j] += u * ll[3];
+        g4[j] += u * ll[4];
+        g5[j] += u * ll[5];
+        let w = if WEIGHTED {
+            let w = vv * vv;
+            a0[j] += w * ll[0];
+            a1[j] += w * ll[1];
+            a2[j] += w * ll[2];
+            a3[j] += w * ll[3];
+            a4[j] += w * ll[4];
+            a5[j] += w * ll[5];
+            w
+        } else {
+            u
+        };
+        let wv = w * vv;
+        b0[j] += wv * l[0];
+        b1[j] += wv * l[1];
+        b2[j] += wv * l[2];
+    }
+}
+
+/// Adds squared residuals of one image's used samples to `ss`, and divided by the image's
+/// noise variance (1/`inv_var`) to `chi2`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn residuals<const SAT: bool>(
+    src: &[f32],
+    gain: f32,
+    inv_var: f32,
+    thr: &[f32],
+    bits: &[u64],
+    start: usize,
+    l: &[f32; 3],
+    g: &[[f32; 3]],
+    ss: &mut [f32],
+    chi2: &mut [f32],
+) {
+    let n = src.len();
+    let (thr, g, ss, chi2) = (&thr[..n], &g[..n], &mut ss[..n], &mut chi2[..n]);
+    for j in 0..n {
+        let v = src[j] * gain;
+        let ok = v > thr[j] && !(SAT && sat_bit(bits, start + j));
+        let e = v - (g[j][0] * l[0] + g[j][1] * l[1] + g[j][2] * l[2]);
+        // Unsolved pixels have NaN g; their sum is discarded.
+        let e2 = if ok { e * e } else { 0.0 };
+        ss[j] += e2;
+        chi2[j] += e2 * inv_var;
+    }
+}
+
+/// The per-image data of a solve: light directions, gains and noise.
+pub(super) struct PerImage {
+    pub(super) dirs: Vec<[f32; 3]>,
+    pub(super) dirs64: Vec<Vector3<f64>>,
+    pub(super) gains: Vec<f32>,
+    /// Noise of the samples before gains (NaN when unused).
+    pub(super) sigma: Vec<f32>,
+    /// 1/(σ_k·gain_k)².
+    pub(super) inv_var: Vec<f32>,
+}
+
+#[allow(clippy::too_many_arguments)]
+pub(super) fn solve_block(
+    stack: &ImageStack,
+    channel: usize,
+    per: &PerImage,
+    rule: Rule,
+    max_condition: f64,
+    spans: &[Span],
+    s: &mut Scratch,
+) -> Vec<PixelSolution> {
+    let len: usize = spans.iter().map(|sp| sp.len).sum();
+    s.reset(len);
+    s.threshold.fill(f32::NEG_INFINITY);
+    // Pass 1: per-pixel threshold from the brightest finite sample.
+    if rule.reject {
+        for k in 0..stack.count() {
+            let plane = stack.plane(k, channel);
+            let mut off = 0;
+            for sp in spans {
+                let src = &plane[sp.local..sp.local + sp.len];
+                let gain = per.gains[k];
+                for (t, &v) in s.threshold[off..off + sp.len].iter_mut().zip(src) {
+                    // NaN compares false and is skipped.
+                    let v = v * gain;
+                    *t = if v > *t { v } else { *t };
+                }
+                off += sp.len;
+            }
+        }
+        for t in &mut s.threshold {
+            *t = rule.threshold(*t);
+        }
+    }
+    // Pass 2: accumulate the normal equations image by image.
+    for (k, l) in per.dirs.iter().enumerate() {
+        let gain = per.gains[k];
+        let plane = stack.plane(k, channel);
+        let bits = if rule.reject_saturated {
+            stack.saturation_bits(k)
+        } else {
+            None
+        };
+        let ll = [
+            l[0] * l[0],
+            l[0] * l[1],
+            l[0] * l[2],
+            l[1] * l[1],
+            l[1] * l[2],
+            l[2] * l[2],
+        ];
+        let mut off = 0;
+        for sp in spans {
+            let src = &plane[sp.local..sp.local + sp.len];
+            let r = off..off + sp.len;
+            let [g0, g1, g2, g3, g4, g5] = &mut s.gram;
+            let [a0, a1, a2, a3, a4, a5] = &mut s.a;
+            let [b0, b1, b2] = &mut s.b;
+            let acc = Acc {
+                gram: [
+                    &mut g0[r.clone()],
+                    &mut g1[r.clone()],
+                    &mut g2[r.clone()],
+                    &mut g3[r.clone()],
+                    &mut g4[r.clone()],
+                    &mut g5[r.clone()],
+                ],
+                a: [
+                    &mut a0[r.clone()],
+                    &mut a1[r.clone()],
+                    &mut a2[r.clone()],
+                    &mut a3[r.clone()],
+                    &mut a4[r.clone()],
+                    &mut a5[r.clone()],
+                ],
+                b: [&mut b0[r.clone()], &mut b1[r.clone()], &mut b2[r.clone()]],
+                count: &mut s.count[r.clone()],
+            };
+            let thr = &s.threshold[r];
+            match (rule.intensity_weight, bits) {
+                (true, Some(bits)) => {
+                    accumulate::<true, true>(src, gain, thr, bits, sp.start, l, &ll, acc)
+                }
+                (true, None) => {
+                    accumulate::<true, false>(src, gain, thr, &[], sp.start, l, &ll, acc)
+                }
+                (false, Some(bits)) => {
+                    accumulate::<false, true>(src, gain, thr, bits, sp.start, l, &ll, acc)
+                }
+                (false, None) => {
+                    accumulate::<false, false>(src, gain, thr, &[], sp.start, l, &ll, acc)
+                }
+            }
+            off += sp.len;
+        }
+    }
+    // Solve each pixel.
+    let mut out = Vec::with_capacity(len);
+    let mut cache = GramCache::new();
+    for i in 0..len {
+        let key = [0, 1, 2, 3, 4, 5].map(|q| s.gram[q][i]);
+        let sym = |e: [f32; 6]| {
+            let e = e.map(f64::from);
+            Matrix3::new(e[0], e[1], e[2], e[1], e[3], e[4], e[2], e[4], e[5])
+        };
+        let gram = sym(key);
+        let b = Vector3::new(
+            f64::from(s.b[0][i]),
+            f64::from(s.b[1][i]),
+            f64::from(s.b[2][i]),
+        );
+        let n = s.count[i] as usize;
+        let (condition, inverse) = if n >= MIN_SAMPLES {
+            cache.get(key, &gram)
+        } else {
+            (f64::INFINITY, None)
+        };
+        let (g, condition, status) = finish_pixel(n, condition, max_condition, || {
+            if rule.intensity_weight {
+                solve_spd(sym([0, 1, 2, 3, 4, 5].map(|q| s.a[q][i])), b)
+            } else {
+                inverse.map(|m| m * b)
+            }
+        });
+        if status == PixelStatus::Solved {
+            s.g[i] = [g.x as f32, g.y as f32, g.z as f32];
+        }
+        out.push(PixelSolution {
+            g,
+            residual: f64::NAN,
+            samples: n,
+            condition,
+            status,
+            robust: false,
+        });
+    }
+    // Pass 3: residuals over the used samples.
+    for (k, l) in per.dirs.iter().enumerate() {
+        let (gain, inv_var) = (per.gains[k], per.inv_var[k]);
+        let plane = stack.plane(k, channel);
+        let bits = if rule.reject_saturated {
+            stack.saturation_bits(k)
+        } else {
+            None
+        };
+        let mut off = 0;
+        for sp in spans {
+            let src = &plane[sp.local..sp.local + sp.len];
+            let r = off..off + sp.len;
+            let (thr, g) = (&s.threshold[r.clone()], &s.g[r.clone()]);
+            let (ss, chi2) = (&mut s.ss[r.clone()], &mut s.chi2[r]);
+            match bits {
+                Some(bits) => {
+                    residuals::<true>(src, gain, inv_var, thr, bits, sp.start, l, g, ss, chi2)
+                }
+                None => residuals::<false>(src, gain, inv_var, thr, &[], sp.start, l, g, ss, chi2),
+            }
+            off += sp.len;
+        }
+    }
+    for (i, p) in out.iter_mut().enumerate() {
+        if p.status == PixelStatus::Solved {
+            p.residual = (f64::from(s.ss[i]) / p.samples as f64).sqrt();
+        }
+    }
+    out
+}
+
+/// Copies the block's samples into `s.values`/`s.saturated` as [pixel][image].
+pub(super) fn gather_block(stack: &ImageStack, channel: usize, spans: &[Span], s: &mut Scratch) {
+    let k = stack.count();
+    let len: usize = spans.iter().map(|sp| sp.len).sum();
+    s.values.clear();
+    s.values.resize(len * k, f32::NAN);
+    s.saturated.clear();
+    s.saturated.resize(len * k, false);
+    for img in 0..k {
+        let plane = stack.plane(img, channel);
+        let bits = stack.saturation_bits(img);
+        let mut i = 0;
+        for sp in spans {
+            for (p, &v) in (sp.start..).zip(&plane[sp.local..sp.local + sp.len]) {
+                s.values[i * k + img] = v;
+                s.saturated[i * k + img] = bits.is_some_and(|b| sat_bit(b, p));
+                i += 1;
+            }
+        }
+    }
+}
+
+/// Solves one block with the method of `options`.
+pub(super) fn solve_any_block(
+    stack: &ImageStack,
+    channel: usize,
+    per: &PerImage,
+    options: &SolveOptions,
+    spans: &[Span],
+    s: &mut Scratch,
+) -> Vec<PixelSolution> {
+    let k = stack.count();
+    let method = options.method;
+    if method.is_linear() || method == Method::Auto {
+        let rule = Rule::new(method, options);
+        let mut out = solve_block(stack, channel, per, rule, options.max_condition, spans, s);
+        if method != Method::Auto {
+            return out;
+        }
+        let escalated: Vec<usize> = (0..out.len())
+            .filter(|&i| misfit(&out[i], f64::from(s.chi2[i]), options.fit_test_z))
+            .collect();
+        if escalated.is_empty() {
+            return out;
+        }
+        gather_block(stack, channel, spans, s);
+        let mut f = fitter(&per.dirs64, &per.gains, options);
+        for i in escalated {
+            let (v, sat) = s.pixel(i, k);
+            out[i] = escalate(&mut f, v, sat, out[i], options);
+        }
+        return out;
+    }
+    gather_block(stack, channel, spans, s);
+    let mut f = fitter(&per.dirs64, &per.gains, options);
+    let len = s.values.len() / k.max(1);
+    (0..len)
+        .map(|i| {
+            let (v, sat) = s.pixel(i, k);
+            fit_with(&mut f, v, sat, &per.sigma, options)
+        })
+        .collect()
+}

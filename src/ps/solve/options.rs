@@ -1,0 +1,230 @@
+//! What a solve is asked to do: the estimator ([`Method`]) and its parameters ([`SolveOptions`]),
+//! with their defaults.
+
+use super::*;
+
+/// Fewest usable samples that determine g (three unknowns).
+pub const MIN_SAMPLES: usize = 3;
+/// Default limit on the condition number of a pixel's used light directions.
+pub const DEFAULT_MAX_CONDITION: f64 = 100.0;
+/// Default shadow threshold, as a fraction of the pixel's brightest sample.
+pub const DEFAULT_SHADOW_THRESHOLD: f32 = 0.1;
+/// Default standard-normal deviate of the automatic method's χ² test: a pixel is refitted when
+/// its Lambertian residual would occur by noise alone with probability below 0.1%.
+pub const DEFAULT_FIT_TEST_Z: f64 = 3.09;
+/// Smallest noise level the fit test assumes, relative to an image's median signal: no real
+/// surface follows Lambert's law closer than this, so exact synthetic data is not "misfit".
+pub const MODEL_TOLERANCE: f32 = 1e-3;
+
+/// The estimator for g.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "kebab-case")]
+#[non_exhaustive]
+pub enum Method {
+    /// Plain unweighted least squares over all finite samples.
+    LeastSquares,
+    /// Unweighted least squares over samples that pass shadow and saturation rejection.
+    Threshold,
+    /// Intensity-weighted (diag(I)) least squares with shadow and saturation rejection.
+    ShadowWeighted,
+    /// Least squares after dropping the darkest and brightest fractions of the samples.
+    Trimmed,
+    /// IRLS with the Huber loss over the threshold set.
+    Huber,
+    /// IRLS with Tukey's biweight over the threshold set.
+    Tukey,
+    /// IRLS with the L1 loss (least absolute deviations) over the threshold set.
+    L1,
+    /// Half-vector specular and grazing-angle rejection, then Tukey IRLS.
+    Specular,
+    /// Threshold least squares where Lambert's law fits (χ² test against the image noise),
+    /// [`Method::Specular`] where it does not; light intensities corrected from the data.
+    #[default]
+    Auto,
+}
+
+impl Method {
+    /// Every method, in order of model complexity.
+    pub const ALL: [Method; 9] = [
+        Method::LeastSquares,
+        Method::Threshold,
+        Method::ShadowWeighted,
+        Method::Trimmed,
+        Method::Huber,
+        Method::Tukey,
+        Method::L1,
+        Method::Specular,
+        Method::Auto,
+    ];
+
+    /// The name used on the command line and in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::LeastSquares => "ls",
+            Method::Threshold => "threshold",
+            Method::ShadowWeighted => "weighted",
+            Method::Trimmed => "trim",
+            Method::Huber => "huber",
+            Method::Tukey => "tukey",
+            Method::L1 => "l1",
+            Method::Specular => "specular",
+            Method::Auto => "auto",
+        }
+    }
+
+    /// Whether the method is one of the linear estimators of the blocked fast path.
+    pub(super) fn is_linear(self) -> bool {
+        matches!(
+            self,
+            Method::LeastSquares | Method::Threshold | Method::ShadowWeighted
+        )
+    }
+}
+
+/// Parameters of [`solve`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct SolveOptions {
+    /// The estimator.
+    pub method: Method,
+    /// Every method but plain least squares: samples at or below this fraction of the pixel's
+    /// brightest sample (and all samples ≤ 0) are treated as shadowed and dropped.
+    pub shadow_threshold: f32,
+    /// Every method but plain least squares: drop samples marked saturated in the stack.
+    pub reject_saturated: bool,
+    /// Pixels whose used light directions have a condition number above this are flagged.
+    pub max_condition: f64,
+    /// [`Method::Trimmed`]: fraction of each pixel's samples dropped from the dark end.
+    pub trim_low: f32,
+    /// [`Method::Trimmed`]: fraction of each pixel's samples dropped from the bright end.
+    pub trim_high: f32,
+    /// [`Method::Specular`] and [`Method::Auto`]: half-angle in degrees of the cone around the
+    /// normal in which a sample's half vector marks it specular.
+    pub specular_cone_deg: f64,
+    /// [`Method::Specular`] and [`Method::Auto`]: samples with N·l below this are dropped.
+    pub min_lit_cosine: f64,
+    /// Estimate per-image intensity corrections from the data ([`crate::ps::intensities`]) and
+    /// apply them where they converge and fit better than the stated intensities; `None`:
+    /// only for [`Method::Auto`]. Never with fewer than [`crate::ps::intensities::MIN_LIGHTS`]
+    /// images.
+    pub recalibrate: Option<bool>,
+    /// [`Method::Auto`]: the noise standard deviation of the (intensity-divided) samples, when
+    /// known; `None` estimates it per image ([`crate::ps::noise`]).
+    pub noise_sigma: Option<f32>,
+    /// [`Method::Auto`]: standard-normal deviate of the χ² fit test (3.09: 0.1% false alarms).
+    pub fit_test_z: f64,
+}
+
+impl Default for SolveOptions {
+    fn default() -> Self {
+        SolveOptions {
+            method: Method::default(),
+            shadow_threshold: DEFAULT_SHADOW_THRESHOLD,
+            reject_saturated: true,
+            max_condition: DEFAULT_MAX_CONDITION,
+            trim_low: DEFAULT_TRIM_LOW,
+            trim_high: DEFAULT_TRIM_HIGH,
+            specular_cone_deg: DEFAULT_SPECULAR_CONE_DEG,
+            min_lit_cosine: DEFAULT_MIN_LIT_COSINE,
+            recalibrate: None,
+            noise_sigma: None,
+            fit_test_z: DEFAULT_FIT_TEST_Z,
+        }
+    }
+}
+
+impl SolveOptions {
+    /// Plain least squares over every sample: the reference estimator.
+    pub fn least_squares() -> Self {
+        Self::with_method(Method::LeastSquares)
+    }
+
+    /// Default parameters with `method`.
+    pub fn with_method(method: Method) -> Self {
+        SolveOptions {
+            method,
+            ..SolveOptions::default()
+        }
+    }
+
+    /// Whether intensity corrections are estimated for a stack of `count` images.
+    pub fn recalibrates(&self, count: usize) -> bool {
+        self.recalibrate.unwrap_or(self.method == Method::Auto)
+            && count >= crate::ps::intensities::MIN_LIGHTS
+    }
+
+    /// Checks parameter ranges.
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] naming the first parameter out of range.
+    pub fn validate(&self) -> Result<()> {
+        if !(0.0..1.0).contains(&self.shadow_threshold) {
+            return Err(Error::param(
+                "shadow-threshold",
+                format!("{} is outside [0, 1)", self.shadow_threshold),
+            ));
+        }
+        if self.max_condition.is_nan() || self.max_condition <= 1.0 {
+            return Err(Error::param(
+                "max-condition",
+                format!("{} must be > 1", self.max_condition),
+            ));
+        }
+        for (name, v) in [("trim-low", self.trim_low), ("trim-high", self.trim_high)] {
+            if !(0.0..1.0).contains(&v) {
+                return Err(Error::param(name, format!("{v} is outside [0, 1)")));
+            }
+        }
+        if self.trim_low + self.trim_high >= 0.9 {
+            return Err(Error::param(
+                "trim-low/trim-high",
+                format!(
+                    "{} + {} leaves fewer than 10% of the samples",
+                    self.trim_low, self.trim_high
+                ),
+            ));
+        }
+        if !(0.0..90.0).contains(&self.specular_cone_deg) {
+            return Err(Error::param(
+                "specular-cone",
+                format!("{}° is outside [0°, 90°)", self.specular_cone_deg),
+            ));
+        }
+        if !(0.0..1.0).contains(&self.min_lit_cosine) {
+            return Err(Error::param(
+                "min-lit-cosine",
+                format!("{} is outside [0, 1)", self.min_lit_cosine),
+            ));
+        }
+        if let Some(s) = self.noise_sigma
+            && !(s.is_finite() && s > 0.0)
+        {
+            return Err(Error::param("noise-sigma", format!("{s} must be > 0")));
+        }
+        if !(self.fit_test_z.is_finite() && self.fit_test_z > 0.0) {
+            return Err(Error::param(
+                "fit-test-z",
+                format!("{} must be > 0", self.fit_test_z),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The robust estimator of a robust method; `None` for the linear ones.
+    pub(super) fn estimator(&self) -> Option<Estimator> {
+        let specular = Estimator::Specular {
+            cos_cone: self.specular_cone_deg.to_radians().cos(),
+            min_cos_lit: self.min_lit_cosine,
+        };
+        Some(match self.method {
+            Method::LeastSquares | Method::Threshold | Method::ShadowWeighted => return None,
+            Method::Trimmed => Estimator::Trimmed {
+                low: self.trim_low,
+                high: self.trim_high,
+            },
+            Method::Huber => Estimator::Irls(Loss::Huber),
+            Method::Tukey => Estimator::Irls(Loss::Tukey),
+            Method::L1 => Estimator::Irls(Loss::L1),
+            Method::Specular | Method::Auto => specular,
+        })
+    }
+}

@@ -1,0 +1,167 @@
+//! What a solve produces: per-pixel outcomes ([`PixelStatus`]), the solution maps of a channel
+//! ([`Solution`]) and their counts ([`StatusCounts`]).
+
+use super::*;
+
+/// What happened at a pixel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PixelStatus {
+    /// Not in the mask.
+    #[default]
+    Outside,
+    /// g was estimated.
+    Solved,
+    /// Fewer than [`MIN_SAMPLES`] usable samples.
+    TooFewSamples,
+    /// The used light directions are (nearly) coplanar.
+    IllConditioned,
+    /// The estimate is zero or not finite (a black pixel).
+    Dark,
+}
+
+/// Per-pixel result of one solve: g = ρN and its diagnostics.
+#[derive(Debug, Clone)]
+pub struct Solution {
+    /// g = ρN per pixel; NaN where not solved.
+    pub g: Grid<Vector3<f32>>,
+    /// RMS of I − g·l over the used samples; NaN where not solved.
+    pub residual: ScalarMap,
+    /// Number of samples used.
+    pub samples: Grid<u16>,
+    /// Condition number of the used light directions (∞ when fewer than 3).
+    pub condition: ScalarMap,
+    /// What happened at each pixel.
+    pub status: Grid<PixelStatus>,
+    /// Pixels fitted by a robust estimator (for [`Method::Auto`]: those whose residuals
+    /// failed the Lambertian fit test).
+    pub robust: Grid<bool>,
+    /// Per-image intensity corrections applied (all 1 unless recalibrated).
+    pub gains: crate::ps::intensities::GainEstimate,
+    /// Per-image noise standard deviation used by the fit test ([`Method::Auto`]; empty
+    /// otherwise).
+    pub noise: Vec<f32>,
+}
+
+impl Solution {
+    /// A `width`×`height` solution with every pixel outside the mask, the gains applied and
+    /// the fit test's noise `sigma` (kept for [`Method::Auto`] only).
+    pub(crate) fn empty(
+        width: usize,
+        height: usize,
+        gains: crate::ps::intensities::GainEstimate,
+        sigma: Vec<f32>,
+        options: &SolveOptions,
+    ) -> Self {
+        Solution {
+            g: Grid::new(width, height, Vector3::repeat(f32::NAN)),
+            residual: Grid::new(width, height, f32::NAN),
+            samples: Grid::new(width, height, 0),
+            condition: Grid::new(width, height, f32::NAN),
+            status: Grid::new(width, height, PixelStatus::Outside),
+            robust: Grid::new(width, height, false),
+            gains,
+            noise: if options.method == Method::Auto {
+                sigma
+            } else {
+                Vec::new()
+            },
+        }
+    }
+
+    /// Copies every row of `band` (a solution of the same width) into rows `y0..` of this one:
+    /// the assembly of a capture solved in row bands ([`crate::run::stream`]).
+    ///
+    /// # Errors
+    /// [`Error::DimensionMismatch`] when the widths differ or the band runs past the last row.
+    pub(crate) fn paste_rows(&mut self, band: &Solution, y0: usize) -> Result<()> {
+        let (w, h) = (self.g.width(), self.g.height());
+        if band.g.width() != w || y0 + band.g.height() > h {
+            return Err(Error::DimensionMismatch {
+                what: format!("solution band pasted at row {y0}"),
+                width: w,
+                height: h,
+                found_width: band.g.width(),
+                found_height: y0 + band.g.height(),
+            });
+        }
+        let r = y0 * w..(y0 + band.g.height()) * w;
+        self.g.data_mut()[r.clone()].copy_from_slice(band.g.data());
+        self.residual.data_mut()[r.clone()].copy_from_slice(band.residual.data());
+        self.samples.data_mut()[r.clone()].copy_from_slice(band.samples.data());
+        self.condition.data_mut()[r.clone()].copy_from_slice(band.condition.data());
+        self.status.data_mut()[r.clone()].copy_from_slice(band.status.data());
+        self.robust.data_mut()[r].copy_from_slice(band.robust.data());
+        Ok(())
+    }
+
+    /// The first `rows` rows of this solution (all of it when it has fewer).
+    pub(crate) fn top_rows(&self, rows: usize) -> Solution {
+        fn top<T: Clone>(g: &Grid<T>, rows: usize) -> Grid<T> {
+            Grid::from_fn(g.width(), rows, |x, y| g.at(x, y).clone())
+        }
+        let rows = rows.min(self.g.height());
+        Solution {
+            g: top(&self.g, rows),
+            residual: top(&self.residual, rows),
+            samples: top(&self.samples, rows),
+            condition: top(&self.condition, rows),
+            status: top(&self.status, rows),
+            robust: top(&self.robust, rows),
+            gains: self.gains.clone(),
+            noise: self.noise.clone(),
+        }
+    }
+
+    /// Records the outcome `px` of pixel `p` (row-major index).
+    pub(crate) fn record(&mut self, p: usize, px: &PixelSolution) {
+        self.g.data_mut()[p] = px.g.map(|v| v as f32);
+        self.residual.data_mut()[p] = px.residual as f32;
+        self.samples.data_mut()[p] = px.samples.min(u16::MAX as usize) as u16;
+        self.condition.data_mut()[p] = px.condition as f32;
+        self.status.data_mut()[p] = px.status;
+        self.robust.data_mut()[p] = px.robust && px.status == PixelStatus::Solved;
+    }
+}
+
+/// Counts of pixel outcomes in a [`Solution`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct StatusCounts {
+    /// Pixels in the mask.
+    pub masked: usize,
+    /// Pixels solved.
+    pub solved: usize,
+    /// Pixels with fewer than 3 usable samples.
+    pub too_few_samples: usize,
+    /// Pixels whose used lights were ill-conditioned.
+    pub ill_conditioned: usize,
+    /// Pixels whose estimate was zero.
+    pub dark: usize,
+}
+
+impl StatusCounts {
+    /// Tallies a status grid.
+    pub fn from_grid(status: &Grid<PixelStatus>) -> Self {
+        let mut c = StatusCounts::default();
+        for s in status.data() {
+            match s {
+                PixelStatus::Outside => continue,
+                PixelStatus::Solved => c.solved += 1,
+                PixelStatus::TooFewSamples => c.too_few_samples += 1,
+                PixelStatus::IllConditioned => c.ill_conditioned += 1,
+                PixelStatus::Dark => c.dark += 1,
+            }
+            c.masked += 1;
+        }
+        c
+    }
+
+    /// Adds the counts of another part of the image (a band of rows).
+    pub fn add(&mut self, other: &StatusCounts) {
+        self.masked += other.masked;
+        self.solved += other.solved;
+        self.too_few_samples += other.too_few_samples;
+        self.ill_conditioned += other.ill_conditioned;
+        self.dark += other.dark;
+    }
+}
