@@ -415,6 +415,22 @@ pub(crate) enum Preconditioner<'a> {
     Dct(&'a NeumannSolver),
 }
 
+/// Elements summed per chunk of [`dot`]: a fixed partition of the vectors.
+const DOT_CHUNK: usize = 1 << 14;
+
+/// p·q, summed in parallel over fixed chunks whose partial sums are then added in order, so
+/// the result does not depend on the thread count or on how rayon's work stealing split the
+/// work (a plain parallel sum does, and made the depth of every solve by conjugate gradients
+/// change in its last bits from run to run).
+fn dot(p: &[f64], q: &[f64]) -> f64 {
+    let partial: Vec<f64> = p
+        .par_chunks(DOT_CHUNK)
+        .zip(q.par_chunks(DOT_CHUNK))
+        .map(|(a, b)| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>())
+        .collect();
+    partial.iter().sum()
+}
+
 /// Preconditioned conjugate gradients for the consistent, positive semidefinite system
 /// A x = b (b is made zero-mean per part first), from the initial `x`, until
 /// |r| ≤ tol·|b| or `max_iter` iterations. Returns the iterations used.
@@ -430,8 +446,7 @@ pub(crate) fn pcg(
     let n = u.len();
     let mut b = b.to_vec();
     u.zero_mean_parts(&mut b);
-    let norm = |v: &[f64]| v.par_iter().map(|a| a * a).sum::<f64>().sqrt();
-    let dot = |p: &[f64], q: &[f64]| p.par_iter().zip(q).map(|(a, b)| a * b).sum::<f64>();
+    let norm = |v: &[f64]| dot(v, v).sqrt();
     let bn = norm(&b);
     if bn == 0.0 {
         x.iter_mut().for_each(|v| *v = 0.0);
