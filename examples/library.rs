@@ -48,7 +48,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
 
     // Compare with the ground truth.
     let gt = read_normal_map(&scene.join(GROUND_TRUTH_DIR).join("normal_gt.exr"))?;
-    let err = angular_errors(&recon.normals, &gt, &capture.mask)?;
+    let err = angular_errors(&recon.maps.normals, &gt, &capture.mask)?;
     println!(
         "mean angular error {:.3}° over {} pixels; outputs in {}",
         err.mean_deg,

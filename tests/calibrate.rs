@@ -348,6 +348,7 @@ fn reconstruct_psm(list: &Path, lights: &Lights) -> Reconstruction {
 
 fn mean_residual(r: &Reconstruction) -> f64 {
     let v: Vec<f64> = r
+        .maps
         .residual
         .data()
         .iter()
@@ -415,7 +416,7 @@ fn psm_chrome_calibration_explains_the_objects_better_than_the_reference() {
     let mut gray_err = Vec::new();
     for lights in [&calibrated, &reference] {
         let r = reconstruct_psm(&psm.join("gray.txt"), lights);
-        gray_err.push(angular_errors(&r.normals, &truth_normals, &inner).unwrap());
+        gray_err.push(angular_errors(&r.maps.normals, &truth_normals, &inner).unwrap());
     }
     println!(
         "grey sphere normals: calibrated mean {:.2}° / median {:.2}°, lights.txt {:.2}° / {:.2}°",
@@ -429,7 +430,8 @@ fn psm_chrome_calibration_explains_the_objects_better_than_the_reference() {
         let ours = reconstruct_psm(&list, &calibrated);
         let theirs = reconstruct_psm(&list, &reference);
         let (ro, rt) = (mean_residual(&ours), mean_residual(&theirs));
-        let agree = angular_errors(&ours.normals, &theirs.normals, &ours.solved).unwrap();
+        let agree =
+            angular_errors(&ours.maps.normals, &theirs.maps.normals, &ours.maps.solved).unwrap();
         println!(
             "{object}: mean residual {ro:.4} (calibrated) vs {rt:.4} (lights.txt); normals differ by mean {:.2}°, median {:.2}°",
             agree.mean_deg, agree.median_deg

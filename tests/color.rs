@@ -61,7 +61,7 @@ fn run(capture: &Capture, method: Method, color: ColorSolve) -> Reconstruction {
 }
 
 fn mean_error(recon: &Reconstruction, r: &Rendering, mask: &Grid<bool>) -> f64 {
-    let e = angular_errors(&recon.normals, &r.truth.normals, mask).unwrap();
+    let e = angular_errors(&recon.maps.normals, &r.truth.normals, mask).unwrap();
     assert_eq!(e.missing, 0, "unsolved pixels");
     e.mean_deg
 }
@@ -87,8 +87,8 @@ fn exact_on_noise_free_colour_lambertian() {
         let recon = run(&rgb, method, ColorSolve::SharedNormal);
         let e = mean_error(&recon, &r, &rgb.mask);
         assert!(e < 0.01, "{}: {e}°", method.name());
-        assert_eq!(recon.albedo.len(), 3);
-        for (c, map) in recon.albedo.iter().enumerate() {
+        assert_eq!(recon.maps.albedo.len(), 3);
+        for (c, map) in recon.maps.albedo.iter().enumerate() {
             let mut worst: f64 = 0.0;
             for (i, a) in map.data().iter().enumerate() {
                 if rgb.mask.data()[i] {

@@ -78,8 +78,8 @@ fn diligent_default_method_meets_the_robust_target() {
         };
         let recon = reconstruct(&capture, &config, &Silent).unwrap();
         let gt = read_normal_map(&dir.join("normal_gt.exr")).unwrap();
-        let s =
-            photostereo::eval::metrics::angular_errors(&recon.normals, &gt, &capture.mask).unwrap();
+        let s = photostereo::eval::metrics::angular_errors(&recon.maps.normals, &gt, &capture.mask)
+            .unwrap();
         println!(
             "{obj}: auto {:.3}° mean, {:.3}° median, {:.1}% robust ({} px, {} unsolved)",
             s.mean_deg,
@@ -135,8 +135,9 @@ fn diligent_every_estimator_beats_the_baseline() {
                 ..Config::default()
             };
             let recon = reconstruct(&capture, &config, &Silent).unwrap();
-            let s = photostereo::eval::metrics::angular_errors(&recon.normals, &gt, &capture.mask)
-                .unwrap();
+            let s =
+                photostereo::eval::metrics::angular_errors(&recon.maps.normals, &gt, &capture.mask)
+                    .unwrap();
             println!("{obj} {}: {:.3}°", method.name(), s.mean_deg);
             assert!(
                 s.mean_deg < 8.39 - 0.7,

@@ -33,7 +33,7 @@ fn run(capture: &Capture, r: &Rendering, method: Method) -> (f64, Reconstruction
         ..Config::default()
     };
     let recon = reconstruct(capture, &config, &Silent).unwrap();
-    let e = angular_errors(&recon.normals, &r.truth.normals, &capture.mask).unwrap();
+    let e = angular_errors(&recon.maps.normals, &r.truth.normals, &capture.mask).unwrap();
     assert_eq!(e.missing, 0, "{}: unsolved pixels", method.name());
     (e.mean_deg, recon)
 }

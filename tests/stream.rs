@@ -95,14 +95,15 @@ fn bands_give_the_in_memory_result_for_png_tiff_and_exr() {
         // One row, a height that divides nothing, and the whole mask in one band.
         for band_rows in [Some(1), Some(7), None] {
             let s = streamed(&files, &load, &config, band_rows);
-            let e = angular_errors(&s.recon.normals, &whole.normals, &capture.mask).unwrap();
+            let e =
+                angular_errors(&s.recon.maps.normals, &whole.maps.normals, &capture.mask).unwrap();
             assert!(
                 e.mean_deg < 1e-4 && e.p95_deg < 1e-3,
                 "{format}, bands of {band_rows:?}: {e:?}"
             );
             assert_eq!(e.missing, 0, "{format}, bands of {band_rows:?}");
             assert_eq!(s.recon.counts, whole.counts, "{format}, {band_rows:?}");
-            let (a, b) = (s.recon.albedo[0].data(), whole.albedo[0].data());
+            let (a, b) = (s.recon.maps.albedo[0].data(), whole.maps.albedo[0].data());
             let worst = a
                 .iter()
                 .zip(b)
@@ -132,9 +133,10 @@ fn the_auto_model_from_sampled_rows_fits_like_the_whole_stack() {
     let s = streamed(&files, &load, &config, Some(9));
     let plan = s.plan;
     assert!(plan.sample_rows > 0, "auto needs the model pass: {plan:?}");
-    let between = angular_errors(&s.recon.normals, &whole.normals, &capture.mask).unwrap();
-    let e_whole = angular_errors(&whole.normals, &truth, &capture.mask).unwrap();
-    let e_band = angular_errors(&s.recon.normals, &truth, &capture.mask).unwrap();
+    let between =
+        angular_errors(&s.recon.maps.normals, &whole.maps.normals, &capture.mask).unwrap();
+    let e_whole = angular_errors(&whole.maps.normals, &truth, &capture.mask).unwrap();
+    let e_band = angular_errors(&s.recon.maps.normals, &truth, &capture.mask).unwrap();
     assert!(
         between.mean_deg < 0.05,
         "streamed vs in memory: {between:?}"
@@ -182,8 +184,8 @@ fn colour_captures_stream_per_channel() {
         let capture = files.load(&load, &Silent).unwrap();
         let whole = reconstruct(&capture, &config, &Silent).unwrap();
         let s = streamed(&files, &load, &config, Some(5));
-        assert_eq!(s.recon.albedo.len(), 3);
-        let e = angular_errors(&s.recon.normals, &whole.normals, &capture.mask).unwrap();
+        assert_eq!(s.recon.maps.albedo.len(), 3);
+        let e = angular_errors(&s.recon.maps.normals, &whole.maps.normals, &capture.mask).unwrap();
         assert!(e.mean_deg < 1e-4, "{color:?}: {e:?}");
     }
 }

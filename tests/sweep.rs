@@ -560,6 +560,7 @@ fn a_selected_capture_matches_one_rendered_with_those_lights() {
     let e = angular_errors(
         &reconstruct(&sub, &config, &photostereo::progress::Silent)
             .unwrap()
+            .maps
             .normals,
         &truth.normals,
         &truth.mask,

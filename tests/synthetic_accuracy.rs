@@ -58,8 +58,9 @@ fn noise_free_sphere_is_recovered_by_both_integrators() {
             };
             let recon = reconstruct(&synth.capture, &config, &Silent).unwrap();
             let t = &synth.truth;
-            let n = angular_errors(&recon.normals, &t.normals, &t.mask).unwrap();
-            let (alb, _) = albedo_relative_error(&recon.albedo[0], &t.albedo, &t.mask).unwrap();
+            let n = angular_errors(&recon.maps.normals, &t.normals, &t.mask).unwrap();
+            let (alb, _) =
+                albedo_relative_error(&recon.maps.albedo[0], &t.albedo, &t.mask).unwrap();
             let d = depth_errors(recon.depth().unwrap(), &t.depth, &t.mask).unwrap();
             println!(
                 "{method:?} {integrator:?}: mean {:.4}° over {} px ({} unsolved), albedo {:.5}, depth RMSE {:.4} = {:.4}% of range",
@@ -94,7 +95,7 @@ fn plain_least_squares_is_biased_by_attached_shadows() {
         ..Config::default()
     };
     let recon = reconstruct(&synth.capture, &config, &Silent).unwrap();
-    let n = angular_errors(&recon.normals, &synth.truth.normals, &synth.truth.mask).unwrap();
+    let n = angular_errors(&recon.maps.normals, &synth.truth.normals, &synth.truth.mask).unwrap();
     println!("ls on a shadowed sphere: mean {:.3}°", n.mean_deg);
     assert!(n.mean_deg > 1.0, "ls mean error only {}°", n.mean_deg);
 }
@@ -134,8 +135,8 @@ fn noise_matches_the_least_squares_prediction() {
     let predicted_g = s2 * m.trace() / r2;
     let predicted_angle = s2 * (m.trace() - n.dot(&(m * n))) / r2;
     let (mut sum_g, mut sum_a, mut count) = (0.0, 0.0, 0usize);
-    for (i, nn) in recon.normals.data().iter().enumerate() {
-        let g = nn.cast::<f64>() * f64::from(recon.albedo[0].data()[i]);
+    for (i, nn) in recon.maps.normals.data().iter().enumerate() {
+        let g = nn.cast::<f64>() * f64::from(recon.maps.albedo[0].data()[i]);
         let dg = g - n * f64::from(rho);
         sum_g += dg.norm_squared() / r2;
         sum_a += nn.cast::<f64>().dot(&n).clamp(-1.0, 1.0).acos().powi(2);
@@ -164,7 +165,7 @@ fn default_scene_with_cast_shadows_is_recovered() {
         ..Config::default()
     };
     let recon = reconstruct(&synth.capture, &config, &Silent).unwrap();
-    let n = angular_errors(&recon.normals, &synth.truth.normals, &synth.truth.mask).unwrap();
+    let n = angular_errors(&recon.maps.normals, &synth.truth.normals, &synth.truth.mask).unwrap();
     let d = depth_errors(
         recon.depth().unwrap(),
         &synth.truth.depth,
@@ -217,7 +218,7 @@ fn bumps_and_creases_on_a_ground_plane() {
     };
     let synth = synthesize(scene, twelve_lights(), &RenderOptions::default()).unwrap();
     let recon = reconstruct(&synth.capture, &Config::default(), &Silent).unwrap();
-    let n = angular_errors(&recon.normals, &synth.truth.normals, &synth.truth.mask).unwrap();
+    let n = angular_errors(&recon.maps.normals, &synth.truth.normals, &synth.truth.mask).unwrap();
     let d = depth_errors(
         recon.depth().unwrap(),
         &synth.truth.depth,

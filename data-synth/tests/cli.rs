@@ -96,7 +96,7 @@ fn reconstruction_error(dir: &Path, count: usize, ext: &str) -> AngularErrorStat
     };
     let recon = reconstruct(&capture, &config, &Silent).expect("reconstructs");
     let gt = read_normal_map(&dir.join("gt/normal_gt.exr")).expect("normal map reads");
-    let stats = angular_errors(&recon.normals, &gt, &capture.mask).expect("comparable");
+    let stats = angular_errors(&recon.maps.normals, &gt, &capture.mask).expect("comparable");
     assert_eq!(stats.missing, 0, "unsolved pixels: {stats:?}");
     stats
 }

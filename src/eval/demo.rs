@@ -95,15 +95,15 @@ pub struct Evaluation {
 /// [`crate::Error::DimensionMismatch`] when sizes differ; [`crate::Error::Mask`] when nothing can
 /// be compared.
 pub fn evaluate(recon: &Reconstruction, truth: &HeightField) -> Result<Evaluation> {
-    let normals = angular_errors(&recon.normals, &truth.normals, &truth.mask)?;
-    let (mean, max) = albedo_relative_error(&recon.albedo[0], &truth.albedo, &truth.mask)?;
+    let normals = angular_errors(&recon.maps.normals, &truth.normals, &truth.mask)?;
+    let (mean, max) = albedo_relative_error(&recon.maps.albedo[0], &truth.albedo, &truth.mask)?;
     let depth = match recon.depth() {
         Some(d) => Some(depth_errors(d, &truth.depth, &truth.mask)?),
         None => None,
     };
     let solved_in_truth: Mask =
         crate::grid::Grid::from_fn(truth.mask.width(), truth.mask.height(), |x, y| {
-            *truth.mask.at(x, y) && !*recon.solved.at(x, y)
+            *truth.mask.at(x, y) && !*recon.maps.solved.at(x, y)
         });
     Ok(Evaluation {
         normals,

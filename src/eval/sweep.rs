@@ -319,7 +319,7 @@ fn photometric_rows(
                 ..Config::default()
             };
             let (recon, seconds) = timed(runs, || reconstruct(capture, &config, &Silent))?;
-            let e = angular_errors(&recon.normals, truth, &capture.mask)?;
+            let e = angular_errors(&recon.maps.normals, truth, &capture.mask)?;
             Ok(NormalRow {
                 axis,
                 scene,

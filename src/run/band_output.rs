@@ -112,7 +112,7 @@ impl BandOutput {
         );
         self.normals.data_mut()[span.clone()].copy_from_slice(maps.normals.data());
         self.solved.data_mut()[span.clone()].copy_from_slice(maps.solved.data());
-        let file = map_rows(&maps.view());
+        let file = map_rows(&maps);
         drop(maps);
         for (full, band) in self.albedo_maps.iter_mut().zip(&file.albedo) {
             full.data_mut()[span.clone()].copy_from_slice(band);

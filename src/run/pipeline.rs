@@ -73,20 +73,9 @@ pub struct Timings {
 /// Everything a reconstruction produced.
 #[derive(Debug, Clone)]
 pub struct Reconstruction {
-    /// Unit normals; NaN where not solved.
-    pub normals: NormalMap,
-    /// Albedo per channel (one map for grey solves, R, G, B for per-channel ones).
-    pub albedo: Vec<ScalarMap>,
-    /// RMS residual of the model over used samples (largest over channels).
-    pub residual: ScalarMap,
-    /// Samples used per pixel (fewest over channels).
-    pub samples: Grid<u16>,
-    /// Condition number of the used lights (largest over channels).
-    pub condition: ScalarMap,
-    /// Outcome per pixel.
-    pub status: Grid<PixelStatus>,
-    /// Pixels with a normal.
-    pub solved: Mask,
+    /// The per-pixel maps: normals, albedo, residual, samples, condition, status, solved and
+    /// robust flags.
+    pub maps: PixelMaps,
     /// Curl of the gradient field.
     pub curl: ScalarMap,
     /// Summary of |curl|.
@@ -97,8 +86,6 @@ pub struct Reconstruction {
     pub counts: StatusCounts,
     /// Pixels with albedo above 1 (any channel).
     pub albedo_above_one: usize,
-    /// Pixels fitted by a robust estimator (any channel).
-    pub robust: Mask,
     /// How much model the data needed: robust pixels, intensity corrections, noise.
     pub model: ModelSummary,
     /// Stage timings.
@@ -158,7 +145,7 @@ pub fn reconstruct(
 ) -> Result<Reconstruction> {
     let mut recon = reconstruct_normals(capture, config, progress)?;
     let (integration, integrate_s) =
-        integrate_stage(&recon.normals, &recon.solved, config, progress)?;
+        integrate_stage(&recon.maps.normals, &recon.maps.solved, config, progress)?;
     recon.integration = integration;
     recon.timings.integrate = integrate_s;
     Ok(recon)
@@ -204,16 +191,17 @@ pub(crate) struct InputFacts<'a> {
 
 /// The per-pixel maps of a solve, over a whole image or a band of rows: what every pixel's
 /// outputs are made of.
-pub(crate) struct PixelMaps {
+#[derive(Debug, Clone)]
+pub struct PixelMaps {
     /// Unit normals; NaN where not solved.
     pub normals: NormalMap,
-    /// Albedo per channel.
+    /// Albedo per channel (one map for grey solves, R, G, B for colour ones).
     pub albedo: Vec<ScalarMap>,
-    /// RMS residual (largest over channels).
+    /// RMS residual of the model over used samples (largest over channels).
     pub residual: ScalarMap,
-    /// Samples used (fewest over channels).
+    /// Samples used per pixel (fewest over channels).
     pub samples: Grid<u16>,
-    /// Condition number (largest over channels).
+    /// Condition number of the used lights (largest over channels).
     pub condition: ScalarMap,
     /// Outcome per pixel.
     pub status: Grid<PixelStatus>,
@@ -409,30 +397,13 @@ pub(crate) fn assemble(
     let model = model_summary(&models, &tallies, facts.count, config);
     let normals_s = t.elapsed().as_secs_f64();
     let warnings = warnings(facts, &tallies, &models, &integ.summary, config);
-    let PixelMaps {
-        normals,
-        albedo,
-        residual,
-        samples,
-        condition,
-        status,
-        solved,
-        robust,
-    } = maps;
     Reconstruction {
-        normals,
-        albedo,
-        residual,
-        samples,
-        condition,
-        status,
-        solved,
+        maps,
         curl: integ.curl,
         integrability: integ.summary,
         integration: None,
         counts: tallies.counts,
         albedo_above_one: tallies.albedo_above_one,
-        robust,
         model,
         timings: Timings {
             load: 0.0,
@@ -630,7 +601,7 @@ pub fn write_outputs(
     stage_maps(&mut out, recon, &source, config)?;
     stage_depth(
         &mut out,
-        &recon.normals,
+        &recon.maps.normals,
         recon.integration.as_ref(),
         &source,
         config,
@@ -713,8 +684,8 @@ pub(crate) fn integrate_and_write(
     let mut out = OutputDir::create(dir)?;
     let finished = finish(
         &mut out,
-        &recon.normals,
-        &recon.solved,
+        &recon.maps.normals,
+        &recon.maps.solved,
         source,
         config,
         progress,
@@ -843,12 +814,12 @@ pub(crate) struct MapRows {
 }
 
 /// The file contents of maps `m` (any rows).
-pub(crate) fn map_rows(m: &MapsRef) -> MapRows {
+pub(crate) fn map_rows(m: &PixelMaps) -> MapRows {
     let n = m.status.len();
     let albedo = m
         .albedo
         .iter()
-        .map(|a| nan_outside(a, m.solved).into_data())
+        .map(|a| nan_outside(a, &m.solved).into_data())
         .collect();
     let in_mask = |i: usize| m.status.data()[i] != PixelStatus::Outside;
     let samples = (0..n)
@@ -881,63 +852,11 @@ pub(crate) fn map_rows(m: &MapsRef) -> MapRows {
         })
         .collect();
     MapRows {
-        normal: normal_planes(m.normals).into(),
+        normal: normal_planes(&m.normals).into(),
         albedo,
         residual: vec![m.residual.data().to_vec(), samples, condition, robust],
-        mask: mask_bytes(m.solved),
-        normal_png: normal_preview(m.normals),
-    }
-}
-
-/// The per-pixel maps the outputs are made of, borrowed from a [`Reconstruction`] or a
-/// [`PixelMaps`].
-pub(crate) struct MapsRef<'a> {
-    /// Unit normals.
-    pub normals: &'a NormalMap,
-    /// Albedo per channel.
-    pub albedo: &'a [ScalarMap],
-    /// RMS residual.
-    pub residual: &'a ScalarMap,
-    /// Samples used.
-    pub samples: &'a Grid<u16>,
-    /// Condition number.
-    pub condition: &'a ScalarMap,
-    /// Outcome per pixel.
-    pub status: &'a Grid<PixelStatus>,
-    /// Pixels with a normal.
-    pub solved: &'a Mask,
-    /// Pixels fitted by a robust estimator.
-    pub robust: &'a Mask,
-}
-
-impl PixelMaps {
-    /// The maps, borrowed.
-    pub(crate) fn view(&self) -> MapsRef<'_> {
-        MapsRef {
-            normals: &self.normals,
-            albedo: &self.albedo,
-            residual: &self.residual,
-            samples: &self.samples,
-            condition: &self.condition,
-            status: &self.status,
-            solved: &self.solved,
-            robust: &self.robust,
-        }
-    }
-}
-
-impl Reconstruction {
-    fn maps(&self) -> MapsRef<'_> {
-        MapsRef {
-            normals: &self.normals,
-            albedo: &self.albedo,
-            residual: &self.residual,
-            samples: &self.samples,
-            condition: &self.condition,
-            status: &self.status,
-            solved: &self.solved,
-            robust: &self.robust,
-        }
+        mask: mask_bytes(&m.solved),
+        normal_png: normal_preview(&m.normals),
     }
 }
 
@@ -971,9 +890,9 @@ fn stage_maps(
     source: &Described,
     config: &Config,
 ) -> Result<()> {
-    let (w, h) = (recon.normals.width(), recon.normals.height());
+    let (w, h) = (recon.maps.normals.width(), recon.maps.normals.height());
     let attrs = exr_attributes(source.lights, config);
-    let rows = map_rows(&recon.maps());
+    let rows = map_rows(&recon.maps);
     out.stage_exr(
         "normal.exr",
         w,
@@ -1072,7 +991,7 @@ pub(crate) struct RunSummary {
 impl RunSummary {
     /// The summary of an in-memory reconstruction.
     fn of(recon: &Reconstruction) -> Self {
-        let res = crate::stats::summarize(&recon.residual);
+        let res = crate::stats::summarize(&recon.maps.residual);
         RunSummary {
             pixels: recon.counts,
             model: recon.model.clone(),

@@ -405,7 +405,7 @@ fn eval_diligent(a: &EvalArgs) -> Result<()> {
                 ..Config::default()
             };
             let recon = reconstruct(&capture, &config, &Silent)?;
-            let e = angular_errors(&recon.normals, &gt, &capture.mask)?;
+            let e = angular_errors(&recon.maps.normals, &gt, &capture.mask)?;
             let moved = recon
                 .model
                 .gains

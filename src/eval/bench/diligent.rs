@@ -101,7 +101,7 @@ pub fn method_rows(object: &Object, repeat: usize) -> Result<Vec<MethodRow>> {
             let recon = reconstruct(&object.capture, &config, &Silent)?;
             times.push(t.elapsed().as_secs_f64());
             error = Some(angular_errors(
-                &recon.normals,
+                &recon.maps.normals,
                 &object.truth,
                 &object.capture.mask,
             )?);
@@ -156,7 +156,7 @@ pub fn light_subset_rows(object: &Object) -> Result<Vec<LightsRow>> {
             let t = Instant::now();
             let recon = reconstruct(&subset, &normals_only(m), &Silent)?;
             let seconds = t.elapsed().as_secs_f64();
-            let e = angular_errors(&recon.normals, &object.truth, &subset.mask)?;
+            let e = angular_errors(&recon.maps.normals, &object.truth, &subset.mask)?;
             rows.push(LightsRow {
                 object: object.name.clone(),
                 method: m.name(),

@@ -182,7 +182,8 @@ pub fn specularity(options: &SpecularityOptions) -> Result<SpecularityReport> {
                 let t = Instant::now();
                 let recon = reconstruct(&capture, &config, &Silent)?;
                 let seconds = t.elapsed().as_secs_f64();
-                let e = angular_errors(&recon.normals, &rendering.truth.normals, &capture.mask)?;
+                let e =
+                    angular_errors(&recon.maps.normals, &rendering.truth.normals, &capture.mask)?;
                 rows.push(SpecularityRow {
                     lobe: lobe.name,
                     ks,
