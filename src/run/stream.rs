@@ -967,3 +967,231 @@ impl Integrator {
         }
     }
 }
+
+/// Memory sizes parsed and refused; the plan's band height and band count from the budget on a
+/// small capture written as 16-bit PNGs, down to the refusal below [`MIN_BAND_ROWS`] rows;
+/// the resident bytes growing with the image and its channels; and a streamed solve in several
+/// bands giving the in-memory solve bit for bit.
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::integrate::IntegrationOptions;
+    use crate::progress::Silent;
+    use crate::ps::solve::{Method, SolveOptions};
+    use crate::synth::render::{RenderOptions, render};
+    use crate::synth::scene::{Albedo, Scene};
+    use crate::synth::test_support::assert_same_bits;
+    use crate::synth::write::{ImageFormat, write_synthetic};
+
+    /// Images of the written capture.
+    const LIGHTS: usize = 8;
+
+    /// A 40×40 sphere of radius 14 (mask rows well inside the image), albedo 0.7, under 8
+    /// lights, noise σ = 0.004, written to `dir` as 16-bit PNGs with its mask; the capture's
+    /// files and the mask.
+    fn capture(dir: &Path) -> (CaptureFiles, Mask) {
+        let lights = Lights::fibonacci(LIGHTS, 30.0).unwrap();
+        let scene = Scene::sphere(40, 14.0, Albedo::Constant(0.7));
+        let options = RenderOptions {
+            noise_sigma: 0.004,
+            seed: 11,
+            ..RenderOptions::default()
+        };
+        let rendering = render(&scene, &lights, &options).unwrap();
+        write_synthetic(&rendering, &lights, dir, ImageFormat::Png16).unwrap();
+        let images: Vec<_> = (0..LIGHTS)
+            .map(|k| dir.join(format!("img_{k:03}.png")))
+            .collect();
+        let files = CaptureFiles::from_files(
+            &images,
+            &dir.join("lights.json"),
+            Some(&dir.join("mask.png")),
+        )
+        .unwrap();
+        (files, rendering.truth.mask)
+    }
+
+    fn threshold() -> Config {
+        Config {
+            solve: SolveOptions::with_method(Method::Threshold),
+            integration: None,
+            ..Config::default()
+        }
+    }
+
+    /// Binary units with or without `B`/`iB`, any case, fractions and plain bytes; anything
+    /// else refused naming `max-memory` and quoting the text.
+    #[test]
+    fn parse_size_reads_binary_units_and_quotes_bad_text() {
+        assert_eq!(parse_size("300M").unwrap(), 300 << 20);
+        assert_eq!(parse_size("2G").unwrap(), 2 << 30);
+        assert_eq!(parse_size("2gb").unwrap(), 2 << 30);
+        assert_eq!(parse_size("1536MiB").unwrap(), 1536 << 20);
+        assert_eq!(parse_size(" 4k ").unwrap(), 4096);
+        assert_eq!(parse_size("1T").unwrap(), 1 << 40);
+        assert_eq!(parse_size("1.5G").unwrap(), 3 << 29);
+        assert_eq!(parse_size("123456789").unwrap(), 123_456_789);
+        for bad in ["lots", "", "G", "2X", "1.2.3M", "-1G", "0", "NaN", "inf"] {
+            let e = parse_size(bad).unwrap_err();
+            match &e {
+                Error::InvalidParameter { name, reason } => {
+                    assert_eq!(*name, "max-memory", "{bad:?}");
+                    assert!(reason.contains(&format!("{bad:?}")), "{bad:?}: {reason}");
+                }
+                _ => panic!("{bad:?}: {e}"),
+            }
+        }
+    }
+
+    /// On the written capture: the window is the mask's bounding box; bands of a given height
+    /// cover its rows (clamped to them); without one, the band height is what the budget holds
+    /// beyond the resident bytes, one band row at a time, down to [`MIN_BAND_ROWS`], below
+    /// which the plan is refused naming the budget; the model pass samples whole blocks of
+    /// what a band holds, only for a method that needs a model.
+    #[test]
+    fn plan_bands_follow_the_budget() {
+        let dir = tempfile::tempdir().unwrap();
+        let (files, mask) = capture(dir.path());
+        let load = LoadOptions::default();
+        let config = threshold();
+        let plan_with = |max_memory, band_rows, config: &Config| {
+            plan(
+                &files,
+                &load,
+                config,
+                &StreamOptions {
+                    max_memory,
+                    band_rows,
+                },
+            )
+        };
+        let p = plan_with(1 << 30, Some(7), &config).unwrap();
+        let win = mask.bounding_box().unwrap();
+        assert_eq!(p.window, win);
+        assert!(win.y0 > 0 && win.y1 < 40, "{win:?}");
+        let rows = win.height();
+        assert_eq!(
+            (p.width, p.height, p.count, p.channels),
+            (40, 40, LIGHTS, 1)
+        );
+        assert_eq!((p.band_rows, p.bands), (7, rows.div_ceil(7)));
+        assert_eq!(p.sample_rows, 0, "threshold needs no model");
+        assert_eq!(
+            p.resident_bytes,
+            resident_bytes(40, 40, 1, mask.count(), &config)
+        );
+        assert_eq!(
+            p.in_memory_stack_bytes,
+            (LIGHTS * win.width() * rows * 4) as u64
+        );
+        let row = p.band_bytes / 7;
+        assert_eq!(row * 7, p.band_bytes);
+        // A band height above the window's rows is clamped: one band.
+        let p = plan_with(1 << 30, Some(1000), &config).unwrap();
+        assert_eq!((p.band_rows, p.bands), (rows, 1));
+        assert!(plan_with(1 << 30, Some(0), &config).is_err());
+        // From the budget: 9 rows fit (not 10), or exactly MIN_BAND_ROWS, or one fewer.
+        let resident = p.resident_bytes;
+        let p = plan_with(resident + 10 * row - 1, None, &config).unwrap();
+        assert_eq!((p.band_rows, p.bands), (9, rows.div_ceil(9)));
+        let auto = Config {
+            solve: SolveOptions::default(),
+            ..config
+        };
+        let pa = plan_with(resident + 10 * row - 1, None, &auto).unwrap();
+        assert_eq!(pa.sample_rows, 8, "whole blocks of what 9 rows hold");
+        let p = plan_with(resident + MIN_BAND_ROWS as u64 * row, None, &config).unwrap();
+        assert_eq!(p.band_rows, MIN_BAND_ROWS);
+        let e = plan_with(resident + MIN_BAND_ROWS as u64 * row - 1, None, &config).unwrap_err();
+        assert!(
+            matches!(&e, Error::InvalidParameter { name: "max-memory", reason } if reason.contains(&format!("{MIN_BAND_ROWS} rows"))),
+            "{e}"
+        );
+    }
+
+    /// The resident bytes grow with the image and with its channels, with integration or
+    /// without; without, they are the base plus [`RESIDENT_BYTES_PER_PIXEL`] a pixel and
+    /// [`RESIDENT_BYTES_PER_EXTRA_CHANNEL`] a pixel for each further channel.
+    #[test]
+    fn resident_bytes_grow_with_size_and_channels() {
+        let none = Config {
+            integration: None,
+            ..Config::default()
+        };
+        let poisson = Config {
+            integration: Some(IntegrationOptions {
+                method: crate::integrate::Integrator::Poisson,
+                ..IntegrationOptions::default()
+            }),
+            ..Config::default()
+        };
+        for config in [none, Config::default(), poisson] {
+            let mut last = 0;
+            for size in [16, 64, 256, 1024] {
+                let masked = size * size / 2;
+                let grey = resident_bytes(size, size, 1, masked, &config);
+                let rgb = resident_bytes(size, size, 3, masked, &config);
+                assert!(grey > last && rgb > grey, "{size}: {last} {grey} {rgb}");
+                last = rgb;
+            }
+        }
+        let (w, h) = (300, 200);
+        assert_eq!(
+            resident_bytes(w, h, 1, 1000, &none),
+            BASE_BYTES + RESIDENT_BYTES_PER_PIXEL * (w * h) as u64
+        );
+        assert_eq!(
+            resident_bytes(w, h, 3, 1000, &none) - resident_bytes(w, h, 1, 1000, &none),
+            2 * RESIDENT_BYTES_PER_EXTRA_CHANNEL * (w * h) as u64
+        );
+    }
+
+    /// The capture streamed in bands of 5 and of 7 rows gives the in-memory normals, albedo,
+    /// residual, samples, condition and status bit for bit.
+    #[test]
+    fn streamed_bands_equal_the_in_memory_solve() {
+        let dir = tempfile::tempdir().unwrap();
+        let (files, _) = capture(dir.path());
+        let load = LoadOptions::default();
+        let config = threshold();
+        let capture = files.load(&load, &Silent).unwrap();
+        let whole = crate::run::pipeline::reconstruct(&capture, &config, &Silent).unwrap();
+        assert!(whole.counts.solved > 300, "{:?}", whole.counts);
+        for band_rows in [5, 7] {
+            let options = StreamOptions {
+                max_memory: 1 << 30,
+                band_rows: Some(band_rows),
+            };
+            let s = reconstruct_streamed(&files, &load, &config, &options, &Silent).unwrap();
+            let what = format!("bands of {band_rows}");
+            assert!(s.plan.bands > 2, "{what}: {:?}", s.plan);
+            let r = &s.recon;
+            let flat = |n: &crate::grid::NormalMap| -> Vec<f32> {
+                n.data().iter().flat_map(|v| [v.x, v.y, v.z]).collect()
+            };
+            assert_same_bits(
+                &flat(&r.normals),
+                &flat(&whole.normals),
+                &format!("{what}: normals"),
+            );
+            assert_same_bits(
+                r.albedo[0].data(),
+                whole.albedo[0].data(),
+                &format!("{what}: albedo"),
+            );
+            assert_same_bits(
+                r.residual.data(),
+                whole.residual.data(),
+                &format!("{what}: residual"),
+            );
+            assert_same_bits(
+                r.condition.data(),
+                whole.condition.data(),
+                &format!("{what}: condition"),
+            );
+            assert_eq!(r.samples, whole.samples, "{what}");
+            assert_eq!(r.status, whole.status, "{what}");
+            assert_eq!(r.counts, whole.counts, "{what}");
+        }
+    }
+}

@@ -239,3 +239,116 @@ pub(crate) fn warnings(
     }
     warnings
 }
+
+/// Each warning's sentence: it carries the warning's numbers (images numbered from 1, at most
+/// [`LISTED_IMAGES`] listed), is what `report.json` holds, and names no command-line flag.
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One of each variant, with numbers found nowhere else in the sentences, and the texts
+    /// each sentence must contain.
+    fn cases() -> Vec<(Warning, Vec<&'static str>)> {
+        vec![
+            (Warning::SrgbDecoded { images: 17 }, vec!["17 8-bit image"]),
+            (
+                Warning::Saturated {
+                    samples: 4321,
+                    used: true,
+                },
+                vec!["4321 saturated", "used by plain least squares"],
+            ),
+            (
+                Warning::Saturated {
+                    samples: 4322,
+                    used: false,
+                },
+                vec!["4322 saturated", "excluded"],
+            ),
+            (Warning::NonFinite { samples: 913 }, vec!["913 NaN"]),
+            (
+                Warning::Unsolved {
+                    unsolved: 611,
+                    masked: 9876,
+                    too_few_samples: 401,
+                    ill_conditioned: 203,
+                    dark: 7,
+                    no_mask: true,
+                },
+                vec![
+                    "611 of 9876",
+                    "401 with fewer",
+                    "203 with ill",
+                    "7 dark",
+                    "no mask",
+                ],
+            ),
+            (
+                Warning::IntensitiesCorrected {
+                    images: vec![0, 4, 13],
+                    worst: 1.3704,
+                },
+                vec!["3 image(s)", "1, 5, 14)", "1.37"],
+            ),
+            (Warning::IntensitiesNotApplied, vec!["estimated_gains"]),
+            (
+                Warning::PoorIntegrability {
+                    median_abs_curl: 0.0734,
+                },
+                vec!["0.073"],
+            ),
+            (
+                Warning::AlbedoAboveOne { pixels: 2929 },
+                vec!["2929 pixels"],
+            ),
+        ]
+    }
+
+    /// Every variant's sentence holds its numbers (and the curl limit), serialises as itself
+    /// and names no flag; the unsolved warning mentions the mask only when none was given.
+    #[test]
+    fn sentences_carry_their_numbers_and_name_no_flag() {
+        for (w, texts) in cases() {
+            let s = w.to_string();
+            for t in texts {
+                assert!(s.contains(t), "{w:?}: {s:?} lacks {t:?}");
+            }
+            if let Warning::PoorIntegrability { .. } = w {
+                assert!(s.contains(&format!("above {POOR_CURL}")), "{s}");
+            }
+            assert!(!s.contains("--"), "{w:?} names a flag: {s}");
+            assert_eq!(
+                serde_json::to_value(&w).unwrap(),
+                serde_json::Value::String(s),
+                "{w:?}"
+            );
+        }
+        let unmasked = Warning::Unsolved {
+            unsolved: 1,
+            masked: 2,
+            too_few_samples: 1,
+            ill_conditioned: 0,
+            dark: 0,
+            no_mask: false,
+        };
+        assert!(!unmasked.to_string().contains("mask"), "{unmasked}");
+    }
+
+    /// More images than are listed: the first [`LISTED_IMAGES`] (from 1), then an ellipsis.
+    #[test]
+    fn a_long_image_list_is_cut() {
+        let w = Warning::IntensitiesCorrected {
+            images: (0..LISTED_IMAGES + 3).collect(),
+            worst: 0.5,
+        };
+        let s = w.to_string();
+        let listed: Vec<String> = (1..=LISTED_IMAGES).map(|k| k.to_string()).collect();
+        assert!(
+            s.contains(&format!("{} image(s)", LISTED_IMAGES + 3)),
+            "{s}"
+        );
+        assert!(s.contains(&format!(": {}, …)", listed.join(", "))), "{s}");
+        assert!(!s.contains(&format!(", {},", LISTED_IMAGES + 1)), "{s}");
+        assert!(s.contains("0.50"), "{s}");
+    }
+}

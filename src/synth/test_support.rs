@@ -64,3 +64,68 @@ pub(crate) fn lambertian_stack(
     ImageStack::from_images(normals.width(), normals.height(), albedo.len(), images)
         .expect("one plane of width × height per albedo")
 }
+
+/// A `width`×`height` solution of `count` images with every pixel outside the mask but those
+/// of `pixels` (x, y and the outcome recorded there, as the solver records it), unit gains and
+/// no noise model: hand-made per-channel solutions for the tests of what is built from them.
+pub(crate) fn hand_made_solution(
+    width: usize,
+    height: usize,
+    count: usize,
+    pixels: &[(usize, usize, crate::ps::solve::PixelSolution)],
+) -> crate::ps::solve::Solution {
+    use crate::ps::solve::{Solution, SolveOptions};
+    let mut s = Solution::empty(
+        width,
+        height,
+        crate::ps::intensities::GainEstimate::unit(count),
+        Vec::new(),
+        &SolveOptions::default(),
+    );
+    for (x, y, px) in pixels {
+        s.record(y * width + x, px);
+    }
+    s
+}
+
+/// Asserts that two f32 sequences hold the same bit patterns (any NaN matches any NaN), naming
+/// `what` and the first index that differs.
+pub(crate) fn assert_same_bits(a: &[f32], b: &[f32], what: &str) {
+    assert_eq!(a.len(), b.len(), "{what}: lengths");
+    if let Some(i) = (0..a.len())
+        .find(|&i| a[i].to_bits() != b[i].to_bits() && !(a[i].is_nan() && b[i].is_nan()))
+    {
+        panic!("{what}: value {i} differs: {} vs {}", a[i], b[i]);
+    }
+}
+
+/// Asserts that two per-channel solutions hold the same maps bit for bit (g, residual,
+/// condition; samples, status and robust flags exactly) and the same gains and noise.
+pub(crate) fn assert_same_solutions(
+    a: &[crate::ps::solve::Solution],
+    b: &[crate::ps::solve::Solution],
+    what: &str,
+) {
+    assert_eq!(a.len(), b.len(), "{what}: channels");
+    for (c, (a, b)) in a.iter().zip(b).enumerate() {
+        let g = |s: &crate::ps::solve::Solution| -> Vec<f32> {
+            s.g.data().iter().flat_map(|v| [v.x, v.y, v.z]).collect()
+        };
+        assert_same_bits(&g(a), &g(b), &format!("{what}, channel {c}: g"));
+        assert_same_bits(
+            a.residual.data(),
+            b.residual.data(),
+            &format!("{what}, channel {c}: residual"),
+        );
+        assert_same_bits(
+            a.condition.data(),
+            b.condition.data(),
+            &format!("{what}, channel {c}: condition"),
+        );
+        assert_eq!(a.samples, b.samples, "{what}, channel {c}: samples");
+        assert_eq!(a.status, b.status, "{what}, channel {c}: status");
+        assert_eq!(a.robust, b.robust, "{what}, channel {c}: robust");
+        assert_same_bits(&a.gains.gains, &b.gains.gains, &format!("{what}: gains"));
+        assert_same_bits(&a.noise, &b.noise, &format!("{what}: noise"));
+    }
+}
