@@ -1342,7 +1342,7 @@ mod tests {
         assert_eq!(r.counts.masked, 5);
         assert_eq!(r.counts.solved, 3);
         assert_eq!(r.albedo_above_one, 2);
-        assert_eq!(r.robust.count(), 1);
+        assert_eq!(r.maps.robust.count(), 1);
         assert_eq!(r.model.robust_pixels, 1);
         assert_eq!(r.timings.solve, 0.5);
         assert!(r.integration.is_none());
@@ -1381,7 +1381,7 @@ mod tests {
     #[test]
     fn map_rows_mark_what_is_outside_the_mask() {
         let m = pixel_maps(&channels());
-        let rows = map_rows(&m.view());
+        let rows = map_rows(&m);
         let [_, samples, condition, robust] = &rows.residual[..] else {
             panic!("{} residual planes", rows.residual.len());
         };
@@ -1484,24 +1484,24 @@ mod tests {
         let r = reconstruct(&capture, &Config::default(), &crate::progress::Silent).unwrap();
         assert_eq!(r.counts.masked, mask.count());
         assert_eq!(r.counts.solved, mask.count());
-        assert_eq!(r.solved, mask);
+        assert_eq!(r.maps.solved, mask);
         let depth = r.depth().expect("integration ran");
         let mut worst: f64 = 0.0;
         for p in 0..mask.len() {
             if !mask.data()[p] {
-                assert!(r.normals.data()[p].iter().all(|v| v.is_nan()));
+                assert!(r.maps.normals.data()[p].iter().all(|v| v.is_nan()));
                 assert!(depth.data()[p].is_nan(), "pixel {p}");
                 continue;
             }
             assert!(depth.data()[p].is_finite(), "pixel {p}");
-            let m = f64::from(r.samples.data()[p]);
-            let kappa = f64::from(r.condition.data()[p]);
+            let m = f64::from(r.maps.samples.data()[p]);
+            let kappa = f64::from(r.maps.condition.data()[p]);
             let gamma = (m + 2.0) * U / (1.0 - (m + 2.0) * U);
             let bound = (3.0 + 3f64.sqrt()) * gamma * kappa * kappa + 4.0 * U;
-            let n = r.normals.data()[p].cast::<f64>();
+            let n = r.maps.normals.data()[p].cast::<f64>();
             let t = truth.data()[p];
             let angle = n.cross(&t).norm().atan2(n.dot(&t));
-            let albedo = (f64::from(r.albedo[0].data()[p]) - 0.7).abs() / 0.7;
+            let albedo = (f64::from(r.maps.albedo[0].data()[p]) - 0.7).abs() / 0.7;
             worst = worst.max(angle.max(albedo) / bound);
             assert!(
                 angle <= bound && albedo <= bound,

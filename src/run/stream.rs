@@ -1170,27 +1170,27 @@ mod tests {
                 n.data().iter().flat_map(|v| [v.x, v.y, v.z]).collect()
             };
             assert_same_bits(
-                &flat(&r.normals),
-                &flat(&whole.normals),
+                &flat(&r.maps.normals),
+                &flat(&whole.maps.normals),
                 &format!("{what}: normals"),
             );
             assert_same_bits(
-                r.albedo[0].data(),
-                whole.albedo[0].data(),
+                r.maps.albedo[0].data(),
+                whole.maps.albedo[0].data(),
                 &format!("{what}: albedo"),
             );
             assert_same_bits(
-                r.residual.data(),
-                whole.residual.data(),
+                r.maps.residual.data(),
+                whole.maps.residual.data(),
                 &format!("{what}: residual"),
             );
             assert_same_bits(
-                r.condition.data(),
-                whole.condition.data(),
+                r.maps.condition.data(),
+                whole.maps.condition.data(),
                 &format!("{what}: condition"),
             );
-            assert_eq!(r.samples, whole.samples, "{what}");
-            assert_eq!(r.status, whole.status, "{what}");
+            assert_eq!(r.maps.samples, whole.maps.samples, "{what}");
+            assert_eq!(r.maps.status, whole.maps.status, "{what}");
             assert_eq!(r.counts, whole.counts, "{what}");
         }
     }
