@@ -319,7 +319,7 @@ pub(crate) fn convert_into(
 /// its light's intensity. Images are decoded in parallel.
 ///
 /// # Errors
-/// The errors of [`read_image`]; [`Error::SizeMismatch`] when an image's size differs from the
+/// The errors of [`crate::io::decode::read_image`]; [`Error::SizeMismatch`] when an image's size differs from the
 /// first; [`Error::LightsMismatch`] when counts differ; [`Error::UnsupportedImage`] when a
 /// per-channel load meets a grey image.
 pub fn load_stack(

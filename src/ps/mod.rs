@@ -17,4 +17,4 @@ pub mod robust;
 pub mod solve;
 
 pub use color::ColorSolve;
-pub use solve::{ImageModel, Method, PixelStatus, Solution, SolveOptions, solve};
+pub use solve::{ImageModel, Method, PixelStatus, Solution, SolveOptions};

@@ -136,7 +136,7 @@ pub const POOR_CURL: f64 = 0.05;
 /// Runs solve, normals, integrability and (optionally) integration on a capture.
 ///
 /// # Errors
-/// The errors of [`solve`] and [`crate::integrate::integrate_normals`]; [`Error::DegenerateLights`] or
+/// The errors of [`crate::ps::solve::solve`] and [`crate::integrate::integrate_normals`]; [`Error::DegenerateLights`] or
 /// [`Error::TooFewImages`] when the light set cannot determine normals.
 pub fn reconstruct(
     capture: &Capture,

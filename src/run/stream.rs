@@ -851,7 +851,7 @@ pub struct Streamed {
 /// needs the whole image ([`RESIDENT_BYTES_PER_PIXEL`]): the normals and the solved mask for
 /// the integrability check and integration, the albedo for the 99th-percentile scaling of
 /// `albedo.png`, and the residuals for their median. After the bands, the finishing stage of
-/// every run ([`crate::run::pipeline::finish`]): integration beside `curl.exr`, then
+/// every run (`run::pipeline::finish`): integration beside `curl.exr`, then
 /// `depth.exr`, `depth.png`, `mesh.ply` and `report.json`, whose `streaming` section holds the
 /// plan. Returns the report and the plan.
 ///

@@ -11,5 +11,5 @@ pub(crate) mod test_support;
 pub mod write;
 
 pub use reflectance::Material;
-pub use render::{Rendering, render};
+pub use render::Rendering;
 pub use scene::Scene;

@@ -50,7 +50,7 @@ pub const GROUND_TRUTH_DIR: &str = "gt";
 /// and `saturated_NNN.png` (255 where clipped) for images that clip. Returns the files written.
 ///
 /// # Errors
-/// [`Error::Io`] or [`Error::Encode`] when writing fails (nothing is left half-written).
+/// [`crate::Error::Io`] or [`crate::Error::Encode`] when writing fails (nothing is left half-written).
 pub fn write_synthetic(
     rendering: &crate::synth::render::Rendering,
     lights: &Lights,
