@@ -5,9 +5,9 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use photostereo::dataset::Capture;
-use photostereo::input::LoadOptions;
-use photostereo::pipeline::{Config, reconstruct};
+use photostereo::capture::dataset::Capture;
+use photostereo::capture::stack::LoadOptions;
+use photostereo::run::pipeline::{Config, reconstruct};
 use photostereo::progress::Silent;
 use std::path::PathBuf;
 
@@ -19,7 +19,7 @@ fn folder() -> PathBuf {
         for k in 1..=3u16 {
             let values: Vec<u16> = (0..64u16).map(|i| 1000 + 700 * k + 97 * i).collect();
             let _ =
-                photostereo::output::write_png16(&dir.join(format!("{k}.png")), 8, 8, 1, &values);
+                photostereo::io::output::write_png16(&dir.join(format!("{k}.png")), 8, 8, 1, &values);
         }
     }
     dir

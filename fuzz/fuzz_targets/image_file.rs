@@ -3,8 +3,9 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use photostereo::input::{LoadOptions, load_stack, read_image, read_mask, read_normal_map};
-use photostereo::lights::Lights;
+use photostereo::capture::stack::{LoadOptions, load_stack};
+use photostereo::io::decode::{read_image, read_mask, read_normal_map};
+use photostereo::capture::lights::Lights;
 use photostereo::progress::Silent;
 use std::path::PathBuf;
 

@@ -3,7 +3,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use photostereo::lights::Lights;
+use photostereo::capture::lights::Lights;
 use std::path::{Path, PathBuf};
 
 fuzz_target!(|data: &[u8]| {
