@@ -5,8 +5,12 @@
 
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap};
+use crate::io::exr::decode_exr;
+use crate::io::png::decode_png;
 use nalgebra::Vector3;
 use serde::Serialize;
+
+pub use crate::io::exr::read_exr_channel;
 use std::ops::Range;
 use std::path::Path;
 
@@ -144,218 +148,10 @@ pub(crate) fn decode_raw(path: &Path, rows: Option<Range<usize>>) -> Result<RawD
     })
 }
 
-/// PNG through the `png` crate directly: 16-bit samples stay in the decoder's big-endian buffer.
-/// With `rows`, a non-interlaced image is decoded only up to the end of the range (the rows
-/// below stay zero, and the rest of the stream is not read).
-fn decode_png(path: &Path, rows: Option<Range<usize>>) -> Result<RawDecoded> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    let bad = |e: png::DecodingError| match e {
-        png::DecodingError::IoError(io) => Error::io(path, io),
-        other => Error::Decode {
-            path: path.to_path_buf(),
-            reason: other.to_string(),
-        },
-    };
-    // The png crate's default limit (64 MiB decoded) refuses 16-bit RGB captures above
-    // 11 Mpx; the image's own size is checked against MAX_IMAGE_SAMPLES below instead.
-    let limits = png::Limits {
-        bytes: 4 * MAX_IMAGE_SAMPLES,
-    };
-    let mut decoder = png::Decoder::new_with_limits(std::io::Cursor::new(bytes), limits);
-    // Palette → RGB, grey below 8 bits → 8 bits, transparency chunk → alpha.
-    decoder.set_transformations(png::Transformations::EXPAND);
-    let mut reader = decoder.read_info().map_err(bad)?;
-    let size = reader
-        .output_buffer_size()
-        .ok_or_else(|| Error::UnsupportedImage {
-            path: path.to_path_buf(),
-            reason: "image too large".into(),
-        })?;
-    let (width, height) = (reader.info().width, reader.info().height);
-    // The header is checked before allocating what it declares (at most 2 bytes a sample).
-    if size > 2 * MAX_IMAGE_SAMPLES {
-        return Err(Error::UnsupportedImage {
-            path: path.to_path_buf(),
-            reason: format!(
-                "the header declares {width}x{height} pixels ({size} bytes decoded), more than the {MAX_IMAGE_SAMPLES} samples this tool reads"
-            ),
-        });
-    }
-    let mut buf = vec![0u8; size];
-    let (color_type, bit_depth) = match rows {
-        Some(rows) if !reader.info().interlaced => {
-            let line = reader
-                .output_line_size(width)
-                .ok_or_else(|| Error::UnsupportedImage {
-                    path: path.to_path_buf(),
-                    reason: "image too large".into(),
-                })?;
-            buf.truncate(line * height as usize);
-            for row in buf.chunks_exact_mut(line.max(1)).take(rows.end) {
-                reader.read_row(row).map_err(bad)?;
-            }
-            reader.output_color_type()
-        }
-        _ => {
-            let info = reader.next_frame(&mut buf).map_err(bad)?;
-            buf.truncate(info.buffer_size());
-            (info.color_type, info.bit_depth)
-        }
-    };
-    let (channels, stride) = match color_type {
-        png::ColorType::Grayscale => (1, 1),
-        png::ColorType::GrayscaleAlpha => (1, 2),
-        png::ColorType::Rgb | png::ColorType::Indexed => (3, 3),
-        png::ColorType::Rgba => (3, 4),
-    };
-    let (format, samples) = match bit_depth {
-        png::BitDepth::Sixteen => (SampleFormat::U16, Samples::U16Be(buf)),
-        _ => (SampleFormat::U8, Samples::U8(buf)),
-    };
-    Ok(RawDecoded {
-        width: width as usize,
-        height: height as usize,
-        channels,
-        stride,
-        format,
-        samples,
-    })
-}
-
 /// Most samples (pixels × channels) of one image file this tool decodes: 2²⁸, 1 GiB as f32,
 /// far above real captures (50 Mpx RGB is 1.5·10⁸), and a guard against headers that declare
 /// sizes no file holds.
 pub const MAX_IMAGE_SAMPLES: usize = 1 << 28;
-
-/// The first valid layer of an EXR file with all its channels.
-fn read_exr_layer(
-    path: &Path,
-) -> Result<exr::image::Image<exr::image::Layer<exr::image::AnyChannels<exr::image::FlatSamples>>>>
-{
-    use exr::prelude::*;
-    // The header is checked before the decoder allocates what it declares.
-    let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| match e {
-        exr::error::Error::Io(io) => crate::Error::io(path, io),
-        other => crate::Error::Decode {
-            path: path.to_path_buf(),
-            reason: other.to_string(),
-        },
-    })?;
-    for header in &meta.headers {
-        let samples = header
-            .layer_size
-            .area()
-            .saturating_mul(header.channels.list.len());
-        if samples > MAX_IMAGE_SAMPLES {
-            return Err(crate::Error::UnsupportedImage {
-                path: path.to_path_buf(),
-                reason: format!(
-                    "the header declares {}x{} pixels × {} channels, more than the {MAX_IMAGE_SAMPLES} samples this tool reads",
-                    header.layer_size.width(),
-                    header.layer_size.height(),
-                    header.channels.list.len()
-                ),
-            });
-        }
-    }
-    read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .first_valid_layer()
-        .all_attributes()
-        .from_file(path)
-        .map_err(|e| match e {
-            exr::error::Error::Io(io) => crate::Error::io(path, io),
-            other => crate::Error::Decode {
-                path: path.to_path_buf(),
-                reason: other.to_string(),
-            },
-        })
-}
-
-fn decode_exr(path: &Path) -> Result<RawDecoded> {
-    use exr::prelude::*;
-    let image = read_exr_layer(path)?;
-    let layer = &image.layer_data;
-    let (width, height) = (layer.size.width(), layer.size.height());
-    let list = &layer.channel_data.list;
-    let find = |name: &str| list.iter().find(|c| c.name.to_string() == name);
-    let chosen: Vec<_> = match (find("R"), find("G"), find("B")) {
-        (Some(r), Some(g), Some(b)) => vec![r, g, b],
-        _ => {
-            if let Some(y) = find("Y").or_else(|| find("Z")) {
-                vec![y]
-            } else if list.len() == 1 {
-                vec![&list[0]]
-            } else {
-                let names: Vec<String> = list.iter().map(|c| c.name.to_string()).collect();
-                return Err(crate::Error::UnsupportedImage {
-                    path: path.to_path_buf(),
-                    reason: format!(
-                        "channels {names:?}: expected R, G, B, or a single channel (Y, Z or any one)"
-                    ),
-                });
-            }
-        }
-    };
-    let mut format = SampleFormat::F32;
-    for c in &chosen {
-        if c.sampling != Vec2(1, 1) {
-            return Err(crate::Error::UnsupportedImage {
-                path: path.to_path_buf(),
-                reason: format!("channel {} is subsampled", c.name),
-            });
-        }
-        if matches!(c.sample_data, FlatSamples::F16(_)) {
-            format = SampleFormat::F16;
-        }
-    }
-    let n = width * height;
-    let channels = chosen.len();
-    let mut data = vec![0f32; n * channels];
-    for (ci, c) in chosen.iter().enumerate() {
-        for (i, v) in c.sample_data.values_as_f32().enumerate().take(n) {
-            data[i * channels + ci] = v;
-        }
-    }
-    Ok(RawDecoded {
-        width,
-        height,
-        channels,
-        stride: channels,
-        format,
-        samples: Samples::F32(data),
-    })
-}
-
-/// Reads the channel `name` of an EXR file (float or half) as a map — for multi-channel data
-/// files such as depth plus gradients.
-///
-/// # Errors
-/// [`Error::Io`] or [`Error::Decode`] naming the file; [`Error::UnsupportedImage`] listing the
-/// channels when `name` is not one of them.
-pub fn read_exr_channel(path: &Path, name: &str) -> Result<crate::grid::ScalarMap> {
-    use exr::prelude::*;
-    let image = read_exr_layer(path)?;
-    let layer = &image.layer_data;
-    let list = &layer.channel_data.list;
-    let Some(ch) = list.iter().find(|c| c.name.to_string() == name) else {
-        let names: Vec<String> = list.iter().map(|c| c.name.to_string()).collect();
-        return Err(crate::Error::UnsupportedImage {
-            path: path.to_path_buf(),
-            reason: format!("no channel {name:?}; channels are {names:?}"),
-        });
-    };
-    if ch.sampling != Vec2(1, 1) {
-        return Err(crate::Error::UnsupportedImage {
-            path: path.to_path_buf(),
-            reason: format!("channel {name} is subsampled"),
-        });
-    }
-    let (w, h) = (layer.size.width(), layer.size.height());
-    Grid::from_vec(w, h, ch.sample_data.values_as_f32().take(w * h).collect())
-}
 
 /// Decodes an image file (EXR, PNG or TIFF) to interleaved floats: integers scaled to [0, 1],
 /// no transfer function applied, alpha dropped.

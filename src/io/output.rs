@@ -10,7 +10,8 @@
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
 use crate::io::decode::linear_to_srgb;
-use crate::io::encode::{encode_exr, encode_png8, encode_png16};
+use crate::io::exr::encode_exr;
+use crate::io::png::{encode_png8, encode_png16};
 use std::fs::File;
 use std::io::{Seek, Write};
 use std::path::{Path, PathBuf};

@@ -10,8 +10,9 @@
 
 use crate::error::Result;
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
-use crate::io::encode::{ExrRows, PngRows};
+use crate::io::exr::ExrRows;
 use crate::io::output::OutputDir;
+use crate::io::png::PngRows;
 use crate::ps::solve::Solution;
 use crate::run::bands::{BandSink, Setup};
 use crate::run::pipeline::{
