@@ -1,0 +1,247 @@
+//! The per-pixel maps of a solve ([`PixelMaps`]), over a whole image or a band, and what is
+//! tallied from them: outcome counts, the model summary, the integrability check; [`assemble`]
+//! turns per-channel solutions into a [`Reconstruction`] without depth.
+
+use super::*;
+
+/// What [`assemble`] needs to know of the input for its warnings.
+pub(crate) struct InputFacts<'a> {
+    /// Per image, what loading found.
+    pub info: &'a [crate::capture::stack::ImageInfo],
+    /// Number of images.
+    pub count: usize,
+    /// Files were loaded without a mask (the background counts as object then).
+    pub unmasked_files: bool,
+}
+
+/// The per-pixel maps of a solve, over a whole image or a band of rows: what every pixel's
+/// outputs are made of.
+#[derive(Debug, Clone)]
+pub struct PixelMaps {
+    /// Unit normals; NaN where not solved.
+    pub normals: NormalMap,
+    /// Albedo per channel (one map for grey solves, R, G, B for colour ones).
+    pub albedo: Vec<ScalarMap>,
+    /// RMS residual of the model over used samples (largest over channels).
+    pub residual: ScalarMap,
+    /// Samples used per pixel (fewest over channels).
+    pub samples: Grid<u16>,
+    /// Condition number of the used lights (largest over channels).
+    pub condition: ScalarMap,
+    /// Outcome per pixel.
+    pub status: Grid<PixelStatus>,
+    /// Pixels with a normal.
+    pub solved: Mask,
+    /// Solved pixels fitted by a robust estimator (any channel).
+    pub robust: Mask,
+}
+
+/// Albedo, normals and status of the per-channel solutions (one channel taken as it is).
+pub(super) fn albedo_normals_status(
+    solutions: &[Solution],
+) -> (Vec<ScalarMap>, NormalMap, Grid<PixelStatus>) {
+    match solutions {
+        [one] => {
+            let (a, n) = albedo_and_normals(one);
+            (vec![a], n, one.status.clone())
+        }
+        _ => combine_channels(solutions),
+    }
+}
+
+/// Residual, condition, samples and the robust flag per pixel: the worst channel.
+pub(super) fn per_pixel(
+    solutions: &[Solution],
+    solved: &Mask,
+) -> (ScalarMap, ScalarMap, Grid<u16>, Mask) {
+    let (w, h) = (solved.width(), solved.height());
+    let fold = |f: &dyn Fn(&Solution) -> &ScalarMap, pick: fn(f32, f32) -> f32| match solutions {
+        [one] => f(one).clone(),
+        _ => Grid::from_fn(w, h, |x, y| {
+            solutions
+                .iter()
+                .map(|s| *f(s).at(x, y))
+                .reduce(pick)
+                .unwrap_or(f32::NAN)
+        }),
+    };
+    let residual = fold(&|s| &s.residual, f32::max);
+    let condition = fold(&|s| &s.condition, f32::max);
+    let samples = match solutions {
+        [one] => one.samples.clone(),
+        _ => Grid::from_fn(w, h, |x, y| {
+            solutions
+                .iter()
+                .map(|s| *s.samples.at(x, y))
+                .min()
+                .unwrap_or(0)
+        }),
+    };
+    let robust = Grid::from_fn(w, h, |x, y| {
+        *solved.at(x, y) && solutions.iter().any(|s| *s.robust.at(x, y))
+    });
+    (residual, condition, samples, robust)
+}
+
+/// The per-pixel maps of per-channel solutions of equal size (a whole image or a band).
+pub(crate) fn pixel_maps(solutions: &[Solution]) -> PixelMaps {
+    let (albedo, normals, status) = albedo_normals_status(solutions);
+    let solved = status.map(|s| *s == PixelStatus::Solved);
+    let (residual, condition, samples, robust) = per_pixel(solutions, &solved);
+    PixelMaps {
+        normals,
+        albedo,
+        residual,
+        samples,
+        condition,
+        status,
+        solved,
+        robust,
+    }
+}
+
+/// Pixels whose albedo is above 1 in any channel.
+pub(crate) fn albedo_above_one(albedo: &[ScalarMap]) -> usize {
+    let n = albedo.first().map_or(0, |a| a.len());
+    (0..n)
+        .filter(|&i| albedo.iter().any(|a| a.data()[i] > 1.0))
+        .count()
+}
+
+/// What the solve of one channel assumed over the whole image: its intensity gains and the
+/// fit test's per-image noise.
+#[derive(Debug, Clone)]
+pub(crate) struct ChannelModel {
+    /// The intensity gains, estimated or not.
+    pub gains: crate::ps::intensities::GainEstimate,
+    /// Per-image noise σ (`auto` only; empty otherwise).
+    pub noise: Vec<f32>,
+}
+
+impl ChannelModel {
+    /// The model of each solution.
+    pub(crate) fn of(solutions: &[Solution]) -> Vec<Self> {
+        solutions
+            .iter()
+            .map(|s| ChannelModel {
+                gains: s.gains.clone(),
+                noise: s.noise.clone(),
+            })
+            .collect()
+    }
+}
+
+/// Whole-image tallies of the per-pixel maps.
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct Tallies {
+    /// Pixel outcome counts.
+    pub counts: StatusCounts,
+    /// Solved pixels fitted by a robust estimator.
+    pub robust: usize,
+    /// Pixels with albedo above 1.
+    pub albedo_above_one: usize,
+}
+
+impl Tallies {
+    /// The tallies of `maps`.
+    pub(crate) fn of(maps: &PixelMaps) -> Self {
+        Tallies {
+            counts: StatusCounts::from_grid(&maps.status),
+            robust: maps.robust.count(),
+            albedo_above_one: albedo_above_one(&maps.albedo),
+        }
+    }
+
+    /// Adds the tallies of another band.
+    pub(crate) fn add(&mut self, other: &Tallies) {
+        self.counts.add(&other.counts);
+        self.robust += other.robust;
+        self.albedo_above_one += other.albedo_above_one;
+    }
+}
+
+/// The model summary of a run from its channel models and tallies.
+pub(crate) fn model_summary(
+    models: &[ChannelModel],
+    tallies: &Tallies,
+    count: usize,
+    config: &Config,
+) -> ModelSummary {
+    let recalibrated = config.solve.recalibrates(count);
+    ModelSummary {
+        method: config.solve.method.name(),
+        robust_pixels: tallies.robust,
+        robust_fraction: tallies.robust as f64 / tallies.counts.solved.max(1) as f64,
+        gains: models.iter().map(|m| m.gains.gains.clone()).collect(),
+        recalibrated,
+        gains_applied: models.iter().map(|m| m.gains.applied).collect(),
+        estimated_gains: if recalibrated {
+            models.iter().map(|m| m.gains.estimated.clone()).collect()
+        } else {
+            Vec::new()
+        },
+        noise: models.iter().map(|m| m.noise.clone()).collect(),
+    }
+}
+
+/// The integrability check of normals `normals` solved at `solved`, on the field that is
+/// integrated: log-depth gradients under a pinhole camera, orthographic ones otherwise.
+pub(crate) fn integrability_of(
+    normals: &NormalMap,
+    solved: &Mask,
+    config: &Config,
+) -> crate::ps::normals::Integrability {
+    let camera = config.integration.as_ref().and_then(|o| o.camera.as_ref());
+    let (p, q) = crate::integrate::normal_gradients(normals, solved, camera);
+    integrability(&p, &q)
+}
+
+/// From the per-channel solutions to a [`Reconstruction`] without depth: albedo, normals,
+/// the integrability check, per-pixel summaries, the model summary and the warnings.
+pub(crate) fn assemble(
+    solutions: Vec<Solution>,
+    solve_s: f64,
+    facts: &InputFacts,
+    config: &Config,
+) -> Reconstruction {
+    let t = Instant::now();
+    let (albedo, normals, status) = albedo_normals_status(&solutions);
+    let solved = status.map(|s| *s == PixelStatus::Solved);
+    // The integrability check (the longest part) runs beside the per-pixel summaries.
+    let (integ, (residual, condition, samples, robust)) = rayon::join(
+        || integrability_of(&normals, &solved, config),
+        || per_pixel(&solutions, &solved),
+    );
+    let maps = PixelMaps {
+        normals,
+        albedo,
+        residual,
+        samples,
+        condition,
+        status,
+        solved,
+        robust,
+    };
+    let tallies = Tallies::of(&maps);
+    let models = ChannelModel::of(&solutions);
+    let model = model_summary(&models, &tallies, facts.count, config);
+    let normals_s = t.elapsed().as_secs_f64();
+    let warnings = warnings(facts, &tallies, &models, &integ.summary, config);
+    Reconstruction {
+        maps,
+        curl: integ.curl,
+        integrability: integ.summary,
+        integration: None,
+        counts: tallies.counts,
+        albedo_above_one: tallies.albedo_above_one,
+        model,
+        timings: Timings {
+            load: 0.0,
+            solve: solve_s,
+            normals: normals_s,
+            integrate: 0.0,
+            write: 0.0,
+        },
+        warnings,
+    }
+}
