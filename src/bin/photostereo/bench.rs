@@ -176,23 +176,16 @@ pub fn integration_report(
     }
     let slopes = integration::slopes(&rows, &options.methods);
     if let Some(stem) = chart {
-        let series = slopes
-            .iter()
-            .enumerate()
-            .flat_map(|(k, s)| fitted_series(s.method, &s.points, s.fit, k))
-            .collect();
-        crate::chart::write(
-            &Chart {
-                title: format!(
-                    "Integration time vs pixels (sphere, disk mask, {} threads)",
-                    rayon::current_num_threads()
-                ),
-                x_label: "pixels in mask".into(),
-                y_label: "integration time (s)".into(),
-                log: (true, true),
-                series,
-                legend: Legend::UpperLeft,
-            },
+        power_law_chart(
+            slopes
+                .iter()
+                .map(|s| (s.method, s.points.as_slice(), s.fit)),
+            format!(
+                "Integration time vs pixels (sphere, disk mask, {} threads)",
+                rayon::current_num_threads()
+            ),
+            "pixels in mask",
+            "integration time (s)",
             stem,
         )?;
     }
@@ -230,6 +223,31 @@ fn integration_table(rows: &[IntegratorRow]) -> String {
         );
     }
     table
+}
+
+/// A log-log chart of measured points per named series, each with its fitted power law.
+fn power_law_chart<'a>(
+    fits: impl Iterator<Item = (&'a str, &'a [(f64, f64)], PowerLaw)>,
+    title: String,
+    x_label: &str,
+    y_label: &str,
+    stem: &Path,
+) -> Result<()> {
+    let series = fits
+        .enumerate()
+        .flat_map(|(k, (name, points, fit))| fitted_series(name, points, fit, k))
+        .collect();
+    crate::chart::write(
+        &Chart {
+            title,
+            x_label: x_label.into(),
+            y_label: y_label.into(),
+            log: (true, true),
+            series,
+            legend: Legend::UpperLeft,
+        },
+        stem,
+    )
 }
 
 /// The measurements `points` of `name` as markers, with the slope of `fit` in the legend, and
@@ -425,26 +443,19 @@ pub fn scaling_report(
 
 /// Solve time against samples per estimator (log-log), the fitted power laws beside.
 fn scaling_chart(report: &ScalingReport, options: &ScalingOptions, stem: &Path) -> Result<()> {
-    let series = report
-        .slopes
-        .iter()
-        .enumerate()
-        .flat_map(|(k, s)| fitted_series(s.method, &s.points, s.fit, k))
-        .collect();
-    crate::chart::write(
-        &Chart {
-            title: format!(
-                "Solve time against samples ({} threads; sizes {:?}, lights {:?})",
-                rayon::current_num_threads(),
-                options.sizes,
-                options.lights
-            ),
-            x_label: "samples = pixels in mask × lights".into(),
-            y_label: "solve time (s)".into(),
-            log: (true, true),
-            series,
-            legend: Legend::UpperLeft,
-        },
+    power_law_chart(
+        report
+            .slopes
+            .iter()
+            .map(|s| (s.method, s.points.as_slice(), s.fit)),
+        format!(
+            "Solve time against samples ({} threads; sizes {:?}, lights {:?})",
+            rayon::current_num_threads(),
+            options.sizes,
+            options.lights
+        ),
+        "samples = pixels in mask × lights",
+        "solve time (s)",
         stem,
     )
 }

@@ -85,10 +85,22 @@ pub(super) fn per_pixel(
 
 /// The per-pixel maps of per-channel solutions of equal size (a whole image or a band).
 pub(crate) fn pixel_maps(solutions: &[Solution]) -> PixelMaps {
+    pixel_maps_beside(solutions, |_, _| ()).0
+}
+
+/// [`pixel_maps`], with `beside` run on the normals and the solved mask concurrently with the
+/// per-pixel summaries (residual, condition, samples, robust flag).
+fn pixel_maps_beside<T: Send>(
+    solutions: &[Solution],
+    beside: impl FnOnce(&NormalMap, &Mask) -> T + Send,
+) -> (PixelMaps, T) {
     let (albedo, normals, status) = albedo_normals_status(solutions);
     let solved = status.map(|s| *s == PixelStatus::Solved);
-    let (residual, condition, samples, robust) = per_pixel(solutions, &solved);
-    PixelMaps {
+    let (other, (residual, condition, samples, robust)) = rayon::join(
+        || beside(&normals, &solved),
+        || per_pixel(solutions, &solved),
+    );
+    let maps = PixelMaps {
         normals,
         albedo,
         residual,
@@ -97,7 +109,8 @@ pub(crate) fn pixel_maps(solutions: &[Solution]) -> PixelMaps {
         status,
         solved,
         robust,
-    }
+    };
+    (maps, other)
 }
 
 /// Pixels whose albedo is above 1 in any channel.
@@ -205,23 +218,10 @@ pub(crate) fn assemble(
     config: &Config,
 ) -> Reconstruction {
     let t = Instant::now();
-    let (albedo, normals, status) = albedo_normals_status(&solutions);
-    let solved = status.map(|s| *s == PixelStatus::Solved);
     // The integrability check (the longest part) runs beside the per-pixel summaries.
-    let (integ, (residual, condition, samples, robust)) = rayon::join(
-        || integrability_of(&normals, &solved, config),
-        || per_pixel(&solutions, &solved),
-    );
-    let maps = PixelMaps {
-        normals,
-        albedo,
-        residual,
-        samples,
-        condition,
-        status,
-        solved,
-        robust,
-    };
+    let (maps, integ) = pixel_maps_beside(&solutions, |normals, solved| {
+        integrability_of(normals, solved, config)
+    });
     let tallies = Tallies::of(&maps);
     let models = ChannelModel::of(&solutions);
     let model = model_summary(&models, &tallies, facts.count, config);
