@@ -30,7 +30,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::linalg::{condition_at_most, condition_from_gram, solve_spd};
-use crate::ps::solve::{MIN_SAMPLES, PixelSolution, PixelStatus};
+use crate::ps::solve::{MIN_SAMPLES, PixelSolution, PixelStatus, reference_rank};
 use nalgebra::{Matrix3, Vector3};
 use serde::Serialize;
 
@@ -134,6 +134,7 @@ pub(crate) struct PixelFitter<'a> {
     halves: Vec<Vector3<f64>>,
     gains: &'a [f32],
     shadow_threshold: f32,
+    highlight_fraction: f32,
     reject_saturated: bool,
     max_condition: f64,
     v: Vec<f64>,
@@ -150,6 +151,7 @@ impl<'a> PixelFitter<'a> {
         dirs: &'a [Vector3<f64>],
         gains: &'a [f32],
         shadow_threshold: f32,
+        highlight_fraction: f32,
         reject_saturated: bool,
         max_condition: f64,
     ) -> Self {
@@ -161,6 +163,7 @@ impl<'a> PixelFitter<'a> {
             halves,
             gains,
             shadow_threshold,
+            highlight_fraction,
             reject_saturated,
             max_condition,
             v: vec![0.0; k],
@@ -177,17 +180,28 @@ impl<'a> PixelFitter<'a> {
     }
 
     /// Loads a pixel's samples and marks the threshold set (finite, unsaturated, above the
-    /// shadow threshold relative to the brightest finite sample), or every finite sample when
-    /// `reject` is false. Returns its size.
+    /// shadow threshold relative to the pixel's reference level: the
+    /// [`crate::ps::solve::reference_rank`]-th brightest usable sample), or every finite
+    /// sample when `reject` is false. Returns its size.
     fn load(&mut self, values: &[f32], saturated: &[bool], reject: bool) -> usize {
-        let mut max = f64::NEG_INFINITY;
+        self.order.clear();
         for (k, &v) in values.iter().enumerate() {
             let x = f64::from(v) * f64::from(self.gains[k]);
             self.v[k] = x;
-            if x.is_finite() && x > max {
-                max = x;
+            if x.is_finite() && !(self.reject_saturated && saturated[k]) {
+                self.order.push(k);
             }
         }
+        let rank = reference_rank(self.order.len(), self.highlight_fraction);
+        let v = &self.v;
+        let max = if self.order.is_empty() {
+            f64::NEG_INFINITY
+        } else {
+            let (_, &mut k, _) = self
+                .order
+                .select_nth_unstable_by(rank - 1, |&a, &b| v[b].total_cmp(&v[a]));
+            v[k]
+        };
         let t = (f64::from(self.shadow_threshold) * max).max(0.0);
         let mut n = 0;
         for (k, &s) in saturated.iter().enumerate() {
@@ -807,7 +821,7 @@ mod tests {
         let g = Vector3::new(0.2, -0.3, 0.6);
         let vals: Vec<f32> = dirs.iter().map(|l| g.dot(l).max(0.0) as f32).collect();
         let sat = vec![false; dirs.len()];
-        let mut f = PixelFitter::new(&dirs, &gains, 0.05, true, 100.0);
+        let mut f = PixelFitter::new(&dirs, &gains, 0.05, 0.0, true, 100.0);
         for est in [
             Estimator::Irls(Loss::Huber),
             Estimator::Irls(Loss::Tukey),
@@ -830,7 +844,7 @@ mod tests {
         let (dirs, gains) = setup();
         let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(3);
         let sat = vec![false; dirs.len()];
-        let mut f = PixelFitter::new(&dirs, &gains, 0.05, true, 100.0);
+        let mut f = PixelFitter::new(&dirs, &gains, 0.05, 0.0, true, 100.0);
         let mut worst_plain: f64 = 0.0;
         let mut worst = [0.0f64; 3];
         for _ in 0..50 {
@@ -895,7 +909,7 @@ mod tests {
                 (0.5 * c + 0.8 * n.dot(&h).max(0.0).powi(60) * c) as f32
             })
             .collect();
-        let mut f = PixelFitter::new(&dirs, &gains, 0.05, true, 100.0);
+        let mut f = PixelFitter::new(&dirs, &gains, 0.05, 0.0, true, 100.0);
         let plain = f.fit(
             &vals,
             &sat,
@@ -929,7 +943,7 @@ mod tests {
             .max_by(|&a, &b| vals[a].total_cmp(&vals[b]))
             .unwrap();
         vals[top] *= 5.0;
-        let mut f = PixelFitter::new(&dirs, &gains, 0.05, true, 100.0);
+        let mut f = PixelFitter::new(&dirs, &gains, 0.05, 0.0, true, 100.0);
         let p = f.fit(
             &vals,
             &sat,

@@ -9,7 +9,8 @@ use photostereo::integrate::{BilateralParams, IntegrationOptions, Integrator, Li
 use photostereo::ps::color::ColorSolve;
 use photostereo::ps::robust::{DEFAULT_SPECULAR_CONE_DEG, DEFAULT_TRIM_HIGH, DEFAULT_TRIM_LOW};
 use photostereo::ps::solve::{
-    DEFAULT_MAX_CONDITION, DEFAULT_SHADOW_THRESHOLD, Method, SolveOptions,
+    DEFAULT_HIGHLIGHT_FRACTION, DEFAULT_MAX_CONDITION, DEFAULT_SHADOW_THRESHOLD, Method,
+    SolveOptions,
 };
 use photostereo::run::pipeline::Config;
 use std::path::PathBuf;
@@ -122,9 +123,14 @@ pub struct MethodArgs {
     /// Also write the depth map as a triangle mesh, `mesh.ply`.
     #[arg(long)]
     pub mesh: bool,
-    /// All but `ls`: drop samples at or below this fraction of the pixel's brightest one.
+    /// All but `ls`: drop samples at or below this fraction of the pixel's reference level (its
+    /// brightest usable sample once the brightest --highlight-fraction are set aside).
     #[arg(long, default_value_t = DEFAULT_SHADOW_THRESHOLD, value_name = "FRACTION")]
     pub shadow_threshold: f32,
+    /// All but `ls`: fraction of each pixel's usable samples, brightest first, that may be
+    /// highlights and so do not set the shadow threshold's reference (0: the brightest does).
+    #[arg(long, default_value_t = DEFAULT_HIGHLIGHT_FRACTION, value_name = "FRACTION")]
+    pub highlight_fraction: f32,
     /// trim: fractions of each pixel's samples dropped from the dark and the bright end.
     #[arg(long, num_args = 2, value_names = ["LOW", "HIGH"],
           default_values_t = [DEFAULT_TRIM_LOW, DEFAULT_TRIM_HIGH])]
@@ -387,6 +393,10 @@ pub struct SpecularityBenchArgs {
     /// Gaussian image noise σ (images peak near 1).
     #[arg(long, default_value_t = specularity::DEFAULT_NOISE)]
     pub noise: f32,
+    /// Fraction of each pixel's samples, brightest first, kept out of the shadow threshold's
+    /// reference (see the main command's flag of the same name).
+    #[arg(long, default_value_t = DEFAULT_HIGHLIGHT_FRACTION, value_name = "FRACTION")]
+    pub highlight_fraction: f32,
     /// Estimators to compare (default: all).
     #[arg(long, value_enum, value_delimiter = ',')]
     pub methods: Vec<MethodArg>,
@@ -615,6 +625,7 @@ impl MethodArgs {
         let solve = SolveOptions {
             method: self.method.method(),
             shadow_threshold: self.shadow_threshold,
+            highlight_fraction: self.highlight_fraction,
             max_condition: self.max_condition,
             trim_low: self.trim.first().copied().unwrap_or(DEFAULT_TRIM_LOW),
             trim_high: self.trim.get(1).copied().unwrap_or(DEFAULT_TRIM_HIGH),

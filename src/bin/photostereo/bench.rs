@@ -289,6 +289,7 @@ pub fn specularity(a: SpecularityBenchArgs) -> Result<()> {
         lights: a.lights,
         ks: a.ks.clone(),
         noise: a.noise,
+        highlight_fraction: a.highlight_fraction,
         methods: methods.iter().map(|m| m.method()).collect(),
     })?;
     let value = json!(report);

@@ -72,6 +72,8 @@ pub struct SpecularityOptions {
     pub ks: Vec<f64>,
     /// Gaussian image noise σ.
     pub noise: f32,
+    /// The estimators' [`SolveOptions::highlight_fraction`].
+    pub highlight_fraction: f32,
     /// Estimators, in the order of the rows.
     pub methods: Vec<Method>,
 }
@@ -83,6 +85,7 @@ impl Default for SpecularityOptions {
             lights: DEFAULT_LIGHTS,
             ks: DEFAULT_KS.to_vec(),
             noise: DEFAULT_NOISE,
+            highlight_fraction: crate::ps::solve::DEFAULT_HIGHLIGHT_FRACTION,
             methods: Method::ALL.to_vec(),
         }
     }
@@ -175,7 +178,10 @@ pub fn specularity(options: &SpecularityOptions) -> Result<SpecularityReport> {
                 Capture::from_stack(stack, lights.clone(), Some(rendering.truth.mask.clone()))?;
             for &m in &options.methods {
                 let config = Config {
-                    solve: SolveOptions::with_method(m),
+                    solve: SolveOptions {
+                        highlight_fraction: options.highlight_fraction,
+                        ..SolveOptions::with_method(m)
+                    },
                     integration: None,
                     ..Config::default()
                 };

@@ -110,6 +110,10 @@ pub(super) struct Scratch {
     pub(super) values: Vec<f32>,
     /// Saturation flags, laid out as `values`.
     pub(super) saturated: Vec<bool>,
+    /// The brightest usable samples of each block pixel, descending (pass 1).
+    pub(super) top: Vec<f32>,
+    /// Usable (finite, unclipped) samples of each block pixel (pass 1).
+    pub(super) usable: Vec<u32>,
 }
 
 impl Scratch {
@@ -145,6 +149,22 @@ impl Scratch {
 pub(super) struct BlockOut {
     pub(super) spans: Vec<Span>,
     pub(super) pixels: Vec<PixelSolution>,
+}
+
+/// Inserts `v` into `top` (sorted descending) when it beats its last entry, dropping that.
+pub(super) fn insert_descending(top: &mut [f32], v: f32) {
+    let Some(last) = top.len().checked_sub(1) else {
+        return;
+    };
+    if v <= top[last] {
+        return;
+    }
+    let mut j = last;
+    while j > 0 && top[j - 1] < v {
+        top[j] = top[j - 1];
+        j -= 1;
+    }
+    top[j] = v;
 }
 
 /// Whether sample `pixel` of an image with saturation `bits` is clipped.
@@ -282,24 +302,47 @@ pub(super) fn solve_block(
     let len: usize = spans.iter().map(|sp| sp.len).sum();
     s.reset(len);
     s.threshold.fill(f32::NEG_INFINITY);
-    // Pass 1: per-pixel threshold from the brightest finite sample.
+    // Pass 1: per-pixel threshold from the pixel's reference level, the
+    // ⌈f·n⌉-th brightest of its n usable samples ([`reference_rank`]; a clipped sample's
+    // value says nothing of the pixel's brightness and is dropped anyway). The brightest
+    // `top` usable samples of each pixel are kept in descending order in `s.top`.
     if rule.reject {
+        let top = reference_rank(stack.count(), rule.highlight_fraction);
+        s.top.clear();
+        s.top.resize(len * top, f32::NEG_INFINITY);
+        s.usable.clear();
+        s.usable.resize(len, 0);
         for k in 0..stack.count() {
             let plane = stack.plane(k, channel);
+            let bits = if rule.reject_saturated {
+                stack.saturation_bits(k)
+            } else {
+                None
+            };
+            let gain = per.gains[k];
             let mut off = 0;
             for sp in spans {
                 let src = &plane[sp.local..sp.local + sp.len];
-                let gain = per.gains[k];
-                for (t, &v) in s.threshold[off..off + sp.len].iter_mut().zip(src) {
-                    // NaN compares false and is skipped.
+                for (j, (p, &v)) in (sp.start..).zip(src).enumerate() {
                     let v = v * gain;
-                    *t = if v > *t { v } else { *t };
+                    if !v.is_finite() || bits.is_some_and(|b| sat_bit(b, p)) {
+                        continue;
+                    }
+                    let i = off + j;
+                    s.usable[i] += 1;
+                    insert_descending(&mut s.top[i * top..(i + 1) * top], v);
                 }
                 off += sp.len;
             }
         }
-        for t in &mut s.threshold {
-            *t = rule.threshold(*t);
+        for i in 0..len {
+            let n = s.usable[i] as usize;
+            let reference = if n == 0 {
+                f32::NEG_INFINITY
+            } else {
+                s.top[i * top + reference_rank(n, rule.highlight_fraction) - 1]
+            };
+            s.threshold[i] = rule.threshold(reference);
         }
     }
     // Pass 2: accumulate the normal equations image by image.

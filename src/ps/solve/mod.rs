@@ -197,6 +197,24 @@ mod tests {
 
     /// Blocked solve equals the per-pixel reference on random data with shadows, NaNs and
     /// saturation, for every method.
+    /// The reference rank is ⌈f·n⌉ clamped to [1, n], and the kernel's top list keeps the
+    /// brightest values in descending order.
+    #[test]
+    fn reference_rank_and_top_list() {
+        assert_eq!(reference_rank(96, 0.1), 10);
+        assert_eq!(reference_rank(95, 0.1), 10);
+        assert_eq!(reference_rank(12, 0.1), 2);
+        assert_eq!(reference_rank(10, 0.1), 1);
+        assert_eq!(reference_rank(5, 0.0), 1);
+        assert_eq!(reference_rank(0, 0.1), 1);
+        assert_eq!(reference_rank(3, 0.49), 2);
+        let mut top = [f32::NEG_INFINITY; 3];
+        for v in [0.5, 0.1, 0.9, 0.3, 0.7, 0.7, -1.0] {
+            kernel::insert_descending(&mut top, v);
+        }
+        assert_eq!(top, [0.9, 0.7, 0.7]);
+    }
+
     #[test]
     // Pixel p indexes one sample in each of several images.
     #[allow(clippy::needless_range_loop)]

@@ -29,6 +29,7 @@ pub(super) struct Rule {
     /// Rows weighted by I (normal equations by I²).
     pub(super) intensity_weight: bool,
     pub(super) relative: f32,
+    pub(super) highlight_fraction: f32,
     pub(super) reject_saturated: bool,
 }
 
@@ -40,14 +41,15 @@ impl Rule {
             reject,
             intensity_weight: method == Method::ShadowWeighted,
             relative: o.shadow_threshold,
+            highlight_fraction: o.highlight_fraction,
             reject_saturated: reject && o.reject_saturated,
         }
     }
 
-    /// Samples must exceed this; NaN never does.
-    pub(super) fn threshold(&self, pixel_max: f32) -> f32 {
+    /// Samples must exceed this, given the pixel's reference level; NaN never does.
+    pub(super) fn threshold(&self, reference: f32) -> f32 {
         if self.reject {
-            (self.relative * pixel_max).max(0.0)
+            (self.relative * reference).max(0.0)
         } else {
             f32::NEG_INFINITY
         }
@@ -109,6 +111,7 @@ pub(crate) fn fitter<'a>(
         dirs,
         gains,
         options.shadow_threshold,
+        options.highlight_fraction,
         options.reject_saturated,
         options.max_condition,
     )
