@@ -552,8 +552,12 @@ fn a_selected_capture_matches_one_rendered_with_those_lights() {
             "image {k}"
         );
     }
+    // Exact over the pixels the six lights determine (the others are not filled).
     let config = Config {
-        solve: SolveOptions::with_method(Method::Threshold),
+        solve: SolveOptions {
+            fill: false,
+            ..SolveOptions::with_method(Method::Threshold)
+        },
         integration: None,
         ..Config::default()
     };

@@ -239,7 +239,8 @@ pub struct NormalRow {
     pub median_deg: f64,
     /// 95th percentile, degrees.
     pub p95_deg: f64,
-    /// Fraction of the mask with a normal (the rest was left unsolved).
+    /// Fraction of the mask with a normal (the rest could not be solved alone; the sweep does
+    /// not fill it).
     pub coverage: f64,
     /// Median wall time of the stage (solve and normals, or shape from shading), seconds.
     pub seconds: f64,
@@ -313,8 +314,13 @@ fn photometric_rows(
     methods
         .iter()
         .map(|&m| {
+            // The estimators' own coverage and error: pixels they cannot solve alone are left
+            // unsolved, not filled from their neighbours (`crate::ps::fill`).
             let config = Config {
-                solve: SolveOptions::with_method(m),
+                solve: SolveOptions {
+                    fill: false,
+                    ..SolveOptions::with_method(m)
+                },
                 integration: None,
                 ..Config::default()
             };

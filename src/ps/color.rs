@@ -249,6 +249,13 @@ fn fit_shared(
             sol.record(p, &channel);
         }
     }
+    if options.fill {
+        // Each channel from its solved neighbours only: the grey fit's weights that would
+        // give the data term are not kept for the pixels it could not solve.
+        for sol in &mut out {
+            crate::ps::fill::fill(sol, &[]);
+        }
+    }
     Ok(out)
 }
 

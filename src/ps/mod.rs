@@ -5,11 +5,14 @@
 //!   ([`solve::ImageModel`]: noise and intensity gains, kept apart from the pixel fit) and the
 //!   per-pixel solution maps.
 //! - [`robust`]: the robust estimators (trimmed, Huber, Tukey, L1, specular cone).
+//! - [`fill`]: a normal for the pixels too poorly determined to be solved alone, from their
+//!   few samples and their solved neighbours.
 //! - [`noise`]: per-image noise σ from the data; [`intensities`]: per-image intensity gains.
 //! - [`color`]: one normal from three colour channels.
 //! - [`normals`]: albedo and unit normals from g, gradients and the integrability check.
 
 pub mod color;
+pub mod fill;
 pub mod intensities;
 pub mod noise;
 pub mod normals;

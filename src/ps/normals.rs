@@ -31,7 +31,8 @@ pub fn albedo_and_normals(solution: &Solution) -> (ScalarMap, NormalMap) {
 
 /// Normals and per-channel albedo from per-channel solves of the same pixels: the normal is the
 /// direction of g_R + g_G + g_B (channels with more signal count more), and the albedo of
-/// channel c is |g_c|. A pixel is solved when every channel is.
+/// channel c is |g_c|. A pixel is solved when every channel is, filled when every channel has an
+/// estimate and one was filled.
 pub fn combine_channels(solutions: &[Solution]) -> (Vec<ScalarMap>, NormalMap, Grid<PixelStatus>) {
     let Some(first) = solutions.first() else {
         return (
@@ -46,13 +47,18 @@ pub fn combine_channels(solutions: &[Solution]) -> (Vec<ScalarMap>, NormalMap, G
         solutions
             .iter()
             .map(|s| *s.status.at(x, y))
-            .find(|s| *s != PixelStatus::Solved)
+            .min_by_key(|s| match s {
+                // The worst channel: no estimate, then filled, then solved.
+                s if !s.has_normal() => 0,
+                PixelStatus::Filled => 1,
+                _ => 2,
+            })
             .unwrap_or(PixelStatus::Solved)
     });
     let normals = Grid::from_fn(w, h, |x, y| {
         let sum: Vector3<f32> = solutions.iter().map(|s| *s.g.at(x, y)).sum();
         let r = sum.norm();
-        if *status.at(x, y) == PixelStatus::Solved && r > 0.0 {
+        if status.at(x, y).has_normal() && r > 0.0 {
             sum / r
         } else {
             Vector3::repeat(f32::NAN)

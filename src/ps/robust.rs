@@ -213,6 +213,40 @@ impl<'a> PixelFitter<'a> {
         n
     }
 
+    /// The normal equations Σ l·lᵀ (xx, xy, xz, yy, yz, zz) and Σ l·I of a pixel's usable
+    /// samples (the threshold set, or every finite sample when `reject` is false), and their
+    /// count: the data a pixel too poorly determined to solve alone still brings to
+    /// [`crate::ps::fill`].
+    pub(crate) fn usable_normal_equations(
+        &mut self,
+        values: &[f32],
+        saturated: &[bool],
+        reject: bool,
+    ) -> ([f64; 6], [f64; 3], usize) {
+        let n = self.load(values, saturated, reject);
+        let (mut a, mut b) = ([0.0; 6], [0.0; 3]);
+        for (k, l) in self.dirs.iter().enumerate() {
+            if self.base[k] {
+                let v = self.v[k];
+                let outer = [
+                    l.x * l.x,
+                    l.x * l.y,
+                    l.x * l.z,
+                    l.y * l.y,
+                    l.y * l.z,
+                    l.z * l.z,
+                ];
+                for (acc, o) in a.iter_mut().zip(outer) {
+                    *acc += o;
+                }
+                for (acc, c) in b.iter_mut().zip([l.x, l.y, l.z]) {
+                    *acc += c * v;
+                }
+            }
+        }
+        (a, b, n)
+    }
+
     /// Σ r_k²/(σ_k·gain_k)² over the samples the last fit used: the χ² statistic of its
     /// residuals under per-image noise `sigma` (of the samples before gains).
     pub(crate) fn chi2(&self, g: &Vector3<f64>, sigma: &[f32]) -> f64 {

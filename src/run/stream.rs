@@ -770,7 +770,9 @@ fn run_bands<S: BandSink>(
     start: impl FnOnce(&Setup) -> Result<S>,
 ) -> Result<(S, BandRun)> {
     let mut source = FileBands::open(files, load, config, options, keep)?;
-    let (sink, times) = solve_bands(&mut source, &files.lights, config, progress, start)?;
+    let solve_config =
+        super::pipeline::fill_only_inside_a_mask(config, files.mask_source.is_none());
+    let (sink, times) = solve_bands(&mut source, &files.lights, &solve_config, progress, start)?;
     source.band = None;
     drop(std::mem::take(&mut source.opened.readers));
     let (plan, info, summary, read_s) = source.finish()?;

@@ -48,6 +48,14 @@ pub enum Warning {
         /// No mask was given, so the background counts as object.
         no_mask: bool,
     },
+    /// Pixels of the mask too poorly determined to be solved alone, filled in from their few
+    /// samples and their solved neighbours.
+    Filled {
+        /// Pixels filled.
+        filled: usize,
+        /// Pixels in the mask.
+        masked: usize,
+    },
     /// The images' brightness disagrees with the stated light intensities; the estimated
     /// corrections were applied.
     IntensitiesCorrected {
@@ -108,6 +116,10 @@ impl fmt::Display for Warning {
                 } else {
                     ""
                 }
+            ),
+            Warning::Filled { filled, masked } => write!(
+                f,
+                "{filled} of {masked} pixels had too few usable samples or ill-conditioned lights to be solved alone: their normals were filled in from their neighbours and are less reliable (marked in residual.exr, channel filled)"
             ),
             Warning::IntensitiesCorrected { images, worst } => {
                 let list: Vec<String> = images
@@ -178,7 +190,13 @@ pub(crate) fn warnings(
             samples: non_finite,
         });
     }
-    let unsolved = counts.too_few_samples + counts.ill_conditioned + counts.dark;
+    if counts.filled > 0 {
+        warnings.push(Warning::Filled {
+            filled: counts.filled,
+            masked: counts.masked,
+        });
+    }
+    let unsolved = counts.unsolved();
     if unsolved > 0 {
         warnings.push(Warning::Unsolved {
             unsolved,

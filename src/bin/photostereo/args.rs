@@ -154,6 +154,11 @@ pub struct MethodArgs {
     /// Flag pixels whose usable lights have a condition number above this.
     #[arg(long, default_value_t = DEFAULT_MAX_CONDITION, value_name = "COND")]
     pub max_condition: f64,
+    /// Leave the pixels that cannot be solved alone (fewer than 3 usable samples,
+    /// ill-conditioned lights) without a normal instead of filling them in from their samples
+    /// and their solved neighbours.
+    #[arg(long)]
+    pub strict: bool,
     /// Intensities are calibrated so albedo ≤ 1: warn about pixels above it.
     #[arg(long)]
     pub albedo_normalised: bool,
@@ -638,6 +643,7 @@ impl MethodArgs {
                 None
             },
             noise_sigma: self.noise_sigma,
+            fill: !self.strict,
             ..SolveOptions::default()
         };
         solve.validate()?;

@@ -548,9 +548,10 @@ fn print_summary(report: &Report, dir: &Path) {
         config.integration.map_or("none", |o| o.method.name())
     );
     say!(
-        "  pixels: {} in mask, {} solved, {} too few samples, {} ill-conditioned, {} dark",
+        "  pixels: {} in mask, {} solved, {} filled, {} too few samples, {} ill-conditioned, {} dark",
         c.masked,
         c.solved,
+        c.filled,
         c.too_few_samples,
         c.ill_conditioned,
         c.dark
@@ -596,6 +597,7 @@ fn flag_hint(w: &photostereo::run::Warning) -> &'static str {
     match w {
         Warning::SrgbDecoded { .. } => " (pass --linear)",
         Warning::Unsolved { no_mask: true, .. } => "; pass --mask to solve the object only",
+        Warning::Filled { .. } => " (--strict leaves them without a normal)",
         Warning::IntensitiesCorrected { .. } => " (--no-recalibrate keeps it as given)",
         Warning::PoorIntegrability { .. } => " (--integrate bilateral)",
         _ => "",

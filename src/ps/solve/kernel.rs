@@ -149,6 +149,52 @@ impl Scratch {
 pub(super) struct BlockOut {
     pub(super) spans: Vec<Span>,
     pub(super) pixels: Vec<PixelSolution>,
+    /// The samples of the block's unsolved pixels, for [`crate::ps::fill`].
+    pub(super) unsolved: Vec<PixelData>,
+}
+
+/// The usable samples of the pixels of `out` left without an estimate (for
+/// [`crate::ps::fill`]); `gathered` says whether `s` already holds the block's samples.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn unsolved_data(
+    stack: &ImageStack,
+    channel: usize,
+    per: &PerImage,
+    options: &SolveOptions,
+    spans: &[Span],
+    out: &[PixelSolution],
+    gathered: bool,
+    s: &mut Scratch,
+) -> Vec<PixelData> {
+    let wanted: Vec<usize> = (0..out.len())
+        .filter(|&i| !out[i].status.has_normal())
+        .collect();
+    if !options.fill || wanted.is_empty() {
+        return Vec::new();
+    }
+    if !gathered {
+        gather_block(stack, channel, spans, s);
+    }
+    let pixels: Vec<usize> = spans
+        .iter()
+        .flat_map(|sp| sp.start..sp.start + sp.len)
+        .collect();
+    let k = stack.count();
+    let reject = options.method != Method::LeastSquares;
+    let mut f = fitter(&per.dirs64, &per.gains, options);
+    wanted
+        .into_iter()
+        .map(|i| {
+            let (v, sat) = s.pixel(i, k);
+            let (a, b, samples) = f.usable_normal_equations(v, sat, reject);
+            PixelData {
+                pixel: pixels[i],
+                a,
+                b,
+                samples,
+            }
+        })
+        .collect()
 }
 
 /// Inserts `v` into `top` (sorted descending) when it beats its last entry, dropping that.
@@ -501,7 +547,8 @@ pub(super) fn gather_block(stack: &ImageStack, channel: usize, spans: &[Span], s
     }
 }
 
-/// Solves one block with the method of `options`.
+/// Solves one block with the method of `options`, and collects the samples of the pixels it
+/// leaves unsolved ([`unsolved_data`]).
 pub(super) fn solve_any_block(
     stack: &ImageStack,
     channel: usize,
@@ -509,20 +556,35 @@ pub(super) fn solve_any_block(
     options: &SolveOptions,
     spans: &[Span],
     s: &mut Scratch,
-) -> Vec<PixelSolution> {
+) -> (Vec<PixelSolution>, Vec<PixelData>) {
+    let (out, gathered) = fit_block(stack, channel, per, options, spans, s);
+    let unsolved = unsolved_data(stack, channel, per, options, spans, &out, gathered, s);
+    (out, unsolved)
+}
+
+/// Fits one block with the method of `options`; also says whether the block's samples were
+/// gathered into `s`.
+fn fit_block(
+    stack: &ImageStack,
+    channel: usize,
+    per: &PerImage,
+    options: &SolveOptions,
+    spans: &[Span],
+    s: &mut Scratch,
+) -> (Vec<PixelSolution>, bool) {
     let k = stack.count();
     let method = options.method;
     if method.is_linear() || method == Method::Auto {
         let rule = Rule::new(method, options);
         let mut out = solve_block(stack, channel, per, rule, options.max_condition, spans, s);
         if method != Method::Auto {
-            return out;
+            return (out, false);
         }
         let escalated: Vec<usize> = (0..out.len())
             .filter(|&i| misfit(&out[i], f64::from(s.chi2[i]), options.fit_test_z))
             .collect();
         if escalated.is_empty() {
-            return out;
+            return (out, false);
         }
         gather_block(stack, channel, spans, s);
         let mut f = fitter(&per.dirs64, &per.gains, options);
@@ -530,15 +592,16 @@ pub(super) fn solve_any_block(
             let (v, sat) = s.pixel(i, k);
             out[i] = escalate(&mut f, v, sat, out[i], options);
         }
-        return out;
+        return (out, true);
     }
     gather_block(stack, channel, spans, s);
     let mut f = fitter(&per.dirs64, &per.gains, options);
     let len = s.values.len() / k.max(1);
-    (0..len)
+    let out = (0..len)
         .map(|i| {
             let (v, sat) = s.pixel(i, k);
             fit_with(&mut f, v, sat, &per.sigma, options)
         })
-        .collect()
+        .collect();
+    (out, true)
 }

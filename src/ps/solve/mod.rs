@@ -25,7 +25,9 @@
 //! `docs/photometric-stereo.md` for the robust estimators and `auto`.
 //!
 //! A pixel with fewer than [`MIN_SAMPLES`] usable samples, or whose used light directions have a
-//! condition number above the limit, is flagged and left unsolved rather than guessed.
+//! condition number above the limit, cannot be solved alone: by default it is filled from the
+//! samples it has and its solved neighbours ([`crate::ps::fill`]) and marked
+//! [`PixelStatus::Filled`]; with [`SolveOptions::fill`] off it is left unsolved.
 //!
 //! The linear estimators stream through the stack in blocks of masked pixels (each block reads
 //! every image's rows once, then solves and measures residuals from cache) and run blocks in
@@ -43,6 +45,7 @@ use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, ScalarMap, Window};
 use crate::linalg::{condition_from_gram, solve_spd};
 use crate::progress::Progress;
+use crate::ps::fill::PixelData;
 use crate::ps::robust::{
     DEFAULT_MIN_LIT_COSINE, DEFAULT_SPECULAR_CONE_DEG, DEFAULT_TRIM_HIGH, DEFAULT_TRIM_LOW,
     Estimator, Loss, PixelFitter, chi2_upper_quantile,
@@ -170,13 +173,19 @@ pub fn solve_with_model(
     let results: Vec<BlockOut> = work
         .into_par_iter()
         .map_init(Scratch::default, |scratch, spans| {
-            let pixels = solve_any_block(stack, channel, &per, options, &spans, scratch);
+            let (pixels, unsolved) =
+                solve_any_block(stack, channel, &per, options, &spans, scratch);
             progress.advance(1);
-            BlockOut { spans, pixels }
+            BlockOut {
+                spans,
+                pixels,
+                unsolved,
+            }
         })
         .collect();
     progress.end();
     let mut sol = Solution::empty(w, h, gains, sigma, options);
+    let mut unsolved = Vec::new();
     for block in results {
         let mut pixels = block.pixels.into_iter();
         for sp in &block.spans {
@@ -185,6 +194,10 @@ pub fn solve_with_model(
                 sol.record(p, &px);
             }
         }
+        unsolved.extend(block.unsolved);
+    }
+    if options.fill {
+        crate::ps::fill::fill(&mut sol, &unsolved);
     }
     Ok(sol)
 }

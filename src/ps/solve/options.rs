@@ -134,6 +134,10 @@ pub struct SolveOptions {
     pub noise_sigma: Option<f32>,
     /// [`Method::Auto`]: standard-normal deviate of the χ² fit test (3.09: 0.1% false alarms).
     pub fit_test_z: f64,
+    /// Fill the pixels too poorly determined to be solved alone from their samples and their
+    /// solved neighbours ([`crate::ps::fill`]), marked [`PixelStatus::Filled`]; `false` (strict)
+    /// leaves them without a normal.
+    pub fill: bool,
 }
 
 impl Default for SolveOptions {
@@ -151,6 +155,7 @@ impl Default for SolveOptions {
             recalibrate: None,
             noise_sigma: None,
             fit_test_z: DEFAULT_FIT_TEST_Z,
+            fill: true,
         }
     }
 }

@@ -18,12 +18,22 @@ pub enum PixelStatus {
     IllConditioned,
     /// The estimate is zero or not finite (a black pixel).
     Dark,
+    /// Too few usable samples or ill-conditioned lights to be solved alone; g was filled in
+    /// from the samples it has and its solved neighbours ([`crate::ps::fill`]).
+    Filled,
+}
+
+impl PixelStatus {
+    /// Whether the pixel has an estimate of g (solved from its own samples, or filled).
+    pub fn has_normal(self) -> bool {
+        matches!(self, PixelStatus::Solved | PixelStatus::Filled)
+    }
 }
 
 /// Per-pixel result of one solve: g = ρN and its diagnostics.
 #[derive(Debug, Clone)]
 pub struct Solution {
-    /// g = ρN per pixel; NaN where not solved.
+    /// g = ρN per pixel; NaN where there is no estimate ([`PixelStatus::has_normal`]).
     pub g: Grid<Vector3<f32>>,
     /// RMS of I − g·l over the used samples; NaN where not solved.
     pub residual: ScalarMap,
@@ -137,6 +147,9 @@ pub struct StatusCounts {
     pub ill_conditioned: usize,
     /// Pixels whose estimate was zero.
     pub dark: usize,
+    /// Pixels filled in from their few samples and their solved neighbours (not counted in
+    /// `solved`, `too_few_samples` or `ill_conditioned`).
+    pub filled: usize,
 }
 
 impl StatusCounts {
@@ -150,6 +163,7 @@ impl StatusCounts {
                 PixelStatus::TooFewSamples => c.too_few_samples += 1,
                 PixelStatus::IllConditioned => c.ill_conditioned += 1,
                 PixelStatus::Dark => c.dark += 1,
+                PixelStatus::Filled => c.filled += 1,
             }
             c.masked += 1;
         }
@@ -163,5 +177,11 @@ impl StatusCounts {
         self.too_few_samples += other.too_few_samples;
         self.ill_conditioned += other.ill_conditioned;
         self.dark += other.dark;
+        self.filled += other.filled;
+    }
+
+    /// Pixels of the mask without an estimate of g.
+    pub fn unsolved(&self) -> usize {
+        self.too_few_samples + self.ill_conditioned + self.dark
     }
 }

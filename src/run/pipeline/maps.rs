@@ -95,7 +95,7 @@ fn pixel_maps_beside<T: Send>(
     beside: impl FnOnce(&NormalMap, &Mask) -> T + Send,
 ) -> (PixelMaps, T) {
     let (albedo, normals, status) = albedo_normals_status(solutions);
-    let solved = status.map(|s| *s == PixelStatus::Solved);
+    let solved = status.map(|s| s.has_normal());
     let (other, (residual, condition, samples, robust)) = rayon::join(
         || beside(&normals, &solved),
         || per_pixel(solutions, &solved),

@@ -153,13 +153,19 @@ pub fn reconstruct_normals(
 ) -> Result<Reconstruction> {
     capture.lights.check_usable(MAX_LIGHT_CONDITION)?;
     let mut source = WholeStack::new(&capture.stack, &capture.mask);
-    let (sink, times) = solve_bands(&mut source, &capture.lights, config, progress, |setup| {
-        Ok(Assemble::new(setup))
-    })?;
+    let unmasked_files = capture.mask_source.is_none() && !capture.images.is_empty();
+    let solve_config = fill_only_inside_a_mask(config, unmasked_files);
+    let (sink, times) = solve_bands(
+        &mut source,
+        &capture.lights,
+        &solve_config,
+        progress,
+        |setup| Ok(Assemble::new(setup)),
+    )?;
     let facts = InputFacts {
         info: capture.stack.info(),
         count: capture.stack.count(),
-        unmasked_files: capture.mask_source.is_none() && !capture.images.is_empty(),
+        unmasked_files,
     };
     Ok(assemble(
         sink.into_solutions(),
@@ -167,6 +173,15 @@ pub fn reconstruct_normals(
         &facts,
         config,
     ))
+}
+
+/// `config` for the solve: without a mask the unsolved pixels are mostly background (dark, or
+/// lit by too few lights), not holes in the object, so nothing is filled
+/// ([`crate::ps::fill`]) and they are reported unsolved.
+pub(crate) fn fill_only_inside_a_mask(config: &Config, unmasked_files: bool) -> Config {
+    let mut c = *config;
+    c.solve.fill &= !unmasked_files;
+    c
 }
 
 /// Integrates `normals` over `solved` as `config` says (`None` without integration or without
@@ -509,7 +524,8 @@ mod tests {
                 solved: 3,
                 too_few_samples: 1,
                 ill_conditioned: 0,
-                dark: 1
+                dark: 1,
+                filled: 0,
             }
         );
         assert_eq!((whole.robust, whole.albedo_above_one), (1, 2));
@@ -652,13 +668,14 @@ mod tests {
         );
     }
 
-    /// The file contents: samples, condition and robust NaN outside the mask and robust 0 or 1
-    /// inside; albedo NaN where not solved; the residual as it is; mask 255 where solved.
+    /// The file contents: samples, condition, robust and filled NaN outside the mask and robust
+    /// and filled 0 or 1 inside; albedo NaN where not solved; the residual as it is; mask 255
+    /// where solved.
     #[test]
     fn map_rows_mark_what_is_outside_the_mask() {
         let m = pixel_maps(&channels());
         let rows = map_rows(&m);
-        let [_, samples, condition, robust] = &rows.residual[..] else {
+        let [_, samples, condition, robust, filled] = &rows.residual[..] else {
             panic!("{} residual planes", rows.residual.len());
         };
         assert_same_bits(&rows.residual[0], m.residual.data(), "residual");
@@ -666,7 +683,10 @@ mod tests {
             let status = m.status.data()[i];
             if status == PixelStatus::Outside {
                 assert!(samples[i].is_nan() && condition[i].is_nan() && robust[i].is_nan());
+                assert!(filled[i].is_nan());
             } else {
+                let is_filled = status == PixelStatus::Filled;
+                assert_eq!(filled[i], if is_filled { 1.0 } else { 0.0 });
                 assert_eq!(samples[i], f32::from(m.samples.data()[i]), "pixel {i}");
                 assert_eq!(condition[i].to_bits(), m.condition.data()[i].to_bits());
                 assert_eq!(robust[i], if m.robust.data()[i] { 1.0 } else { 0.0 });

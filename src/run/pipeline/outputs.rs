@@ -54,7 +54,8 @@ pub(crate) fn exr_attributes(
 pub(crate) const NORMAL_CHANNELS: [&str; 3] = ["R", "G", "B"];
 
 /// Channel names of `residual.exr`.
-pub(crate) const RESIDUAL_CHANNELS: [&str; 4] = ["residual", "samples", "condition", "robust"];
+pub(crate) const RESIDUAL_CHANNELS: [&str; 5] =
+    ["residual", "samples", "condition", "robust", "filled"];
 
 /// Channel names of `albedo.exr` for `channels` albedo maps (1 grey, 3 RGB).
 pub(crate) fn albedo_channels(channels: usize) -> Result<&'static [&'static str]> {
@@ -75,7 +76,7 @@ pub(crate) struct MapRows {
     pub normal: Vec<Vec<f32>>,
     /// `albedo.exr`: per channel, NaN where not solved.
     pub albedo: Vec<Vec<f32>>,
-    /// `residual.exr`: residual, samples, condition, robust (NaN outside the mask).
+    /// `residual.exr`: residual, samples, condition, robust, filled (NaN outside the mask).
     pub residual: Vec<Vec<f32>>,
     /// `mask.png`.
     pub mask: Vec<u8>,
@@ -121,10 +122,23 @@ pub(crate) fn map_rows(m: &PixelMaps) -> MapRows {
             }
         })
         .collect();
+    let filled = (0..n)
+        .map(|i| match m.status.data()[i] {
+            PixelStatus::Outside => f32::NAN,
+            PixelStatus::Filled => 1.0,
+            _ => 0.0,
+        })
+        .collect();
     MapRows {
         normal: normal_planes(&m.normals).into(),
         albedo,
-        residual: vec![m.residual.data().to_vec(), samples, condition, robust],
+        residual: vec![
+            m.residual.data().to_vec(),
+            samples,
+            condition,
+            robust,
+            filled,
+        ],
         mask: mask_bytes(&m.solved),
         normal_png: normal_preview(&m.normals),
     }
