@@ -224,27 +224,15 @@ impl<'a> PixelFitter<'a> {
         reject: bool,
     ) -> ([f64; 6], [f64; 3], usize) {
         let n = self.load(values, saturated, reject);
-        let (mut a, mut b) = ([0.0; 6], [0.0; 3]);
+        let mut a = Sym3::default();
+        let mut b = Vector3::zeros();
         for (k, l) in self.dirs.iter().enumerate() {
             if self.base[k] {
-                let v = self.v[k];
-                let outer = [
-                    l.x * l.x,
-                    l.x * l.y,
-                    l.x * l.z,
-                    l.y * l.y,
-                    l.y * l.z,
-                    l.z * l.z,
-                ];
-                for (acc, o) in a.iter_mut().zip(outer) {
-                    *acc += o;
-                }
-                for (acc, c) in b.iter_mut().zip([l.x, l.y, l.z]) {
-                    *acc += c * v;
-                }
+                a.add(&self.outer[k]);
+                b += l * self.v[k];
             }
         }
-        (a, b, n)
+        (a.0, b.into(), n)
     }
 
     /// Σ r_k²/(σ_k·gain_k)² over the samples the last fit used: the χ² statistic of its
