@@ -30,7 +30,9 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::linalg::{condition_at_most, condition_from_gram, solve_spd};
-use crate::ps::solve::{MIN_SAMPLES, PixelSolution, PixelStatus, reference_rank};
+use crate::ps::solve::{
+    MIN_SAMPLES, PixelSolution, PixelStatus, insert_descending, reference_rank,
+};
 use nalgebra::{Matrix3, Vector3};
 use serde::Serialize;
 
@@ -143,6 +145,8 @@ pub(crate) struct PixelFitter<'a> {
     compact: Compact,
     w: Vec<f64>,
     order: Vec<usize>,
+    /// The brightest usable samples of the loaded pixel, descending.
+    top: Vec<f64>,
 }
 
 impl<'a> PixelFitter<'a> {
@@ -171,6 +175,7 @@ impl<'a> PixelFitter<'a> {
             compact: Compact::default(),
             w: vec![0.0; k],
             order: Vec::with_capacity(k),
+            top: Vec::with_capacity(k),
         }
     }
 
@@ -184,23 +189,23 @@ impl<'a> PixelFitter<'a> {
     /// [`crate::ps::solve::reference_rank`]-th brightest usable sample), or every finite
     /// sample when `reject` is false. Returns its size.
     fn load(&mut self, values: &[f32], saturated: &[bool], reject: bool) -> usize {
-        self.order.clear();
+        // The brightest usable samples, descending, as the block kernel keeps them.
+        let cap = reference_rank(values.len(), self.highlight_fraction);
+        self.top.clear();
+        self.top.resize(cap, f64::NEG_INFINITY);
+        let mut usable = 0;
         for (k, &v) in values.iter().enumerate() {
             let x = f64::from(v) * f64::from(self.gains[k]);
             self.v[k] = x;
-            if x.is_finite() && !(self.reject_saturated && saturated[k]) {
-                self.order.push(k);
+            if reject && x.is_finite() && !(self.reject_saturated && saturated[k]) {
+                usable += 1;
+                insert_descending(&mut self.top, x);
             }
         }
-        let rank = reference_rank(self.order.len(), self.highlight_fraction);
-        let v = &self.v;
-        let max = if self.order.is_empty() {
+        let max = if usable == 0 {
             f64::NEG_INFINITY
         } else {
-            let (_, &mut k, _) = self
-                .order
-                .select_nth_unstable_by(rank - 1, |&a, &b| v[b].total_cmp(&v[a]));
-            v[k]
+            self.top[reference_rank(usable, self.highlight_fraction) - 1]
         };
         let t = (f64::from(self.shadow_threshold) * max).max(0.0);
         let mut n = 0;

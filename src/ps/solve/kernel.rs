@@ -114,6 +114,8 @@ pub(super) struct Scratch {
     pub(super) top: Vec<f32>,
     /// Usable (finite, unclipped) samples of each block pixel (pass 1).
     pub(super) usable: Vec<u32>,
+    /// The last (smallest) entry of each block pixel's list in `top` (pass 1).
+    pub(super) floor: Vec<f32>,
 }
 
 impl Scratch {
@@ -195,22 +197,6 @@ pub(super) fn unsolved_data(
             }
         })
         .collect()
-}
-
-/// Inserts `v` into `top` (sorted descending) when it beats its last entry, dropping that.
-pub(super) fn insert_descending(top: &mut [f32], v: f32) {
-    let Some(last) = top.len().checked_sub(1) else {
-        return;
-    };
-    if v <= top[last] {
-        return;
-    }
-    let mut j = last;
-    while j > 0 && top[j - 1] < v {
-        top[j] = top[j - 1];
-        j -= 1;
-    }
-    top[j] = v;
 }
 
 /// Whether sample `pixel` of an image with saturation `bits` is clipped.
@@ -358,6 +344,8 @@ pub(super) fn solve_block(
         s.top.resize(len * top, f32::NEG_INFINITY);
         s.usable.clear();
         s.usable.resize(len, 0);
+        s.floor.clear();
+        s.floor.resize(len, f32::NEG_INFINITY);
         for k in 0..stack.count() {
             let plane = stack.plane(k, channel);
             let bits = if rule.reject_saturated {
@@ -369,14 +357,21 @@ pub(super) fn solve_block(
             let mut off = 0;
             for sp in spans {
                 let src = &plane[sp.local..sp.local + sp.len];
+                let usable = &mut s.usable[off..off + sp.len];
+                let floor = &mut s.floor[off..off + sp.len];
                 for (j, (p, &v)) in (sp.start..).zip(src).enumerate() {
                     let v = v * gain;
                     if !v.is_finite() || bits.is_some_and(|b| sat_bit(b, p)) {
                         continue;
                     }
-                    let i = off + j;
-                    s.usable[i] += 1;
-                    insert_descending(&mut s.top[i * top..(i + 1) * top], v);
+                    usable[j] += 1;
+                    // Most samples are below the pixel's current `top`-th brightest.
+                    if v > floor[j] {
+                        let i = off + j;
+                        let list = &mut s.top[i * top..(i + 1) * top];
+                        insert_descending(list, v);
+                        floor[j] = list[top - 1];
+                    }
                 }
                 off += sp.len;
             }

@@ -223,7 +223,7 @@ mod tests {
         assert_eq!(reference_rank(3, 0.49), 2);
         let mut top = [f32::NEG_INFINITY; 3];
         for v in [0.5, 0.1, 0.9, 0.3, 0.7, 0.7, -1.0] {
-            kernel::insert_descending(&mut top, v);
+            insert_descending(&mut top, v);
         }
         assert_eq!(top, [0.9, 0.7, 0.7]);
     }

@@ -33,6 +33,24 @@ pub fn reference_rank(usable: usize, highlight_fraction: f32) -> usize {
     r.clamp(1, usable.max(1))
 }
 
+/// Inserts `v` into `top` (sorted descending) when it beats its last entry, dropping that: the
+/// running list of a pixel's brightest samples from which [`reference_rank`] picks.
+#[inline]
+pub(crate) fn insert_descending<T: PartialOrd + Copy>(top: &mut [T], v: T) {
+    let Some(last) = top.len().checked_sub(1) else {
+        return;
+    };
+    if v <= top[last] {
+        return;
+    }
+    let mut j = last;
+    while j > 0 && top[j - 1] < v {
+        top[j] = top[j - 1];
+        j -= 1;
+    }
+    top[j] = v;
+}
+
 /// The estimator for g.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
 #[serde(rename_all = "kebab-case")]
