@@ -10,6 +10,8 @@
 //! - [`noise`]: per-image noise σ from the data; [`intensities`]: per-image intensity gains.
 //! - [`color`]: one normal from three colour channels.
 //! - [`normals`]: albedo and unit normals from g, gradients and the integrability check.
+//! - [`shadows`]: spatially coherent shadow/inlier labels per image (graph cuts) and the refit
+//!   from them (opt-in: [`solve::SolveOptions::shadow_labels`]).
 
 pub mod color;
 pub mod fill;
@@ -17,6 +19,7 @@ pub mod intensities;
 pub mod noise;
 pub mod normals;
 pub mod robust;
+pub mod shadows;
 pub mod solve;
 
 pub use color::ColorSolve;

@@ -181,6 +181,9 @@ impl BandOutput {
 impl BandSink for BandOutput {
     fn band(&mut self, y0: usize, solutions: Vec<Solution>) -> Result<()> {
         self.fill_to(y0)?;
+        for (m, s) in self.models.iter_mut().zip(&solutions) {
+            m.add_shadow_labels(s);
+        }
         self.emit(&solutions)
     }
 }

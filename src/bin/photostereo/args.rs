@@ -8,6 +8,7 @@ use photostereo::eval::bench::{integration, scaling, specularity, stages, stream
 use photostereo::integrate::{BilateralParams, IntegrationOptions, Integrator, LinearSolver};
 use photostereo::ps::color::ColorSolve;
 use photostereo::ps::robust::{DEFAULT_SPECULAR_CONE_DEG, DEFAULT_TRIM_HIGH, DEFAULT_TRIM_LOW};
+use photostereo::ps::shadows::{DEFAULT_ROUNDS, DEFAULT_SMOOTHNESS, ShadowLabelOptions};
 use photostereo::ps::solve::{
     DEFAULT_HIGHLIGHT_FRACTION, DEFAULT_MAX_CONDITION, DEFAULT_SHADOW_THRESHOLD, Method,
     SolveOptions,
@@ -162,6 +163,36 @@ pub struct MethodArgs {
     /// Intensities are calibrated so albedo ≤ 1: warn about pixels above it.
     #[arg(long)]
     pub albedo_normalised: bool,
+    /// Shadow labelling.
+    #[command(flatten)]
+    pub shadows: ShadowArgs,
+}
+
+/// Shadow labelling options, shared by the runs and `eval --diligent`.
+#[derive(Debug, Args, Clone)]
+pub struct ShadowArgs {
+    /// After the solve, label every image's samples lit or shadow as regions (a Potts energy
+    /// over the pixel grid, minimised exactly by graph cuts, after ShadowCuts, CVPR 2007) and
+    /// refit each pixel from its lit samples: pixels with few lit samples borrow their
+    /// neighbours' labels.
+    #[arg(long)]
+    pub shadow_labels: bool,
+    /// --shadow-labels: cost (in nats) of a label change between 4-neighbours.
+    #[arg(long, default_value_t = DEFAULT_SMOOTHNESS, value_name = "NATS", requires = "shadow_labels")]
+    pub shadow_smoothness: f64,
+    /// --shadow-labels: label-and-refit rounds.
+    #[arg(long, default_value_t = DEFAULT_ROUNDS, value_name = "N", requires = "shadow_labels")]
+    pub shadow_rounds: usize,
+}
+
+impl ShadowArgs {
+    /// The labelling options, `None` when off.
+    pub fn options(&self) -> Option<ShadowLabelOptions> {
+        self.shadow_labels.then_some(ShadowLabelOptions {
+            smoothness: self.shadow_smoothness,
+            rounds: self.shadow_rounds,
+        })
+    }
 }
 
 /// Image reading options.
@@ -231,6 +262,9 @@ pub struct EvalArgs {
     /// With `--diligent`: the estimators to evaluate.
     #[arg(long, value_enum, value_delimiter = ',', default_values_t = [MethodArg::Auto])]
     pub methods: Vec<MethodArg>,
+    /// With `--diligent`: shadow labelling after each solve.
+    #[command(flatten)]
+    pub shadows: ShadowArgs,
 }
 
 /// `--align` values.
@@ -644,6 +678,7 @@ impl MethodArgs {
             },
             noise_sigma: self.noise_sigma,
             fill: !self.strict,
+            shadow_labels: self.shadows.options(),
             ..SolveOptions::default()
         };
         solve.validate()?;

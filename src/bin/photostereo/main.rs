@@ -400,10 +400,14 @@ fn eval_diligent(a: &EvalArgs) -> Result<()> {
             .with_context(|| format!("{}: the ground truth for --diligent", gt_path.display()))?;
         for m in &a.methods {
             let config = Config {
-                solve: SolveOptions::with_method(m.method()),
+                solve: SolveOptions {
+                    shadow_labels: a.shadows.options(),
+                    ..SolveOptions::with_method(m.method())
+                },
                 integration: None,
                 ..Config::default()
             };
+            config.solve.validate()?;
             let recon = reconstruct(&capture, &config, &Silent)?;
             let e = angular_errors(&recon.maps.normals, &gt, &capture.mask)?;
             let moved = recon
@@ -413,7 +417,7 @@ fn eval_diligent(a: &EvalArgs) -> Result<()> {
                 .flatten()
                 .filter(|g| (**g - 1.0).abs() > photostereo::run::pipeline::GAIN_WARNING)
                 .count();
-            rows.push(serde_json::json!({
+            let mut row = serde_json::json!({
                 "dataset": dir,
                 "method": m.method().name(),
                 "mean_deg": e.mean_deg,
@@ -426,7 +430,11 @@ fn eval_diligent(a: &EvalArgs) -> Result<()> {
                 "robust_fraction": recon.model.robust_fraction,
                 "intensities_corrected_over_10pct": moved,
                 "timings_s": { "load": load_s, "solve": recon.timings.solve },
-            }));
+            });
+            if !recon.model.shadow_labels.is_empty() {
+                row["shadow_labels"] = serde_json::to_value(&recon.model.shadow_labels)?;
+            }
+            rows.push(row);
         }
     }
     say!(

@@ -196,6 +196,13 @@ pub fn solve_with_model(
         }
         unsolved.extend(block.unsolved);
     }
+    if let Some(labels) = &options.shadow_labels {
+        let summary = crate::ps::shadows::label_shadows(
+            stack, channel, lights, mask, options, labels, &mut sol,
+        )?;
+        sol.shadow_labels = Some(summary);
+    }
+    // Last: the fill leans on the final estimates of the solved neighbours.
     if options.fill {
         crate::ps::fill::fill(&mut sol, &unsolved);
     }

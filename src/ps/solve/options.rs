@@ -156,6 +156,10 @@ pub struct SolveOptions {
     /// solved neighbours ([`crate::ps::fill`]), marked [`PixelStatus::Filled`]; `false` (strict)
     /// leaves them without a normal.
     pub fill: bool,
+    /// After the solve, label shadows as regions and refit from the labels
+    /// ([`crate::ps::shadows`]); `None` (the default): off.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub shadow_labels: Option<crate::ps::shadows::ShadowLabelOptions>,
 }
 
 impl Default for SolveOptions {
@@ -174,6 +178,7 @@ impl Default for SolveOptions {
             noise_sigma: None,
             fit_test_z: DEFAULT_FIT_TEST_Z,
             fill: true,
+            shadow_labels: None,
         }
     }
 }
@@ -257,6 +262,9 @@ impl SolveOptions {
                 "fit-test-z",
                 format!("{} must be > 0", self.fit_test_z),
             ));
+        }
+        if let Some(labels) = &self.shadow_labels {
+            labels.validate()?;
         }
         Ok(())
     }

@@ -51,6 +51,9 @@ pub struct Solution {
     /// Per-image noise standard deviation used by the fit test ([`Method::Auto`]; empty
     /// otherwise).
     pub noise: Vec<f32>,
+    /// What the shadow labelling pass changed, when it ran
+    /// ([`SolveOptions::shadow_labels`], [`crate::ps::shadows`]).
+    pub shadow_labels: Option<crate::ps::shadows::ShadowSummary>,
 }
 
 impl Solution {
@@ -76,6 +79,7 @@ impl Solution {
             } else {
                 Vec::new()
             },
+            shadow_labels: None,
         }
     }
 
@@ -102,6 +106,9 @@ impl Solution {
         self.condition.data_mut()[r.clone()].copy_from_slice(band.condition.data());
         self.status.data_mut()[r.clone()].copy_from_slice(band.status.data());
         self.robust.data_mut()[r].copy_from_slice(band.robust.data());
+        if let Some(b) = &band.shadow_labels {
+            self.shadow_labels.get_or_insert_default().add(b);
+        }
         Ok(())
     }
 
@@ -120,6 +127,7 @@ impl Solution {
             robust: top(&self.robust, rows),
             gains: self.gains.clone(),
             noise: self.noise.clone(),
+            shadow_labels: self.shadow_labels,
         }
     }
 

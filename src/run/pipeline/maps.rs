@@ -129,6 +129,8 @@ pub(crate) struct ChannelModel {
     pub gains: crate::ps::intensities::GainEstimate,
     /// Per-image noise σ (`auto` only; empty otherwise).
     pub noise: Vec<f32>,
+    /// What the shadow labelling changed, when it ran.
+    pub shadow_labels: Option<crate::ps::shadows::ShadowSummary>,
 }
 
 impl ChannelModel {
@@ -139,8 +141,16 @@ impl ChannelModel {
             .map(|s| ChannelModel {
                 gains: s.gains.clone(),
                 noise: s.noise.clone(),
+                shadow_labels: s.shadow_labels,
             })
             .collect()
+    }
+
+    /// Adds the shadow labelling counts of `band`, a solved band of this channel.
+    pub(crate) fn add_shadow_labels(&mut self, band: &Solution) {
+        if let Some(b) = &band.shadow_labels {
+            self.shadow_labels.get_or_insert_default().add(b);
+        }
     }
 }
 
@@ -194,6 +204,7 @@ pub(crate) fn model_summary(
             Vec::new()
         },
         noise: models.iter().map(|m| m.noise.clone()).collect(),
+        shadow_labels: models.iter().filter_map(|m| m.shadow_labels).collect(),
     }
 }
 

@@ -453,6 +453,7 @@ mod tests {
             robust: cut(&s.robust, y0, y1),
             gains: s.gains.clone(),
             noise: s.noise.clone(),
+            shadow_labels: s.shadow_labels,
         }
     }
 
@@ -560,6 +561,7 @@ mod tests {
                         ..GainEstimate::unit(COUNT)
                     },
                     noise: vec![0.01 * f; COUNT],
+                    shadow_labels: None,
                 }
             })
             .collect()

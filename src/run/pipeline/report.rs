@@ -26,6 +26,10 @@ pub struct ModelSummary {
     pub estimated_gains: Vec<Vec<f32>>,
     /// Per channel, the per-image noise σ the fit test assumed (`auto` only).
     pub noise: Vec<Vec<f32>>,
+    /// Per channel, what the shadow labelling changed ([`crate::ps::shadows`]; absent when it
+    /// did not run).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub shadow_labels: Vec<crate::ps::shadows::ShadowSummary>,
 }
 
 /// Summary of the input, for the report.
