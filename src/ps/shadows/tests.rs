@@ -242,3 +242,37 @@ fn measure_rendered() {
         }
     }
 }
+
+/// A run with the labels on reports what they changed, once per solved channel; with them off
+/// (the default) the report has no such entry.
+#[test]
+fn the_run_reports_the_labels_when_on() {
+    use crate::run::pipeline::{Config, reconstruct};
+    let r = rendered(SceneKind::Torus, 48, 8, 0.01, 0.1);
+    let capture = crate::capture::dataset::Capture::from_stack(
+        r.stack.clone(),
+        r.lights.clone(),
+        Some(r.mask.clone()),
+    )
+    .unwrap();
+    let off = Config {
+        integration: None,
+        ..Config::default()
+    };
+    let on = Config {
+        solve: SolveOptions {
+            shadow_labels: Some(ShadowLabelOptions::default()),
+            ..SolveOptions::default()
+        },
+        ..off
+    };
+    let without = reconstruct(&capture, &off, &Silent).unwrap();
+    assert!(without.model.shadow_labels.is_empty());
+    let with = reconstruct(&capture, &on, &Silent).unwrap();
+    let s = &with.model.shadow_labels;
+    assert_eq!(s.len(), 1);
+    assert_eq!(s[0].samples, r.mask.count() * r.lights.len());
+    assert!(s[0].removed > 0 && s[0].refitted > 0, "{s:?}");
+    let json = serde_json::to_value(&without.model).unwrap();
+    assert!(json.get("shadow_labels").is_none(), "{json}");
+}

@@ -135,7 +135,9 @@ pub fn solve(
 
 /// [`solve`] with the per-image noise and gains given instead of estimated from `stack`: the
 /// solve of one part of a capture whose model was estimated over the whole
-/// ([`crate::run::stream`]).
+/// ([`crate::run::stream`]). With [`SolveOptions::shadow_labels`], the per-pixel solution is
+/// then relabelled for cast shadows and refitted ([`crate::ps::shadows::label_shadows`]) over
+/// this part's pixels.
 ///
 /// # Errors
 /// As [`solve`]; [`Error::InvalidParameter`] when the model's length differs from the image
