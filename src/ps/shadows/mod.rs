@@ -434,58 +434,79 @@ impl<'a> Pass<'a> {
         (self.stack.plane(k, self.channel), bits)
     }
 
-    /// The samples the per-pixel rule keeps (above the shadow threshold relative to the
-    /// brightest finite sample, unsaturated; every finite one for plain least squares), and the
-    /// inverse Gram matrix of that set: what the solve's own fit used, as far as the rule says
-    /// (a robust fit used a subset of it).
+    /// The samples the per-pixel rule keeps, as the solve's own fitter decides them (shadow
+    /// threshold and saturation; every finite one for plain least squares), and the inverse
+    /// Gram matrix of that set: what the solve's fit used, as far as the rule says (a robust
+    /// fit used a subset of it).
     fn rule_set(&mut self) {
         let (n, k) = (self.pixel.len(), self.stack.count());
-        let mut kept = std::mem::take(&mut self.kept);
+        if n == 0 {
+            return;
+        }
+        let reject = self.options.method != crate::ps::solve::Method::LeastSquares;
+        let rule = crate::ps::robust::Estimator::Plain {
+            reject,
+            intensity_weight: false,
+        };
         let this = &*self;
-        let brightest: Vec<f32> = (0..n)
+        let per_node: Vec<(Vec<u8>, Option<Matrix3<f64>>)> = (0..n)
             .into_par_iter()
             .with_min_len(CHUNK)
-            .map(|i| {
-                (0..k)
-                    .map(|kk| this.stack.plane(kk, this.channel)[this.local[i]] * this.gains[kk])
-                    .filter(|v| v.is_finite())
-                    .fold(f32::NEG_INFINITY, f32::max)
-            })
+            .map_init(
+                || {
+                    (
+                        crate::ps::solve::fitter(&this.dirs, &this.gains, this.options),
+                        vec![0f32; k],
+                        vec![false; k],
+                    )
+                },
+                |(f, values, saturated), i| {
+                    this.gather(i, None, values, saturated);
+                    f.fit(values, saturated, rule);
+                    let kept: Vec<u8> = f.weights().iter().map(|&w| u8::from(w > 0.0)).collect();
+                    let ainv = this.gram(&kept).try_inverse();
+                    (kept, ainv)
+                },
+            )
             .collect();
-        let reject = this.options.method != crate::ps::solve::Method::LeastSquares;
-        let relative = this.options.shadow_threshold;
-        kept.par_chunks_mut(n).enumerate().for_each(|(kk, row)| {
-            let (plane, bits) = this.image(kk);
-            let gain = this.gains[kk];
-            for (i, out) in row.iter_mut().enumerate() {
-                let v = plane[this.local[i]] * gain;
-                let keep = if reject {
-                    let saturated = bits
-                        .is_some_and(|b| b[this.pixel[i] / 64] >> (this.pixel[i] % 64) & 1 == 1);
-                    !saturated && v > (relative * brightest[i]).max(0.0)
-                } else {
-                    v.is_finite()
-                };
-                *out = u8::from(keep);
+        let mut kept = vec![0u8; k * n];
+        let mut ainv = Vec::with_capacity(n);
+        for (i, (node, a)) in per_node.into_iter().enumerate() {
+            for (kk, x) in node.into_iter().enumerate() {
+                kept[kk * n + i] = x;
             }
-        });
-        let ainv = (0..n)
-            .into_par_iter()
-            .with_min_len(CHUNK)
-            .map(|i| {
-                let mut a = Matrix3::zeros();
-                for (kk, l) in this.dirs.iter().enumerate() {
-                    if kept[kk * n + i] == 1 {
-                        a += l * l.transpose();
-                    }
-                }
-                a.try_inverse()
-            })
-            .collect();
+            ainv.push(a);
+        }
         self.ainv = ainv;
         self.used = kept.clone();
         self.lit = kept.clone();
         self.kept = kept;
+    }
+
+    /// Node `i`'s samples (as stored, before gains) and saturation flags, the samples marked in
+    /// `hidden` (image-major, of all nodes) replaced by NaN.
+    fn gather(&self, i: usize, hidden: Option<&[u8]>, values: &mut [f32], saturated: &mut [bool]) {
+        let n = self.pixel.len();
+        for (kk, (v, s)) in values.iter_mut().zip(saturated.iter_mut()).enumerate() {
+            let hide = hidden.is_some_and(|h| h[kk * n + i] == 1);
+            *v = if hide {
+                f32::NAN
+            } else {
+                self.stack.plane(kk, self.channel)[self.local[i]]
+            };
+            *s = self.stack.is_saturated(kk, self.pixel[i]);
+        }
+    }
+
+    /// Σ l·lᵀ over the samples flagged in `used` (one flag per image).
+    fn gram(&self, used: &[u8]) -> Matrix3<f64> {
+        let mut a = Matrix3::zeros();
+        for (l, &u) in self.dirs.iter().zip(used) {
+            if u == 1 {
+                a += l * l.transpose();
+            }
+        }
+        a
     }
 
     /// Runs the rounds; returns the counts of the last one.
@@ -713,27 +734,13 @@ impl<'a> Pass<'a> {
                     if !(0..k).any(|kk| hidden_ref[kk * n + i] != this.hidden[kk * n + i]) {
                         return None;
                     }
-                    for kk in 0..k {
-                        let v = this.stack.plane(kk, this.channel)[this.local[i]];
-                        values[kk] = if hidden_ref[kk * n + i] == 1 {
-                            f32::NAN
-                        } else {
-                            v
-                        };
-                        saturated[kk] = this.stack.is_saturated(kk, this.pixel[i]);
-                    }
+                    this.gather(i, Some(hidden_ref), values, saturated);
                     let p = crate::ps::solve::fit_with(f, values, saturated, &this.sigma, &options);
                     if p.status != PixelStatus::Solved {
                         return None;
                     }
-                    let mut a = Matrix3::zeros();
                     let used: Vec<u8> = f.weights().iter().map(|&w| u8::from(w > 0.0)).collect();
-                    for (l, &u) in this.dirs.iter().zip(&used) {
-                        if u == 1 {
-                            a += l * l.transpose();
-                        }
-                    }
-                    Some((p, a.try_inverse()?, used))
+                    Some((p, this.gram(&used).try_inverse()?, used))
                 },
             )
             .collect();

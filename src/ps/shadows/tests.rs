@@ -165,7 +165,8 @@ fn labels_find_the_cast_shadows_the_rule_keeps() {
     assert!(false_shadow < 0.005, "{false_shadow}");
 }
 
-/// Bad options and a solution of another size are errors, not panics.
+/// Bad options and a solution of another size are errors, not panics; an empty mask is no
+/// work.
 #[test]
 fn bad_inputs_are_errors() {
     let r = rendered(SceneKind::Sphere, 24, 8, 0.01, 0.0);
@@ -216,6 +217,20 @@ fn bad_inputs_are_errors() {
     )
     .unwrap_err();
     assert!(matches!(err, Error::DimensionMismatch { .. }), "{err}");
+    // An empty mask (a band of rows with no masked pixel) labels nothing.
+    let empty = Mask::new(r.mask.width(), r.mask.height(), false);
+    let mut none = solve(&r.stack, 0, &r.lights, &empty, &options, &Silent).unwrap();
+    let s = label_shadows(
+        &r.stack,
+        0,
+        &r.lights,
+        &empty,
+        &options,
+        &ShadowLabelOptions::default(),
+        &mut none,
+    )
+    .unwrap();
+    assert_eq!((s.samples, s.refitted), (0, 0));
 }
 
 #[test]
