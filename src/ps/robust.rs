@@ -31,7 +31,7 @@
 
 use crate::linalg::{condition_at_most, condition_from_gram, solve_spd};
 use crate::ps::solve::{
-    MIN_SAMPLES, PixelSolution, PixelStatus, insert_descending, reference_rank,
+    MIN_SAMPLES, PixelSolution, PixelStatus, insert_descending, reference_level, reference_rank,
 };
 use nalgebra::{Matrix3, Vector3};
 use serde::Serialize;
@@ -202,11 +202,8 @@ impl<'a> PixelFitter<'a> {
                 insert_descending(&mut self.top, x);
             }
         }
-        let max = if usable == 0 {
-            f64::NEG_INFINITY
-        } else {
-            self.top[reference_rank(usable, self.highlight_fraction) - 1]
-        };
+        let max = reference_level(&self.top, usable, self.highlight_fraction)
+            .unwrap_or(f64::NEG_INFINITY);
         let t = (f64::from(self.shadow_threshold) * max).max(0.0);
         let mut n = 0;
         for (k, &s) in saturated.iter().enumerate() {

@@ -114,8 +114,6 @@ pub(super) struct Scratch {
     pub(super) top: Vec<f32>,
     /// Usable (finite, unclipped) samples of each block pixel (pass 1).
     pub(super) usable: Vec<u32>,
-    /// The last (smallest) entry of each block pixel's list in `top` (pass 1).
-    pub(super) floor: Vec<f32>,
 }
 
 impl Scratch {
@@ -344,8 +342,6 @@ pub(super) fn solve_block(
         s.top.resize(len * top, f32::NEG_INFINITY);
         s.usable.clear();
         s.usable.resize(len, 0);
-        s.floor.clear();
-        s.floor.resize(len, f32::NEG_INFINITY);
         for k in 0..stack.count() {
             let plane = stack.plane(k, channel);
             let bits = if rule.reject_saturated {
@@ -357,33 +353,22 @@ pub(super) fn solve_block(
             let mut off = 0;
             for sp in spans {
                 let src = &plane[sp.local..sp.local + sp.len];
-                let usable = &mut s.usable[off..off + sp.len];
-                let floor = &mut s.floor[off..off + sp.len];
                 for (j, (p, &v)) in (sp.start..).zip(src).enumerate() {
                     let v = v * gain;
                     if !v.is_finite() || bits.is_some_and(|b| sat_bit(b, p)) {
                         continue;
                     }
-                    usable[j] += 1;
-                    // Most samples are below the pixel's current `top`-th brightest.
-                    if v > floor[j] {
-                        let i = off + j;
-                        let list = &mut s.top[i * top..(i + 1) * top];
-                        insert_descending(list, v);
-                        floor[j] = list[top - 1];
-                    }
+                    let i = off + j;
+                    s.usable[i] += 1;
+                    insert_descending(&mut s.top[i * top..(i + 1) * top], v);
                 }
                 off += sp.len;
             }
         }
         for i in 0..len {
-            let n = s.usable[i] as usize;
-            let reference = if n == 0 {
-                f32::NEG_INFINITY
-            } else {
-                s.top[i * top + reference_rank(n, rule.highlight_fraction) - 1]
-            };
-            s.threshold[i] = rule.threshold(reference);
+            let list = &s.top[i * top..(i + 1) * top];
+            let reference = reference_level(list, s.usable[i] as usize, rule.highlight_fraction);
+            s.threshold[i] = rule.threshold(reference.unwrap_or(f32::NEG_INFINITY));
         }
     }
     // Pass 2: accumulate the normal equations image by image.

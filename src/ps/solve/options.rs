@@ -33,6 +33,21 @@ pub fn reference_rank(usable: usize, highlight_fraction: f32) -> usize {
     r.clamp(1, usable.max(1))
 }
 
+/// The reference level of a pixel with `usable` usable samples whose brightest ones are `top`
+/// (descending, as [`insert_descending`] keeps them, at least [`reference_rank`] long): its
+/// [`reference_rank`]-th brightest sample; `None` without usable samples.
+pub(crate) fn reference_level<T: Copy>(
+    top: &[T],
+    usable: usize,
+    highlight_fraction: f32,
+) -> Option<T> {
+    if usable == 0 {
+        return None;
+    }
+    top.get(reference_rank(usable, highlight_fraction) - 1)
+        .copied()
+}
+
 /// Inserts `v` into `top` (sorted descending) when it beats its last entry, dropping that: the
 /// running list of a pixel's brightest samples from which [`reference_rank`] picks.
 #[inline]
