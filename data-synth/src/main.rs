@@ -261,6 +261,12 @@ enum ShapeArg {
     Torus,
     /// A pyramid and a Gaussian bump on a ground plane.
     Bumps,
+    /// A 90° V-groove along y in a plane (concave: its faces light each other).
+    Groove,
+    /// A bowl, a hollow spherical cap, in a plane (concave).
+    Bowl,
+    /// Gaussian dimples, bumps and a groove on a plane: concave and convex detail.
+    Relief,
     /// The built-in scene (fixed 320×240): hemisphere, bump, pyramid, dome on a checkered ground.
     Demo,
 }
@@ -277,6 +283,9 @@ impl ShapeArg {
             ShapeArg::Ramp => SceneKind::Ramp,
             ShapeArg::Torus => SceneKind::Torus,
             ShapeArg::Bumps => SceneKind::Bumps,
+            ShapeArg::Groove => SceneKind::Groove,
+            ShapeArg::Bowl => SceneKind::Bowl,
+            ShapeArg::Relief => SceneKind::Relief,
             ShapeArg::Demo => SceneKind::Demo,
         }
     }

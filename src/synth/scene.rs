@@ -135,6 +135,92 @@ pub enum Primitive {
         /// Base height.
         base: f64,
     },
+    /// A plane z = z0 cut by a V-groove running along y: z = z0 − depth·max(0, 1 − |x − cx|/w)
+    /// with w = `half_width`, over the whole image. Its two planar faces meet at the crease
+    /// x = cx at an opening angle of 2·atan(w/depth) (90° when depth = w) and see each other:
+    /// the classic interreflection scene (Nayar, Ikeuchi & Kanade, "Shape from
+    /// interreflections", IJCV 1991).
+    Groove {
+        /// Position of the crease.
+        cx: f64,
+        /// Half the groove's width at the rim (pixels).
+        half_width: f64,
+        /// Depth of the crease below `z0`.
+        depth: f64,
+        /// Height of the plane.
+        z0: f64,
+    },
+    /// A plane z = z0 with a hollow spherical cap (a bowl): inside the rim, the lower part of
+    /// the sphere of radius `radius` whose bottom is `depth` below z0,
+    /// z = z0 + (R − depth) − √(R² − d²), d the distance to (cx, cy), out to the rim radius
+    /// √(2R·depth − depth²); normals point inwards, towards the sphere's centre. `depth` ≤ R
+    /// (at most a hemisphere: a deeper cap would overhang its rim). Every point of a spherical
+    /// cavity sees every other with the same form factor, dA/4πR², which makes its
+    /// interreflections a closed form.
+    Bowl {
+        /// Centre x.
+        cx: f64,
+        /// Centre y.
+        cy: f64,
+        /// Radius of the sphere (pixels).
+        radius: f64,
+        /// Depth of the bottom below `z0`, in (0, `radius`].
+        depth: f64,
+        /// Height of the plane (and of the rim).
+        z0: f64,
+    },
+    /// A relief over the whole image: the plane z = base plus Gaussian dimples, bumps and a
+    /// straight groove of Gaussian cross-section, z = base + scale·height·r(u, v) with
+    /// (u, v) = ((x − cx)/scale, (y − cy)/scale) and
+    /// r = Σ_k a_k exp(−|(u, v) − c_k|²/2s_k²) + a_g exp(−w²/2s_g²), w the signed distance to the
+    /// groove's line; the features' centres, widths and amplitudes are
+    /// [`RELIEF_FEATURES`] and [`RELIEF_GROOVE`] (steepest slopes ≈ 1–1.2 at height 1). Concave
+    /// and convex detail side by side, with interreflections in the dimples and the groove.
+    Relief {
+        /// Centre x.
+        cx: f64,
+        /// Centre y.
+        cy: f64,
+        /// Pixels per unit of (u, v) (the image size for the named scene).
+        scale: f64,
+        /// Amplitude factor (1: the nominal relief; negative turns it inside out).
+        height: f64,
+        /// Height of the plane.
+        base: f64,
+    },
+}
+
+/// The round features of [`Primitive::Relief`]: (u, v, s, a) — centre, width and amplitude in
+/// units of `scale` (negative a: a dimple, positive: a bump).
+pub const RELIEF_FEATURES: [(f64, f64, f64, f64); 4] = [
+    (-0.22, 0.18, 0.09, -0.18),
+    (0.24, -0.24, 0.06, -0.10),
+    (0.22, 0.2, 0.08, 0.14),
+    (-0.25, -0.22, 0.05, 0.08),
+];
+
+/// The straight groove of [`Primitive::Relief`]: (u, v, angle in degrees from the u axis, s,
+/// a) — a point of its line, its direction, its width and (negative) amplitude.
+pub const RELIEF_GROOVE: (f64, f64, f64, f64, f64) = (0.0, 0.0, 30.0, 0.035, -0.07);
+
+/// The relief function r(u, v) of [`Primitive::Relief`] and its gradient.
+fn relief(u: f64, v: f64) -> (f64, f64, f64) {
+    let (mut r, mut ru, mut rv) = (0.0, 0.0, 0.0);
+    for (cu, cv, s, a) in RELIEF_FEATURES {
+        let (du, dv) = (u - cu, v - cv);
+        let e = a * (-(du * du + dv * dv) / (2.0 * s * s)).exp();
+        r += e;
+        ru -= e * du / (s * s);
+        rv -= e * dv / (s * s);
+    }
+    let (gu, gv, angle, s, a) = RELIEF_GROOVE;
+    let (sin_t, cos_t) = angle.to_radians().sin_cos();
+    let w = -(u - gu) * sin_t + (v - gv) * cos_t;
+    let e = a * (-w * w / (2.0 * s * s)).exp();
+    r += e;
+    ru += e * w / (s * s) * sin_t;
+    rv -= e * w / (s * s) * cos_t;
+    (r, ru, rv)
 }
 
 /// Unit normal of a surface with gradient (zx, zy).
@@ -264,6 +350,52 @@ impl Primitive {
             } => {
                 let m = gap(cx, x0, x1).max(gap(cy, y0, y1));
                 (m <= half).then(|| base + height.max(0.0) * (1.0 - m / half))
+            }
+            // The highest point is the one farthest from the crease.
+            Primitive::Groove {
+                cx,
+                half_width,
+                depth,
+                z0,
+            } => {
+                let far = (x0 - cx).abs().max((x1 - cx).abs());
+                Some(z0 - depth * (1.0 - far / half_width).max(0.0))
+            }
+            // The highest point is the one farthest from the axis.
+            Primitive::Bowl {
+                cx,
+                cy,
+                radius,
+                depth,
+                z0,
+            } => {
+                let rim2 = 2.0 * radius * depth - depth * depth;
+                let f2 = far2(cx, cy);
+                Some(if f2 >= rim2 {
+                    z0
+                } else {
+                    z0 + (radius - depth) - (radius * radius - f2).sqrt()
+                })
+            }
+            // Dimples and the groove only lower the plane; each bump is bounded by its value at
+            // the rectangle's nearest point.
+            Primitive::Relief {
+                cx,
+                cy,
+                scale,
+                height,
+                base,
+            } => {
+                let (u0, u1) = ((x0 - cx) / scale, (x1 - cx) / scale);
+                let (v0, v1) = ((y0 - cy) / scale, (y1 - cy) / scale);
+                let (u0, u1, v0, v1) = (u0.min(u1), u0.max(u1), v0.min(v1), v0.max(v1));
+                let mut top = 0.0;
+                for (cu, cv, s, a) in RELIEF_FEATURES {
+                    let d2 = gap(cu, u0, u1).powi(2) + gap(cv, v0, v1).powi(2);
+                    top += (height * a).max(0.0) * (-d2 / (2.0 * s * s)).exp();
+                }
+                top += (height * RELIEF_GROOVE.4).max(0.0);
+                Some(base + scale.abs() * top)
             }
         }
     }
@@ -410,6 +542,54 @@ impl Primitive {
                     (base + height * (1.0 - m / half), normal_of_gradient(zx, zy))
                 })
             }
+            Primitive::Groove {
+                cx,
+                half_width,
+                depth,
+                z0,
+            } => {
+                let d = x - cx;
+                Some(if d.abs() < half_width {
+                    (
+                        z0 - depth * (1.0 - d.abs() / half_width),
+                        normal_of_gradient(depth / half_width * d.signum(), 0.0),
+                    )
+                } else {
+                    (z0, Vector3::z())
+                })
+            }
+            Primitive::Bowl {
+                cx,
+                cy,
+                radius,
+                depth,
+                z0,
+            } => {
+                let (dx, dy) = (x - cx, y - cy);
+                let d2 = dx * dx + dy * dy;
+                Some(if d2 < 2.0 * radius * depth - depth * depth {
+                    let h = (radius * radius - d2).sqrt();
+                    (
+                        z0 + (radius - depth) - h,
+                        Vector3::new(-dx, -dy, h) / radius,
+                    )
+                } else {
+                    (z0, Vector3::z())
+                })
+            }
+            Primitive::Relief {
+                cx,
+                cy,
+                scale,
+                height,
+                base,
+            } => {
+                let (r, ru, rv) = relief((x - cx) / scale, (y - cy) / scale);
+                Some((
+                    base + scale * height * r,
+                    normal_of_gradient(height * ru, height * rv),
+                ))
+            }
         }
     }
 }
@@ -547,13 +727,22 @@ pub enum SceneKind {
     Torus,
     /// A pyramid and a Gaussian bump on a ground plane.
     Bumps,
+    /// A 90° V-groove along y, 0.6·size wide and 0.3·size deep, in a plane (concave: its
+    /// faces light each other).
+    Groove,
+    /// A bowl, a hollow spherical cap of radius 0.4·size and depth 0.28·size, in a plane
+    /// (concave).
+    Bowl,
+    /// Dimples, bumps and a groove on a plane ([`Primitive::Relief`]): concave and convex
+    /// detail.
+    Relief,
     /// The built-in default scene ([`Scene::default_scene`], 320×240 whatever the size).
     Demo,
 }
 
 impl SceneKind {
     /// Every kind, for listings.
-    pub const ALL: [SceneKind; 9] = [
+    pub const ALL: [SceneKind; 12] = [
         SceneKind::Sphere,
         SceneKind::Ellipsoid,
         SceneKind::Vase,
@@ -562,6 +751,9 @@ impl SceneKind {
         SceneKind::Ramp,
         SceneKind::Torus,
         SceneKind::Bumps,
+        SceneKind::Groove,
+        SceneKind::Bowl,
+        SceneKind::Relief,
         SceneKind::Demo,
     ];
 
@@ -576,6 +768,9 @@ impl SceneKind {
             SceneKind::Ramp => "ramp",
             SceneKind::Torus => "torus",
             SceneKind::Bumps => "bumps",
+            SceneKind::Groove => "groove",
+            SceneKind::Bowl => "bowl",
+            SceneKind::Relief => "relief",
             SceneKind::Demo => "demo",
         }
     }
@@ -660,6 +855,26 @@ impl SceneKind {
                     base: 0.0,
                 }),
             ],
+            SceneKind::Groove => vec![obj(Primitive::Groove {
+                cx: 0.0,
+                half_width: 0.3 * s,
+                depth: 0.3 * s,
+                z0: 0.0,
+            })],
+            SceneKind::Bowl => vec![obj(Primitive::Bowl {
+                cx: 0.0,
+                cy: 0.0,
+                radius: 0.4 * s,
+                depth: 0.28 * s,
+                z0: 0.0,
+            })],
+            SceneKind::Relief => vec![obj(Primitive::Relief {
+                cx: 0.0,
+                cy: 0.0,
+                scale: s,
+                height: 1.0,
+                base: 0.0,
+            })],
             SceneKind::Demo => {
                 let mut d = Scene::default_scene();
                 for o in &mut d.objects {
@@ -931,6 +1146,26 @@ mod tests {
                 height: 5.0,
                 base: 0.0,
             },
+            Primitive::Groove {
+                cx: 0.3,
+                half_width: 6.0,
+                depth: 4.0,
+                z0: 1.0,
+            },
+            Primitive::Bowl {
+                cx: 0.5,
+                cy: -0.5,
+                radius: 8.0,
+                depth: 5.0,
+                z0: 0.0,
+            },
+            Primitive::Relief {
+                cx: 0.0,
+                cy: 0.0,
+                scale: 20.0,
+                height: 1.0,
+                base: 0.0,
+            },
         ];
         for prim in prims {
             for (x, y) in [(2.3, -1.1), (-1.7, 3.2), (0.4, 0.9)] {
@@ -955,6 +1190,54 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The concave primitives have the stated geometry: the groove's crease at its depth and
+    /// its faces at slope depth/half-width; the bowl's normals point at its sphere's centre and
+    /// its rim is flush with the plane; the relief's dimples dip and its bumps rise.
+    #[test]
+    fn concave_primitives_have_their_geometry() {
+        let groove = Primitive::Groove {
+            cx: 2.0,
+            half_width: 10.0,
+            depth: 5.0,
+            z0: 1.0,
+        };
+        assert_eq!(groove.eval(2.0, 7.0).unwrap().0, -4.0);
+        let (z, n) = groove.eval(7.0, 0.0).unwrap();
+        assert!((z + 1.5).abs() < 1e-12);
+        assert!((n - Vector3::new(-0.5, 0.0, 1.0).normalize()).norm() < 1e-12);
+        assert_eq!(groove.eval(12.5, 3.0).unwrap(), (1.0, Vector3::z()));
+        let bowl = Primitive::Bowl {
+            cx: 1.0,
+            cy: -1.0,
+            radius: 10.0,
+            depth: 4.0,
+            z0: 0.0,
+        };
+        // Bottom 4 below the plane; rim radius √(2·10·4 − 4²) = 8; centre at height 10 − 4.
+        assert!((bowl.eval(1.0, -1.0).unwrap().0 + 4.0).abs() < 1e-12);
+        for (x, y) in [(4.0, -3.0), (-4.0, 4.5), (8.9, -1.0)] {
+            let (z, n) = bowl.eval(x, y).unwrap();
+            let centre = Vector3::new(x, y, z) + 10.0 * n;
+            assert!((centre - Vector3::new(1.0, -1.0, 6.0)).norm() < 1e-9);
+        }
+        assert_eq!(bowl.eval(9.1, -1.0).unwrap(), (0.0, Vector3::z()));
+        assert!(bowl.eval(8.99, -1.0).unwrap().0.abs() < 0.05);
+        let relief = Primitive::Relief {
+            cx: 0.0,
+            cy: 0.0,
+            scale: 100.0,
+            height: 1.0,
+            base: 0.0,
+        };
+        // At each feature's centre the height is its amplitude, give or take the groove's and
+        // the other features' tails (under 25%).
+        for (u, v, _, a) in RELIEF_FEATURES {
+            let z = relief.eval(100.0 * u, 100.0 * v).unwrap().0;
+            assert!((z / (100.0 * a) - 1.0).abs() < 0.25, "{z} at ({u}, {v})");
+        }
+        assert!(relief.eval(0.0, 0.0).unwrap().0 < -6.0);
     }
 
     /// The rectangle bounds used to skip empty space never fall below the surface.
