@@ -13,7 +13,7 @@
 //! highlight is.
 //!
 //! Shadows: attached where n·l ≤ 0, cast where a ray from the surface towards the light meets
-//! the scene's analytic height field (ray-marched). Camera: optional Poisson shot noise (a full
+//! the scene's analytic height field (ray-marched, [`crate::synth::raymarch`]). Camera: optional Poisson shot noise (a full
 //! well of N electrons at value 1), Gaussian read noise, and clipping at a saturation level;
 //! every image's noise has its own seed (`seed + 3k + c`), so the same seed gives the same
 //! images. Quantisation and sRGB encoding happen when images are written
@@ -23,6 +23,7 @@ use crate::capture::lights::Lights;
 use crate::capture::stack::{ColorMode, GREY_WEIGHTS, ImageStack};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, ScalarMap};
+use crate::synth::raymarch::{HeightBounds, MARCH_STEP, in_cast_shadow};
 use crate::synth::reflectance::{Frame, reflect};
 use crate::synth::scene::{HeightField, Scene};
 use nalgebra::Vector3;
@@ -30,10 +31,6 @@ use rand::SeedableRng;
 use rand_distr::{Distribution, Normal, Poisson};
 use rayon::prelude::*;
 
-/// Ray-march step along the light's image-plane direction, in pixels.
-const MARCH_STEP: f64 = 0.5;
-/// Height tolerance for cast-shadow tests, in pixel units.
-const SHADOW_EPS: f64 = 1e-3;
 /// Default angular radius of a light, in degrees (a small lamp a couple of metres away).
 pub const DEFAULT_LIGHT_RADIUS_DEG: f64 = 1.5;
 
@@ -204,132 +201,6 @@ impl Rendering {
     }
 }
 
-/// Upper bounds of the scene's height on a grid of square tiles, so that shadow rays skip the
-/// height evaluation wherever they pass above everything in a tile.
-struct HeightBounds {
-    tile: f64,
-    cols: usize,
-    rows: usize,
-    /// Image-plane origin (x, y) of tile (0, 0).
-    x0: f64,
-    y0: f64,
-    top: Vec<f64>,
-    /// Bound over the whole image.
-    zmax: f64,
-}
-
-impl HeightBounds {
-    /// Tile side, in pixels.
-    const TILE: f64 = 8.0;
-
-    fn new(scene: &Scene) -> Self {
-        let tile = Self::TILE;
-        let (hw, hh) = (scene.width as f64 / 2.0, scene.height as f64 / 2.0);
-        let cols = (2.0 * hw / tile).ceil() as usize;
-        let rows = (2.0 * hh / tile).ceil() as usize;
-        let (x0, y0) = (-hw, -hh);
-        let mut top = Vec::with_capacity(cols * rows);
-        for r in 0..rows {
-            for c in 0..cols {
-                let (ax, ay) = (x0 + c as f64 * tile, y0 + r as f64 * tile);
-                let b = scene
-                    .objects
-                    .iter()
-                    .filter_map(|o| o.shape.max_height_over(ax, ax + tile, ay, ay + tile))
-                    .fold(f64::NEG_INFINITY, f64::max);
-                top.push(b);
-            }
-        }
-        let zmax = top.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        HeightBounds {
-            tile,
-            cols,
-            rows,
-            x0,
-            y0,
-            top,
-            zmax,
-        }
-    }
-
-    /// The tile containing (x, y) (clamped to the grid): its bound and its rectangle's origin.
-    fn tile_at(&self, x: f64, y: f64) -> (f64, f64, f64) {
-        // `as usize` saturates negatives (and NaN) to 0.
-        let c = (((x - self.x0) / self.tile) as usize).min(self.cols - 1);
-        let r = (((y - self.y0) / self.tile) as usize).min(self.rows - 1);
-        (
-            self.top[r * self.cols + c],
-            self.x0 + c as f64 * self.tile,
-            self.y0 + r as f64 * self.tile,
-        )
-    }
-
-    /// Distance along the unit image-plane direction (ux, uy) from (x, y) to the boundary of the
-    /// tile with origin (ax, ay).
-    fn exit(&self, x: f64, y: f64, ax: f64, ay: f64, ux: f64, uy: f64) -> f64 {
-        let along = |p: f64, a: f64, u: f64| {
-            if u > 1e-12 {
-                (a + self.tile - p) / u
-            } else if u < -1e-12 {
-                (a - p) / u
-            } else {
-                f64::INFINITY
-            }
-        };
-        along(x, ax, ux).min(along(y, ay, uy))
-    }
-}
-
-/// Whether the point (x, y, z) is hidden from a light in direction `l` by the scene's surface:
-/// marches the ray (x, y, z) + s·l over the analytic height function, evaluating it only where
-/// the tile bound says the surface could reach the ray.
-fn in_cast_shadow(
-    scene: &Scene,
-    bounds: &HeightBounds,
-    x: f64,
-    y: f64,
-    z: f64,
-    l: &Vector3<f64>,
-) -> bool {
-    let lxy = (l.x * l.x + l.y * l.y).sqrt();
-    if lxy < 1e-9 {
-        return false;
-    }
-    let (ux, uy) = (l.x / lxy, l.y / lxy);
-    let rise = l.z / lxy;
-    let (hw, hh) = (scene.width as f64 / 2.0, scene.height as f64 / 2.0);
-    let mut s = MARCH_STEP;
-    loop {
-        let (px, py) = (x + ux * s, y + uy * s);
-        if px.abs() > hw || py.abs() > hh {
-            return false;
-        }
-        let ray = z + s * rise;
-        if ray > bounds.zmax {
-            return false;
-        }
-        let (top, ax, ay) = bounds.tile_at(px, py);
-        if top <= ray + SHADOW_EPS {
-            // The ray rises, so it stays above this tile's surface until it leaves the tile:
-            // jump to the tile's edge (on the step grid, so results match plain marching).
-            if rise >= 0.0 {
-                let leave = s + bounds.exit(px, py, ax, ay, ux, uy);
-                s = (leave / MARCH_STEP).floor().max(s / MARCH_STEP + 1.0) * MARCH_STEP;
-            } else {
-                s += MARCH_STEP;
-            }
-            continue;
-        }
-        if scene
-            .height_at(px, py)
-            .is_some_and(|h| h > ray + SHADOW_EPS)
-        {
-            return true;
-        }
-        s += MARCH_STEP;
-    }
-}
-
 /// Renders `scene` under `lights`; the rendering carries the scene's [`HeightField`] and
 /// shadow masks as ground truth.
 ///
@@ -383,7 +254,8 @@ pub fn render(scene: &Scene, lights: &Lights, options: &RenderOptions) -> Result
                         *attached.at_mut(c, r) = true;
                     } else if options.cast_shadows && {
                         let (x, y) = scene.pixel_xy(c, r);
-                        in_cast_shadow(scene, &bounds, x, y, f64::from(*hf.depth.at(c, r)), &l)
+                        let start = (x, y, f64::from(*hf.depth.at(c, r)));
+                        in_cast_shadow(scene, &bounds, start, &l, MARCH_STEP, 0)
                     } {
                         *cast.at_mut(c, r) = true;
                     } else {
