@@ -4,7 +4,7 @@
 //! Oren–Nayar, or a specular lobe (Phong, Blinn–Phong, Torrance–Sparrow, Ward, mirror) over a
 //! Lambertian diffuse lobe — is rendered under a generated set of distant lights with
 //! [`photostereo::synth::render::render`] (cast shadows, optional shot and read noise, clipping, grey or
-//! RGB), and written with [`photostereo::synth::write::write_synthetic`]: one image per light
+//! RGB; optionally area lights with soft shadows), and written with [`photostereo::synth::write::write_synthetic`]: one image per light
 //! (`img_NNN.exr` or `img_NNN.png`), `lights.json` naming them and `mask.png`, with the ground
 //! truth in `gt/`: `normal_gt.exr`, `depth_gt.exr`, `albedo_gt.exr`, and per-light shadow masks
 //! `shadow_NNN.png`.
@@ -25,6 +25,7 @@
 use anyhow::{Context, Result, bail, ensure};
 use clap::{Parser, ValueEnum};
 use photostereo::capture::lights::{Lights, MAX_LIGHT_CONDITION};
+use photostereo::synth::area_light::MAX_AREA_LIGHT_SAMPLES;
 use photostereo::synth::reflectance::{
     BlinnPhong, Diffuse, Material, Mirror, Phong, Specular, TorranceSparrow, Ward,
 };
@@ -208,9 +209,9 @@ struct Cli {
     /// Ambient light added as A·albedo·diffuse colour to every pixel (0 for a dark room).
     #[arg(long, default_value_t = 0.0, value_name = "A", help_heading = "Camera")]
     ambient: f32,
-    /// Angular radius of each light in degrees, in (0, 90) [default: 1.5]. Only mirror
-    /// highlights depend on it (the other models treat lights as points), so --brdf mirror
-    /// only.
+    /// Angular radius of each light in degrees, in (0, 90) [default: 1.5]: the size of mirror
+    /// highlights, and of area lights. Point lights ignore it, so --brdf mirror or
+    /// --area-light-samples only.
     #[arg(long, value_name = "DEG", help_heading = "Camera")]
     light_radius: Option<f64>,
     /// Mirror highlights integrate over each pixel on an N×N grid of sub-pixel positions, as a
@@ -224,10 +225,16 @@ struct Cli {
     /// Do not compute cast shadows (attached shadows, n·l ≤ 0, are always present).
     #[arg(long, help_heading = "Camera")]
     no_cast_shadows: bool,
-    /// Seed of the noise and of the random light sets (cone, clustered): the same seed and
-    /// flags give byte-identical images.
+    /// Seed of the noise, of the random light sets (cone, clustered) and of the sample
+    /// rotations of area lights: the same seed and flags give byte-identical images.
     #[arg(long, default_value_t = 0, value_name = "S", help_heading = "Camera")]
     seed: u64,
+
+    // --- Light transport ---
+    /// Area lights: sample each light as a disc of radius --light-radius over N directions (2
+    /// to 1024), for the shading and soft cast shadows with penumbrae [default: point lights].
+    #[arg(long, value_name = "N", help_heading = "Light transport")]
+    area_light_samples: Option<usize>,
 
     // --- Output ---
     /// Image file format.
@@ -505,10 +512,19 @@ impl Cli {
             (Param::F0, self.f0.is_some()),
             (Param::SpecularColor, self.specular_color.is_some()),
             (Param::NoDiffuse, self.no_diffuse),
-            (Param::LightRadius, self.light_radius.is_some()),
+            // Area lights have a radius whatever the model.
+            (
+                Param::LightRadius,
+                self.light_radius.is_some() && self.area_light_samples.is_none(),
+            ),
         ];
         for (p, is_given) in given {
             if is_given && !brdf.uses(p) {
+                if p == Param::LightRadius {
+                    bail!(
+                        "--light-radius has no effect with point lights and --brdf {name}: it applies to --brdf mirror, or to area lights (--area-light-samples)"
+                    );
+                }
                 let users: Vec<String> = Brdf::value_variants()
                     .iter()
                     .filter(|b| b.uses(p))
@@ -735,6 +751,12 @@ impl Cli {
             light_radius_deg > 0.0 && light_radius_deg < 90.0,
             "--light-radius {light_radius_deg}: must be in (0, 90) degrees"
         );
+        if let Some(n) = self.area_light_samples {
+            ensure!(
+                (2..=MAX_AREA_LIGHT_SAMPLES).contains(&n),
+                "--area-light-samples {n}: must be between 2 and {MAX_AREA_LIGHT_SAMPLES} (omit it for point lights)"
+            );
+        }
         let options = RenderOptions {
             cast_shadows: !self.no_cast_shadows,
             ambient: self.ambient,
@@ -745,6 +767,7 @@ impl Cli {
             pixel_samples: self.pixel_samples,
             color: self.color,
             seed: self.seed,
+            area_light_samples: self.area_light_samples.unwrap_or(0),
         };
         // The checks above cover the library's; this keeps the two from drifting apart.
         options.validate().context("invalid camera flags")?;
@@ -1076,6 +1099,13 @@ impl Plan {
         if !o.cast_shadows {
             parts.push("no cast shadows".to_owned());
         }
+        if o.area_light_samples > 1 {
+            parts.push(format!(
+                "area lights {}° in radius ({} samples)",
+                num(o.light_radius_deg),
+                o.area_light_samples
+            ));
+        }
         parts.push(if o.color { "RGB" } else { "grey" }.to_owned());
         parts.push(format!("seed {}", o.seed));
         parts.join(", ")
@@ -1247,6 +1277,22 @@ mod tests {
         assert_eq!(
             camera.describe_camera(),
             "noise σ 0.01, full well 1000, clipped at 0.8, ambient 0.05, no cast shadows, RGB, seed 3"
+        );
+        let soft = plan(&[
+            "--shape",
+            "step",
+            "--area-light-samples",
+            "16",
+            "--light-radius",
+            "4",
+        ]);
+        assert_eq!(
+            (soft.render.area_light_samples, soft.render.light_radius_deg),
+            (16, 4.0)
+        );
+        assert_eq!(
+            soft.describe_camera(),
+            "noise σ 0, area lights 4° in radius (16 samples), grey, seed 0"
         );
         // The help states the library's default light radius.
         let help = <Cli as clap::CommandFactory>::command()
@@ -1516,6 +1562,12 @@ mod tests {
             (&["--diffuse-color", "1,0.5,x"], "--diffuse-color"),
             (&["--diffuse-color", "1,0.5,1.2"], "--diffuse-color"),
             (&["--light-radius", "2"], "--light-radius"),
+            (&["--area-light-samples", "1"], "--area-light-samples"),
+            (&["--area-light-samples", "5000"], "--area-light-samples"),
+            (
+                &["--area-light-samples", "8", "--light-radius", "90"],
+                "--light-radius",
+            ),
             (
                 &["--brdf", "mirror", "--light-radius", "0"],
                 "--light-radius",

@@ -13,7 +13,17 @@
 //! highlight is.
 //!
 //! Shadows: attached where n·l ≤ 0, cast where a ray from the surface towards the light meets
-//! the scene's analytic height field (ray-marched, [`crate::synth::raymarch`]). Camera: optional Poisson shot noise (a full
+//! the scene's analytic height field (ray-marched, [`crate::synth::raymarch`]).
+//!
+//! **Area lights** ([`RenderOptions::area_light_samples`] > 1, off by default, and then every
+//! image is byte for byte what it was without them): each light is a disc of angular radius α
+//! sampled over its directions for the BRDF, the cosine and the cast-shadow test, giving
+//! penumbrae ([`crate::synth::area_light`]). An unoccluded Lambertian surface with the whole
+//! disc above its horizon still gets exactly E ρ (n·l). The attached mask then marks the disc's
+//! centre below the horizon, and the cast mask every pixel facing it that some sample finds
+//! blocked (penumbra and umbra).
+//!
+//! Camera: optional Poisson shot noise (a full
 //! well of N electrons at value 1), Gaussian read noise, and clipping at a saturation level;
 //! every image's noise has its own seed (`seed + 3k + c`), so the same seed gives the same
 //! images. Quantisation and sRGB encoding happen when images are written
@@ -23,6 +33,10 @@ use crate::capture::lights::Lights;
 use crate::capture::stack::{ColorMode, GREY_WEIGHTS, ImageStack};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, ScalarMap};
+use crate::synth::area_light::{
+    AreaLight, MAX_AREA_LIGHT_SAMPLES, SOFT_SHADOW_REFINE, SOFT_SHADOW_STEP,
+};
+use crate::synth::hash_unit;
 use crate::synth::raymarch::{HeightBounds, MARCH_STEP, in_cast_shadow};
 use crate::synth::reflectance::{Frame, reflect};
 use crate::synth::scene::{HeightField, Scene};
@@ -33,6 +47,8 @@ use rayon::prelude::*;
 
 /// Default angular radius of a light, in degrees (a small lamp a couple of metres away).
 pub const DEFAULT_LIGHT_RADIUS_DEG: f64 = 1.5;
+/// Mixed into the seed of the per-pixel rotations of the area-light samples.
+const AREA_SEED_MIX: u64 = 0xA5EA_1167_D15C_0001;
 
 /// Rendering options.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -47,7 +63,8 @@ pub struct RenderOptions {
     pub full_well: Option<f32>,
     /// Saturation level: values above it are clipped to it and flagged; `None` for none.
     pub clip: Option<f32>,
-    /// Angular radius of each light in degrees (only mirror highlights depend on it).
+    /// Angular radius of each light in degrees: the size of mirror highlights, and of the
+    /// disc that [`RenderOptions::area_light_samples`] samples.
     pub light_radius_deg: f64,
     /// Mirror highlights integrate over the pixel's area on an n×n grid of sub-pixel positions
     /// (a camera pixel collects light over its area; point sampling makes a highlight of a few
@@ -56,8 +73,12 @@ pub struct RenderOptions {
     pub pixel_samples: usize,
     /// Render R, G and B (with the lights' colours and the materials' colours) instead of grey.
     pub color: bool,
-    /// Seed of the noise.
+    /// Seed of the noise (and of the sample rotations of area lights).
     pub seed: u64,
+    /// Directions sampled over each light's disc of radius `light_radius_deg`, for the shading
+    /// and soft cast shadows ([`crate::synth::area_light`]); 0 or 1 (the default 0): point
+    /// lights. At most [`MAX_AREA_LIGHT_SAMPLES`].
+    pub area_light_samples: usize,
 }
 
 impl Default for RenderOptions {
@@ -72,6 +93,7 @@ impl Default for RenderOptions {
             pixel_samples: 1,
             color: false,
             seed: 0,
+            area_light_samples: 0,
         }
     }
 }
@@ -122,6 +144,14 @@ impl RenderOptions {
             "pixel-samples",
             (1..=MAX_PIXEL_SAMPLES).contains(&self.pixel_samples),
             format!("{} is outside 1..={MAX_PIXEL_SAMPLES}", self.pixel_samples),
+        )?;
+        check(
+            "area-light-samples",
+            self.area_light_samples <= MAX_AREA_LIGHT_SAMPLES,
+            format!(
+                "{} is above {MAX_AREA_LIGHT_SAMPLES}",
+                self.area_light_samples
+            ),
         )
     }
 }
@@ -234,6 +264,8 @@ pub fn render(scene: &Scene, lights: &Lights, options: &RenderOptions) -> Result
         .enumerate()
         .map(|(k, light)| {
             let l = light.direction;
+            let disc = (options.area_light_samples > 1)
+                .then(|| AreaLight::new(l, options.light_radius_deg, options.area_light_samples));
             let mut planes = vec![Grid::new(w, h, 0f32); channels];
             let mut attached = Grid::new(w, h, false);
             let mut cast = Grid::new(w, h, false);
@@ -250,7 +282,64 @@ pub fn render(scene: &Scene, lights: &Lights, options: &RenderOptions) -> Result
                     let mut rgb = [0, 1, 2]
                         .map(|ch| f64::from(options.ambient) * rho * mat.diffuse_color[ch]);
                     let cos_i = n.dot(&l);
-                    if cos_i <= 0.0 {
+                    if let Some(disc) = &disc {
+                        let (x, y) = scene.pixel_xy(c, r);
+                        let start = (x, y, f64::from(*hf.depth.at(c, r)));
+                        let frame = Frame::from_normal(n);
+                        let wo = frame.to_local(&view);
+                        let pixel = (r * w + c) as u64;
+                        let rotation = 2.0
+                            * std::f64::consts::PI
+                            * hash_unit(options.seed ^ AREA_SEED_MIX, k as u64, pixel);
+                        let (mut above, mut seen) = (0usize, 0usize);
+                        for lm in disc.directions(rotation) {
+                            let cos_m = n.dot(&lm);
+                            if cos_m <= 0.0 {
+                                continue;
+                            }
+                            above += 1;
+                            if options.cast_shadows
+                                && in_cast_shadow(
+                                    scene,
+                                    &bounds,
+                                    start,
+                                    &lm,
+                                    SOFT_SHADOW_STEP,
+                                    SOFT_SHADOW_REFINE,
+                                )
+                            {
+                                continue;
+                            }
+                            seen += 1;
+                            let f = mat.eval(rho, &frame.to_local(&lm), &wo);
+                            let wc = disc.weight() * cos_m;
+                            for (ch, v) in rgb.iter_mut().enumerate() {
+                                *v += light.intensity[ch] * std::f64::consts::PI * f[ch] * wc;
+                            }
+                        }
+                        *attached.at_mut(c, r) = cos_i <= 0.0;
+                        *cast.at_mut(c, r) = cos_i > 0.0 && seen < above;
+                        // The mirror reflects the part of the disc around r; its visibility is
+                        // taken as the visible fraction of the disc's samples above the horizon.
+                        if let Some(mirror) = mat.mirror()
+                            && seen > 0
+                        {
+                            let covered = if options.pixel_samples <= 1 {
+                                f64::from(u8::from(reflect(&view, &n).dot(&l) >= cos_radius))
+                            } else {
+                                mirror_coverage(scene, x, y, &l, cos_radius, options.pixel_samples)
+                            };
+                            let fr = covered * mirror.reflectance(n.dot(&view)) * seen as f64
+                                / above as f64;
+                            for (ch, v) in rgb.iter_mut().enumerate() {
+                                *v += light.intensity[ch]
+                                    * mat.specular_color[ch]
+                                    * fr
+                                    * std::f64::consts::PI
+                                    / solid_angle;
+                            }
+                        }
+                    } else if cos_i <= 0.0 {
                         *attached.at_mut(c, r) = true;
                     } else if options.cast_shadows && {
                         let (x, y) = scene.pixel_xy(c, r);
@@ -371,6 +460,7 @@ fn mirror_coverage(
 mod tests {
     use super::*;
     use crate::synth::scene::{Albedo, Object, Primitive};
+    use std::f64::consts::PI;
 
     #[test]
     fn lambertian_sphere_matches_closed_form() {
@@ -456,6 +546,112 @@ mod tests {
             .sum::<f64>()
             / n;
         assert!((var.sqrt() - 0.01).abs() < 0.0005, "σ = {}", var.sqrt());
+    }
+
+    /// An area light shades an unoccluded Lambertian surface exactly as a point light of the
+    /// same intensity wherever the whole disc is above the horizon (E ρ (n·l), the closed form
+    /// of a uniform disc source), fades out across the horizon band |n·l| < sin α, and is
+    /// black beyond it.
+    #[test]
+    fn area_light_shades_an_unoccluded_surface_like_a_point_light() {
+        let scene = Scene::sphere(64, 28.0, Albedo::Constant(0.7));
+        let lights = Lights::ring(5, 40.0, 10.0).unwrap();
+        let alpha = 10f64;
+        let o = RenderOptions {
+            area_light_samples: 32,
+            light_radius_deg: alpha,
+            ..RenderOptions::default()
+        };
+        let r = render(&scene, &lights, &o).unwrap();
+        let sin_a = alpha.to_radians().sin();
+        let (mut full, mut band) = (0, 0);
+        for (k, l) in lights.directions().iter().enumerate() {
+            for i in 0..r.truth.mask.len() {
+                if !r.truth.mask.data()[i] {
+                    continue;
+                }
+                let cos = r.truth.normals.data()[i].cast::<f64>().dot(l);
+                let got = f64::from(r.images[k][0].data()[i]);
+                if cos > sin_a + 1e-6 {
+                    assert!((got - 0.7 * cos).abs() < 1e-5, "{got} vs {}", 0.7 * cos);
+                    full += 1;
+                } else if cos < -sin_a - 1e-6 {
+                    assert_eq!(got, 0.0);
+                } else {
+                    // The disc straddles the horizon: between the point light's value and
+                    // that of the disc's highest edge.
+                    assert!(got >= 0.0 && got <= 0.7 * (cos + sin_a) + 1e-6);
+                    band += 1;
+                }
+                assert!(!r.cast[k].data()[i]);
+            }
+        }
+        assert!(full > 5000 && band > 100, "{full} {band}");
+    }
+
+    /// The penumbra behind a straight edge: the ground at distance D before a wall of height h
+    /// sees the wall's top at elevation β = atan(h/D), which cuts the disc of a light at
+    /// elevation e (radius α) along a chord at c = −sin(e − β) from its centre. The
+    /// closed form of [`crate::synth::area_light`]: E ρ (A_seg/πR²)(sin e + x̄ cos e), R = sin α,
+    /// A_seg = R² acos(c/R) − c√(R² − c²), x̄ = ⅔(R² − c²)^{3/2}/A_seg, averaged over 80 rows.
+    ///
+    /// The closed form itself is within 1.4·10⁻⁴ of the exact integral over the spherical cap
+    /// here (α = 5°). The 64-direction quadrature has a per-pixel σ ≤ 0.0062 in the penumbra
+    /// (over the pattern's rotations), 0.0007 for a mean of 80 rows: the bound is 4σ. Measured:
+    /// 0.0013 at worst over the 14 penumbra columns (of 0.4); a plain 0.125-pixel march without
+    /// refinement was 0.003–0.009 too bright.
+    #[test]
+    fn penumbra_of_a_step_matches_the_circular_segment() {
+        let (h, x0) = (20.0, 30.0);
+        let scene = Scene {
+            width: 96,
+            height: 120,
+            objects: vec![Object::new(
+                Primitive::Step {
+                    z0: 0.0,
+                    x0,
+                    height: h,
+                },
+                Albedo::Constant(0.8),
+            )],
+        };
+        let (e, alpha) = (30f64.to_radians(), 5f64);
+        let lights = Lights::from_directions(&[Vector3::new(e.cos(), 0.0, e.sin())]).unwrap();
+        let samples = 64;
+        let o = RenderOptions {
+            area_light_samples: samples,
+            light_radius_deg: alpha,
+            ..RenderOptions::default()
+        };
+        let r = render(&scene, &lights, &o).unwrap();
+        let big_r = alpha.to_radians().sin();
+        let (mut worst, mut in_penumbra) = (0f64, 0);
+        for c in 0..96 {
+            let x = scene.pixel_xy(c, 0).0;
+            if x >= x0 {
+                continue;
+            }
+            let beta = (h / (x0 - x)).atan();
+            let cut = (-(e - beta).sin()).clamp(-big_r, big_r);
+            let area =
+                big_r * big_r * (cut / big_r).acos() - cut * (big_r * big_r - cut * cut).sqrt();
+            let centroid = if area > 0.0 {
+                2.0 / 3.0 * (big_r * big_r - cut * cut).powf(1.5) / area
+            } else {
+                0.0
+            };
+            let expect = 0.8 * area / (PI * big_r * big_r) * (e.sin() + centroid * e.cos());
+            let got = (20..100)
+                .map(|r_| f64::from(*r.images[0][0].at(c, r_)))
+                .sum::<f64>()
+                / 80.0;
+            if area > 1e-9 && area < PI * big_r * big_r * (1.0 - 1e-9) {
+                in_penumbra += 1;
+            }
+            worst = worst.max((got - expect).abs());
+        }
+        assert!(in_penumbra >= 12, "{in_penumbra} penumbra columns");
+        assert!(worst < 4.0 * 0.0062 / 80f64.sqrt(), "worst {worst}");
     }
 
     /// Shot noise: variance v/N for a full well of N electrons; clipping flags samples.
