@@ -4,7 +4,7 @@
 //! Oren–Nayar, or a specular lobe (Phong, Blinn–Phong, Torrance–Sparrow, Ward, mirror) over a
 //! Lambertian diffuse lobe — is rendered under a generated set of distant lights with
 //! [`photostereo::synth::render::render`] (cast shadows, optional shot and read noise, clipping, grey or
-//! RGB; optionally area lights with soft shadows), and written with [`photostereo::synth::write::write_synthetic`]: one image per light
+//! RGB; optionally area lights with soft shadows and diffuse interreflections), and written with [`photostereo::synth::write::write_synthetic`]: one image per light
 //! (`img_NNN.exr` or `img_NNN.png`), `lights.json` naming them and `mask.png`, with the ground
 //! truth in `gt/`: `normal_gt.exr`, `depth_gt.exr`, `albedo_gt.exr`, and per-light shadow masks
 //! `shadow_NNN.png`.
@@ -26,6 +26,9 @@ use anyhow::{Context, Result, bail, ensure};
 use clap::{Parser, ValueEnum};
 use photostereo::capture::lights::{Lights, MAX_LIGHT_CONDITION};
 use photostereo::synth::area_light::MAX_AREA_LIGHT_SAMPLES;
+use photostereo::synth::interreflection::{
+    DEFAULT_BOUNCE_SAMPLES, MAX_BOUNCE_SAMPLES, MAX_BOUNCES,
+};
 use photostereo::synth::reflectance::{
     BlinnPhong, Diffuse, Material, Mirror, Phong, Specular, TorranceSparrow, Ward,
 };
@@ -80,6 +83,9 @@ const DEFAULT_CLUSTER_RADIUS: f64 = 5.0;
 const DEFAULT_TILT: f64 = 2.0;
 /// Number of lights of `Lights::diligent_grid`.
 const DILIGENT_LIGHTS: usize = 96;
+/// Largest interreflection hit table `data-synth` asks for, bytes (4 per ray and pixel): above
+/// it `--bounce-samples` or `--size` is refused before rendering.
+const MAX_HIT_TABLE_BYTES: usize = 4 << 30;
 /// Mixed into `--seed` to seed the random light sets, so that the directions do not come from
 /// the same random stream as the noise of the first image (which the renderer seeds with
 /// `--seed` itself).
@@ -226,11 +232,27 @@ struct Cli {
     #[arg(long, help_heading = "Camera")]
     no_cast_shadows: bool,
     /// Seed of the noise, of the random light sets (cone, clustered) and of the sample
-    /// rotations of area lights: the same seed and flags give byte-identical images.
+    /// rotations of area lights and interreflections: the same seed and flags give
+    /// byte-identical images.
     #[arg(long, default_value_t = 0, value_name = "S", help_heading = "Camera")]
     seed: u64,
 
     // --- Light transport ---
+    /// Bounces of diffuse interreflection, 0 to 64: light reflected by the surface lights it
+    /// again, so concave shapes (groove, bowl, relief, torus) get brighter than the local
+    /// model says. 0 (the default): none.
+    #[arg(
+        long,
+        default_value_t = 0,
+        value_name = "N",
+        help_heading = "Light transport"
+    )]
+    bounces: usize,
+    /// Cosine-weighted rays per pixel for the interreflections, 1 to 1024 [default: 64]; the
+    /// rays are traced once for all lights and bounces and take 4 bytes each per pixel. With
+    /// --bounces only.
+    #[arg(long, value_name = "N", help_heading = "Light transport")]
+    bounce_samples: Option<usize>,
     /// Area lights: sample each light as a disc of radius --light-radius over N directions (2
     /// to 1024), for the shading and soft cast shadows with penumbrae [default: point lights].
     #[arg(long, value_name = "N", help_heading = "Light transport")]
@@ -751,6 +773,35 @@ impl Cli {
             light_radius_deg > 0.0 && light_radius_deg < 90.0,
             "--light-radius {light_radius_deg}: must be in (0, 90) degrees"
         );
+        ensure!(
+            self.bounces <= MAX_BOUNCES,
+            "--bounces {}: must be at most {MAX_BOUNCES}",
+            self.bounces
+        );
+        if let Some(n) = self.bounce_samples {
+            ensure!(
+                self.bounces > 0,
+                "--bounce-samples has no effect without --bounces"
+            );
+            ensure!(
+                (1..=MAX_BOUNCE_SAMPLES).contains(&n),
+                "--bounce-samples {n}: must be between 1 and {MAX_BOUNCE_SAMPLES}"
+            );
+        }
+        let bounce_samples = self.bounce_samples.unwrap_or(DEFAULT_BOUNCE_SAMPLES);
+        if self.bounces > 0 {
+            let size = self.size.unwrap_or(DEFAULT_SIZE);
+            let bytes = size
+                .saturating_mul(size)
+                .saturating_mul(bounce_samples)
+                .saturating_mul(4);
+            ensure!(
+                bytes <= MAX_HIT_TABLE_BYTES,
+                "--bounce-samples {bounce_samples} at --size {size}: the interreflection rays take up to {} MiB (4 bytes per ray and pixel), above {} MiB; use fewer samples or a smaller size",
+                bytes >> 20,
+                MAX_HIT_TABLE_BYTES >> 20
+            );
+        }
         if let Some(n) = self.area_light_samples {
             ensure!(
                 (2..=MAX_AREA_LIGHT_SAMPLES).contains(&n),
@@ -767,6 +818,8 @@ impl Cli {
             pixel_samples: self.pixel_samples,
             color: self.color,
             seed: self.seed,
+            bounces: self.bounces,
+            bounce_samples,
             area_light_samples: self.area_light_samples.unwrap_or(0),
         };
         // The checks above cover the library's; this keeps the two from drifting apart.
@@ -1106,6 +1159,14 @@ impl Plan {
                 o.area_light_samples
             ));
         }
+        if o.bounces > 0 {
+            parts.push(format!(
+                "{} bounce{} of interreflection ({} rays)",
+                o.bounces,
+                if o.bounces == 1 { "" } else { "s" },
+                o.bounce_samples
+            ));
+        }
         parts.push(if o.color { "RGB" } else { "grey" }.to_owned());
         parts.push(format!("seed {}", o.seed));
         parts.join(", ")
@@ -1278,21 +1339,30 @@ mod tests {
             camera.describe_camera(),
             "noise σ 0.01, full well 1000, clipped at 0.8, ambient 0.05, no cast shadows, RGB, seed 3"
         );
-        let soft = plan(&[
+        let transport = plan(&[
             "--shape",
-            "step",
+            "groove",
+            "--bounces",
+            "2",
+            "--bounce-samples",
+            "32",
             "--area-light-samples",
             "16",
             "--light-radius",
             "4",
         ]);
         assert_eq!(
-            (soft.render.area_light_samples, soft.render.light_radius_deg),
-            (16, 4.0)
+            (
+                transport.render.bounces,
+                transport.render.bounce_samples,
+                transport.render.area_light_samples,
+                transport.render.light_radius_deg
+            ),
+            (2, 32, 16, 4.0)
         );
         assert_eq!(
-            soft.describe_camera(),
-            "noise σ 0, area lights 4° in radius (16 samples), grey, seed 0"
+            transport.describe_camera(),
+            "noise σ 0, area lights 4° in radius (16 samples), 2 bounces of interreflection (32 rays), grey, seed 0"
         );
         // The help states the library's default light radius.
         let help = <Cli as clap::CommandFactory>::command()
@@ -1562,6 +1632,27 @@ mod tests {
             (&["--diffuse-color", "1,0.5,x"], "--diffuse-color"),
             (&["--diffuse-color", "1,0.5,1.2"], "--diffuse-color"),
             (&["--light-radius", "2"], "--light-radius"),
+            (&["--bounces", "65"], "--bounces"),
+            (&["--bounce-samples", "16"], "--bounce-samples"),
+            (
+                &["--bounces", "1", "--bounce-samples", "0"],
+                "--bounce-samples",
+            ),
+            (
+                &["--bounces", "1", "--bounce-samples", "2000"],
+                "--bounce-samples",
+            ),
+            (
+                &[
+                    "--bounces",
+                    "1",
+                    "--bounce-samples",
+                    "1024",
+                    "--size",
+                    "2048",
+                ],
+                "--bounce-samples",
+            ),
             (&["--area-light-samples", "1"], "--area-light-samples"),
             (&["--area-light-samples", "5000"], "--area-light-samples"),
             (

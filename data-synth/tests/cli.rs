@@ -369,3 +369,62 @@ fn bad_arguments_fail_and_write_nothing() {
         synth_fails(args, flag);
     }
 }
+
+/// (8) Interreflections: a groove rendered with bounces is brighter inside than without them,
+/// in every image, while the plane beside it, which sees nothing of the surface, is unchanged;
+/// area lights write images too.
+#[test]
+fn bounces_brighten_the_inside_of_a_groove() {
+    let tmp = tempfile::tempdir().unwrap();
+    let size = 48;
+    let common = ["--shape", "groove", "--size", "48", "--lights", "8"];
+    let render = |name: &str, extra: &[&str]| {
+        let dir = tmp.path().join(name);
+        let mut args = common.to_vec();
+        args.extend_from_slice(extra);
+        let (summary, _) = synth_ok(&args, &dir);
+        let images: Vec<Vec<f32>> = image_paths(&dir, 8, "exr")
+            .iter()
+            .map(|p| read_image(p).unwrap().data)
+            .collect();
+        (summary, images)
+    };
+    let (_, direct) = render("direct", &[]);
+    let (summary, bounced) = render("bounced", &["--bounces", "2", "--bounce-samples", "32"]);
+    assert!(
+        summary.contains("2 bounces of interreflection (32 rays)"),
+        "{summary}"
+    );
+    // The groove spans |x| < 0.3·size around the centre.
+    let x_of = |i: usize| (i % size) as f64 - (size as f64 - 1.0) / 2.0;
+    for (k, (d, b)) in direct.iter().zip(&bounced).enumerate() {
+        let (mut inside_d, mut inside_b) = (0.0, 0.0);
+        for (i, (vd, vb)) in d.iter().zip(b).enumerate() {
+            let x = x_of(i).abs();
+            if x < 0.3 * size as f64 - 1.0 {
+                inside_d += f64::from(*vd);
+                inside_b += f64::from(*vb);
+                assert!(vb >= vd, "image {k} pixel {i}: {vb} < {vd}");
+            } else if x > 0.3 * size as f64 + 1.0 {
+                assert_eq!(vb, vd, "image {k} pixel {i}: the plane changed");
+            }
+        }
+        // A 90° groove's faces exchange F = 1 − √2/2 ≈ 0.29 of their light: at albedo 0.7
+        // two bounces add ρF + (ρF)² ≈ 25% of the direct light whatever its direction (both
+        // faces are planar), less what escapes at the groove's ends: measured +22.3% in every
+        // image. Without the second bounce it would be ≈ +20%, without interreflections 0.
+        assert!(
+            inside_b > 1.18 * inside_d && inside_b < 1.27 * inside_d,
+            "image {k}: {inside_b} vs {inside_d} without bounces"
+        );
+    }
+    let (summary, soft) = render(
+        "soft",
+        &["--area-light-samples", "16", "--light-radius", "5"],
+    );
+    assert!(
+        summary.contains("area lights 5° in radius (16 samples)"),
+        "{summary}"
+    );
+    assert_ne!(soft, direct);
+}

@@ -1,10 +1,11 @@
 //! Synthetic data with ground truth: reflectance models ([`reflectance`]), scenes of height
 //! fields and primitives ([`scene`]) and a renderer ([`render`]) with cast shadows, area lights
-//! and soft shadows ([`area_light`]) and noise; shadows march rays over the scene's height
-//! field ([`raymarch`]). The tests run on scenes
+//! and soft shadows ([`area_light`]), diffuse interreflections ([`interreflection`]) and noise;
+//! all three march rays over the scene's height field ([`raymarch`]). The tests run on scenes
 //! rendered here; `data-synth` writes them as data sets.
 
 pub mod area_light;
+pub mod interreflection;
 pub mod light_sets;
 pub mod raymarch;
 pub mod reflectance;
