@@ -546,3 +546,29 @@ fn a_streamed_run_that_fails_midway_leaves_nothing() {
         .unwrap_or_default();
     assert!(left.is_empty(), "left behind: {left:?}");
 }
+
+/// Interreflection compensation needs the whole stack: a streamed run refuses it, naming it,
+/// and writes nothing.
+#[test]
+fn a_streamed_run_refuses_interreflection_compensation() {
+    let dir = tempfile::tempdir().unwrap();
+    let (files, _) = scene(dir.path(), "png");
+    let out = dir.path().join("out");
+    let mut args: Vec<&std::ffi::OsStr> = files.images.iter().map(|p| p.as_os_str()).collect();
+    let lights = dir.path().join("lights.json");
+    args.extend([
+        common::os("--lights"),
+        lights.as_os_str(),
+        common::os("--max-memory"),
+        common::os("400M"),
+        common::os("--interreflections"),
+        common::os("-q"),
+        common::os("-o"),
+        out.as_os_str(),
+    ]);
+    let o = common::run(&args);
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("interreflections"), "{e}");
+    assert!(!out.join("report.json").exists());
+}

@@ -697,6 +697,26 @@ impl ImageStack {
         }
     }
 
+    /// This stack with its samples replaced by `data` (same layout, length and flags): for
+    /// corrected copies of the images ([`crate::ps::interreflection`]).
+    ///
+    /// # Errors
+    /// [`Error::InvalidParameter`] when `data` is not as long as [`ImageStack::data`].
+    pub fn with_data(&self, data: Vec<f32>) -> Result<ImageStack> {
+        if data.len() != self.data.len() {
+            return Err(Error::param(
+                "images",
+                format!("{} samples, {} expected", data.len(), self.data.len()),
+            ));
+        }
+        Ok(ImageStack {
+            data,
+            saturated: self.saturated.clone(),
+            info: self.info.clone(),
+            ..*self
+        })
+    }
+
     /// What was loaded, per image.
     pub fn info(&self) -> &[ImageInfo] {
         &self.info

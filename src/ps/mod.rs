@@ -10,12 +10,15 @@
 //! - [`noise`]: per-image noise σ from the data; [`intensities`]: per-image intensity gains.
 //! - [`color`]: one normal from three colour channels.
 //! - [`normals`]: albedo and unit normals from g, gradients and the integrability check.
+//! - [`interreflection`]: the light a concave surface throws onto itself, predicted from the
+//!   reconstructed shape and subtracted (opt-in, a pipeline stage).
 //! - [`shadows`]: spatially coherent shadow/inlier labels per image (graph cuts) and the refit
 //!   from them (opt-in: [`solve::SolveOptions::shadow_labels`]).
 
 pub mod color;
 pub mod fill;
 pub mod intensities;
+pub mod interreflection;
 pub mod noise;
 pub mod normals;
 pub mod robust;

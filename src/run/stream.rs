@@ -769,6 +769,13 @@ fn run_bands<S: BandSink>(
     progress: &dyn Progress,
     start: impl FnOnce(&Setup) -> Result<S>,
 ) -> Result<(S, BandRun)> {
+    if config.interreflections.is_some() {
+        return Err(Error::param(
+            "interreflections",
+            "compensation needs the whole stack in memory; a run streamed in row bands cannot \
+             compensate them",
+        ));
+    }
     let mut source = FileBands::open(files, load, config, options, keep)?;
     let solve_config =
         super::pipeline::fill_only_inside_a_mask(config, files.mask_source.is_none());
@@ -918,6 +925,7 @@ pub fn reconstruct_and_write_streamed(
         albedo_above_one: written.tallies.albedo_above_one,
         residual: written.residual,
         integrability,
+        interreflections: None,
         timings: Timings {
             load: run.read_s,
             solve: run.solve_s,

@@ -53,6 +53,7 @@ use crate::synth::hash_unit;
 use crate::synth::raymarch::{HeightBounds, first_hit};
 use crate::synth::reflectance::Frame;
 use crate::synth::scene::{HeightField, Scene};
+use nalgebra::Vector3;
 use rayon::prelude::*;
 use std::f64::consts::PI;
 
@@ -153,14 +154,7 @@ impl BounceHits {
                 let shift1 = hash_unit(seed, u64::from(p), 1);
                 let shift2 = hash_unit(seed, u64::from(p), 2);
                 for (m, slot) in out.iter_mut().enumerate() {
-                    // Malley: uniform on the disc, projected to the hemisphere.
-                    let u1 = ((m as f64 + 0.5) / samples as f64 + shift1).fract();
-                    let u2 = (m as f64 * INV_GOLDEN + shift2).fract();
-                    let (s, co) = (2.0 * PI * u2).sin_cos();
-                    let radius = u1.sqrt();
-                    let d = frame.t * (radius * co)
-                        + frame.b * (radius * s)
-                        + frame.n * (1.0 - u1).max(0.0).sqrt();
+                    let d = cosine_direction(&frame, m, samples, (shift1, shift2));
                     *slot = first_hit(scene, &bounds, start, &d, HIT_STEP, HIT_REFINE)
                         .and_then(|(hx, hy)| pixel_of(truth, scene, hx, hy))
                         .unwrap_or(ESCAPED);
@@ -264,6 +258,22 @@ impl BounceHits {
             })
         }
     }
+}
+
+/// Direction `m` of `samples` cosine-weighted directions about `frame`'s normal: point m of
+/// the Fibonacci lattice ((m + ½)/S, m·φ⁻¹) on the unit square, shifted by `shift` (modulo 1),
+/// mapped to the hemisphere by Malley's method (uniform on the unit disc, projected up).
+pub(crate) fn cosine_direction(
+    frame: &Frame,
+    m: usize,
+    samples: usize,
+    shift: (f64, f64),
+) -> Vector3<f64> {
+    let u1 = ((m as f64 + 0.5) / samples as f64 + shift.0).fract();
+    let u2 = (m as f64 * INV_GOLDEN + shift.1).fract();
+    let (s, co) = (2.0 * PI * u2).sin_cos();
+    let radius = u1.sqrt();
+    frame.t * (radius * co) + frame.b * (radius * s) + frame.n * (1.0 - u1).max(0.0).sqrt()
 }
 
 /// The surface pixel whose radiosity stands for the hit point (x, y): of the (up to) four

@@ -4,9 +4,12 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use photostereo::camera::Intrinsics;
 use photostereo::capture::stack::{ColorMode, LoadOptions, Transfer};
-use photostereo::eval::bench::{integration, scaling, specularity, stages, stream};
+use photostereo::eval::bench::{
+    integration, interreflections, scaling, specularity, stages, stream,
+};
 use photostereo::integrate::{BilateralParams, IntegrationOptions, Integrator, LinearSolver};
 use photostereo::ps::color::ColorSolve;
+use photostereo::ps::interreflection::{self, InterreflectionOptions};
 use photostereo::ps::robust::{DEFAULT_SPECULAR_CONE_DEG, DEFAULT_TRIM_HIGH, DEFAULT_TRIM_LOW};
 use photostereo::ps::shadows::{DEFAULT_ROUNDS, DEFAULT_SMOOTHNESS, ShadowLabelOptions};
 use photostereo::ps::solve::{
@@ -166,6 +169,42 @@ pub struct MethodArgs {
     /// Shadow labelling.
     #[command(flatten)]
     pub shadows: ShadowArgs,
+    /// Interreflection compensation.
+    #[command(flatten)]
+    pub interreflections: InterreflectionArgs,
+}
+
+/// Interreflection compensation options.
+#[derive(Debug, Args, Clone)]
+pub struct InterreflectionArgs {
+    /// Compensate interreflections (Nayar, Ikeuchi & Kanade 1991): integrate the normals,
+    /// predict the light the surface throws onto itself, subtract it and solve again. Applied
+    /// only where the data show it (the residual falls), with the reflectance scale estimated
+    /// from the data unless --interreflection-scale gives it. Orthographic shapes only.
+    #[arg(long)]
+    pub interreflections: bool,
+    /// --interreflections: the reflectance per unit albedo (ρ = scale·albedo), when known, e.g.
+    /// 1 when the images are divided by the light's irradiance and the camera is radiometric.
+    #[arg(long, value_name = "S", requires = "interreflections")]
+    pub interreflection_scale: Option<f64>,
+    /// --interreflections: rounds of integrate, trace, compensate and solve.
+    #[arg(long, default_value_t = interreflection::DEFAULT_ITERATIONS, value_name = "N", requires = "interreflections")]
+    pub interreflection_rounds: usize,
+    /// --interreflections: cosine-weighted rays per pixel for the form factors.
+    #[arg(long, default_value_t = interreflection::DEFAULT_RAYS, value_name = "N", requires = "interreflections")]
+    pub interreflection_rays: usize,
+}
+
+impl InterreflectionArgs {
+    /// The compensation options, `None` when off.
+    pub fn options(&self) -> Option<InterreflectionOptions> {
+        self.interreflections.then_some(InterreflectionOptions {
+            iterations: self.interreflection_rounds,
+            rays: self.interreflection_rays,
+            scale: self.interreflection_scale,
+            ..InterreflectionOptions::default()
+        })
+    }
 }
 
 /// Shadow labelling options, shared by the runs and `eval --diligent`.
@@ -313,6 +352,10 @@ pub enum BenchCommand {
     /// Normal error of every estimator against specular strength on rendered Blinn–Phong and
     /// Torrance–Sparrow scenes with cast shadows.
     Specularity(SpecularityBenchArgs),
+    /// Normal error on rendered concave scenes (V-groove, bowl, relief; a sphere as the
+    /// control) with interreflections, without and with compensation (scale known, scale
+    /// estimated); JSON to standard output, a chart in `--out`.
+    Interreflections(InterreflectionBenchArgs),
     /// Wall time and peak memory of the in-memory and the streamed (`--max-memory`) run on
     /// the same stack, as child processes, alternating.
     Stream(StreamBenchArgs),
@@ -415,6 +458,26 @@ pub struct StreamBenchArgs {
     /// Runs of each; medians are reported.
     #[arg(long, default_value_t = stream::DEFAULT_REPEAT)]
     pub repeat: usize,
+}
+
+/// `bench interreflections` options.
+#[derive(Debug, Args)]
+pub struct InterreflectionBenchArgs {
+    /// Image size (square).
+    #[arg(long, default_value_t = interreflections::DEFAULT_SIZE)]
+    pub size: usize,
+    /// Number of lights (Fibonacci spiral up to 60° from the view direction).
+    #[arg(long, default_value_t = interreflections::DEFAULT_LIGHTS)]
+    pub lights: usize,
+    /// The surfaces' albedo (their reflectance).
+    #[arg(long, default_value_t = interreflections::DEFAULT_ALBEDO)]
+    pub albedo: f64,
+    /// Write `interreflections.json` and the chart `interreflections.svg/.png` here.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Also print a Markdown table (to standard error).
+    #[arg(long)]
+    pub markdown: bool,
 }
 
 /// `bench specularity` options.
@@ -682,6 +745,10 @@ impl MethodArgs {
             ..SolveOptions::default()
         };
         solve.validate()?;
+        let interreflections = self.interreflections.options();
+        if let Some(o) = &interreflections {
+            o.validate()?;
+        }
         Ok(Config {
             solve,
             integration: match self.integrate.method() {
@@ -691,6 +758,7 @@ impl MethodArgs {
             albedo_normalised: self.albedo_normalised,
             mesh: self.mesh,
             color: ColorSolve::default(),
+            interreflections,
         })
     }
 }

@@ -4,8 +4,8 @@
 //! process timing, peak memory) and the numpy peer.
 
 use crate::args::{
-    BenchArgs, IntegrateArg, IntegrationBenchArgs, MethodArg, PeerArgs, ScalingBenchArgs,
-    SpecularityBenchArgs, StreamBenchArgs,
+    BenchArgs, IntegrateArg, IntegrationBenchArgs, InterreflectionBenchArgs, MethodArg, PeerArgs,
+    ScalingBenchArgs, SpecularityBenchArgs, StreamBenchArgs,
 };
 use crate::chart::{Chart, Legend, Series, Style};
 use anyhow::{Context, Result};
@@ -14,6 +14,9 @@ use photostereo::eval::bench::PowerLaw;
 use photostereo::eval::bench::integration::{
     self, IntegrationBenchOptions, IntegratorRow, PeerPoissonRow, integrator_rows,
     time_poisson_on_peaks,
+};
+use photostereo::eval::bench::interreflections::{
+    InterreflectionBenchOptions, InterreflectionReport, interreflections as run_interreflections,
 };
 use photostereo::eval::bench::scaling::{self, ScalingOptions, ScalingReport};
 use photostereo::eval::bench::specularity::{SpecularityOptions, specularity as run_specularity};
@@ -313,6 +316,104 @@ pub fn specularity(a: SpecularityBenchArgs) -> Result<()> {
     }
     say!("{}", serde_json::to_string_pretty(&value)?);
     Ok(())
+}
+
+/// `bench interreflections`: each concave scene's normal error without and with
+/// compensation; JSON to standard output, a Markdown table to standard error with
+/// `--markdown`, and the JSON and a chart in `--out`.
+pub fn interreflections(a: InterreflectionBenchArgs) -> Result<()> {
+    let report = run_interreflections(&InterreflectionBenchOptions {
+        size: a.size,
+        lights: a.lights,
+        albedo: a.albedo,
+    })?;
+    if a.markdown {
+        eprint!("{}", interreflection_table(&report));
+    }
+    let text = serde_json::to_string_pretty(&report)?;
+    if let Some(dir) = &a.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        crate::write_file_atomic(&dir.join("interreflections.json"), text.as_bytes())?;
+        interreflection_chart(&report, &dir.join("interreflections"))?;
+    }
+    say!("{text}");
+    Ok(())
+}
+
+/// The rows of `report` as a Markdown table.
+pub(crate) fn interreflection_table(report: &InterreflectionReport) -> String {
+    let mut s = String::from(
+        "| scene | step | mean (°) | median (°) | p95 (°) | reflectance used | occlusion | time (s) |\n\
+         |---|---|---:|---:|---:|---:|---:|---:|\n",
+    );
+    for r in &report.rows {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.3} | {:.2} |",
+            r.scene,
+            r.step,
+            r.mean_deg,
+            r.median_deg,
+            r.p95_deg,
+            r.reflectance,
+            r.occlusion,
+            r.seconds
+        );
+    }
+    s
+}
+
+/// Mean angular error per scene (x: the scenes in order), one line per step.
+pub(crate) fn interreflection_chart(report: &InterreflectionReport, stem: &Path) -> Result<()> {
+    let mut steps: Vec<&str> = Vec::new();
+    let mut scenes: Vec<&str> = Vec::new();
+    for r in &report.rows {
+        if !steps.contains(&r.step) {
+            steps.push(r.step);
+        }
+        if !scenes.contains(&r.scene) {
+            scenes.push(r.scene);
+        }
+    }
+    let series = steps
+        .iter()
+        .enumerate()
+        .map(|(k, step)| {
+            let rows: Vec<_> = report.rows.iter().filter(|r| r.step == *step).collect();
+            let points = rows
+                .iter()
+                .map(|r| {
+                    let x = scenes.iter().position(|s| *s == r.scene).unwrap_or(0);
+                    (x as f64, r.mean_deg)
+                })
+                .collect();
+            Series::line(*step, points, k).labelled(
+                rows.iter()
+                    .map(|r| {
+                        if k == 0 {
+                            r.scene.to_string()
+                        } else {
+                            String::new()
+                        }
+                    })
+                    .collect(),
+            )
+        })
+        .collect();
+    crate::chart::write(
+        &Chart {
+            title: format!(
+                "Interreflections: mean normal error ({}², {} lights, albedo {})",
+                report.size, report.lights, report.albedo
+            ),
+            x_label: format!("scene ({})", scenes.join(", ")),
+            y_label: "mean angular error (°)".into(),
+            log: (false, false),
+            series,
+            legend: Legend::UpperRight,
+        },
+        stem,
+    )
 }
 
 /// Runs `cmd` to completion; returns its wall time in seconds and its peak resident memory in

@@ -9,6 +9,8 @@
 //!   beside the numpy peer (`bench diligent`).
 //! - [`integration`]: time and accuracy of each integrator against image size, and DCT Poisson
 //!   on the peer's own test field (`bench integration`).
+//! - [`interreflections`]: interreflection compensation on rendered concave scenes
+//!   (`bench interreflections`).
 //! - [`specularity`]: each estimator's error against specular strength (`bench specularity`).
 //! - [`scaling`]: solve time against pixels × lights (`bench scaling`).
 //! - [`stream`]: the same stack solved in memory and streamed in row bands (`bench stream`).
@@ -22,12 +24,31 @@
 
 pub mod diligent;
 pub mod integration;
+pub mod interreflections;
 pub mod real_depth;
 pub mod scaling;
 pub mod specularity;
 pub mod stages;
 pub mod stream;
 pub mod suite;
+
+/// Runs `config` on `capture` and measures its normals against `truth` over the capture's mask:
+/// the reconstruction, the angular errors and the wall time of the run in seconds.
+pub(crate) fn timed_normal_errors(
+    capture: &crate::capture::dataset::Capture,
+    config: &crate::run::pipeline::Config,
+    truth: &crate::grid::NormalMap,
+) -> crate::error::Result<(
+    crate::run::pipeline::Reconstruction,
+    crate::eval::metrics::AngularErrorStats,
+    f64,
+)> {
+    let t = std::time::Instant::now();
+    let recon = crate::run::pipeline::reconstruct(capture, config, &crate::progress::Silent)?;
+    let seconds = t.elapsed().as_secs_f64();
+    let errors = crate::eval::metrics::angular_errors(&recon.maps.normals, truth, &capture.mask)?;
+    Ok((recon, errors, seconds))
+}
 
 /// Timed runs per point of the benchmarks on rendered scenes; medians are reported.
 pub const DEFAULT_REPEAT: usize = 3;

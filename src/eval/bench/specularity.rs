@@ -7,15 +7,12 @@ use crate::capture::dataset::Capture;
 use crate::capture::lights::Lights;
 use crate::capture::stack::ColorMode;
 use crate::error::{Error, Result};
-use crate::eval::metrics::angular_errors;
-use crate::progress::Silent;
 use crate::ps::solve::{Method, SolveOptions};
-use crate::run::pipeline::{Config, reconstruct};
+use crate::run::pipeline::Config;
 use crate::synth::reflectance::{BlinnPhong, Material, Specular, TorranceSparrow};
 use crate::synth::render::{RenderOptions, render};
 use crate::synth::scene::Scene;
 use serde::Serialize;
-use std::time::Instant;
 
 /// Image size (square) by default.
 pub const DEFAULT_SIZE: usize = 128;
@@ -185,11 +182,8 @@ pub fn specularity(options: &SpecularityOptions) -> Result<SpecularityReport> {
                     integration: None,
                     ..Config::default()
                 };
-                let t = Instant::now();
-                let recon = reconstruct(&capture, &config, &Silent)?;
-                let seconds = t.elapsed().as_secs_f64();
-                let e =
-                    angular_errors(&recon.maps.normals, &rendering.truth.normals, &capture.mask)?;
+                let (recon, e, seconds) =
+                    super::timed_normal_errors(&capture, &config, &rendering.truth.normals)?;
                 rows.push(SpecularityRow {
                     lobe: lobe.name,
                     ks,

@@ -1,12 +1,14 @@
 //! What `bench all` runs to regenerate `docs/bench` ([`SuitePlan`]), in order: the
 //! speed–accuracy sweeps ([`crate::eval::sweep`]), solver scaling ([`super::scaling`]),
-//! integrator timing ([`super::integration`]), then on each DiLiGenT object present the
+//! integrator timing ([`super::integration`]), interreflection compensation on rendered
+//! concave scenes ([`super::interreflections`]), then on each DiLiGenT object present the
 //! stages beside the numpy peer ([`super::stages`]) and every estimator with all lights and
 //! light subsets ([`super::diligent`]), and last every integrator on the shared depth data
 //! ([`super::real_depth`]). The quick plan is a smoke run of the whole chain, not for
 //! publishing.
 
 use super::integration::IntegrationBenchOptions;
+use super::interreflections::InterreflectionBenchOptions;
 use super::scaling::ScalingOptions;
 use crate::eval::sweep::SweepOptions;
 use crate::ps::solve::SolveOptions;
@@ -21,6 +23,8 @@ pub struct SuitePlan {
     pub scaling: ScalingOptions,
     /// Integrator timing.
     pub integration: IntegrationBenchOptions,
+    /// Interreflection compensation on rendered concave scenes.
+    pub interreflections: InterreflectionBenchOptions,
     /// The DiLiGenT stage timing beside the peer: plain least squares ([`super::stages::PEER_METHOD`]),
     /// normals only.
     pub stages: Config,
@@ -40,6 +44,7 @@ impl SuitePlan {
             },
             scaling: ScalingOptions::default(),
             integration: IntegrationBenchOptions::default(),
+            interreflections: InterreflectionBenchOptions::default(),
             stages: Config {
                 solve: SolveOptions::with_method(super::stages::PEER_METHOD),
                 integration: None,
@@ -50,7 +55,7 @@ impl SuitePlan {
     }
 
     /// A smoke run of the whole chain: small images ([`SweepOptions::quick`]; scaling at 64²
-    /// and 128², integrators at 64² and 128²) and single runs, except the sweeps' three.
+    /// and 128², integrators at 64² and 128², interreflections at 48² with 12 lights) and single runs, except the sweeps' three.
     pub fn quick() -> Self {
         let full = Self::full();
         SuitePlan {
@@ -64,6 +69,11 @@ impl SuitePlan {
                 sizes: vec![64, 128],
                 repeat: 1,
                 ..full.integration
+            },
+            interreflections: InterreflectionBenchOptions {
+                size: 48,
+                lights: 12,
+                ..full.interreflections
             },
             diligent_repeat: 1,
             ..full

@@ -254,5 +254,6 @@ pub(crate) fn assemble(
             write: 0.0,
         },
         warnings,
+        interreflections: None,
     }
 }

@@ -10,9 +10,12 @@
 //! itself — [`Config`], [`reconstruct`], [`reconstruct_and_write`] and the finishing stage —
 //! is here.
 
+mod interreflections;
 mod maps;
 mod outputs;
 mod report;
+
+pub use interreflections::{InterreflectionRound, InterreflectionSummary};
 
 pub use maps::*;
 pub use outputs::*;
@@ -30,6 +33,7 @@ use crate::io::output::{
 };
 use crate::progress::Progress;
 use crate::ps::color::ColorSolve;
+use crate::ps::interreflection::InterreflectionOptions;
 use crate::ps::normals::{
     IntegrabilitySummary, albedo_and_normals, combine_channels, integrability,
 };
@@ -55,6 +59,10 @@ pub struct Config {
     pub mesh: bool,
     /// How an RGB capture's channels are solved (grey captures have one channel).
     pub color: ColorSolve,
+    /// Interreflection compensation ([`crate::ps::interreflection`]), or `None` (the
+    /// default) for none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub interreflections: Option<InterreflectionOptions>,
 }
 
 impl Default for Config {
@@ -65,6 +73,7 @@ impl Default for Config {
             albedo_normalised: false,
             mesh: false,
             color: ColorSolve::default(),
+            interreflections: None,
         }
     }
 }
@@ -106,6 +115,8 @@ pub struct Reconstruction {
     pub timings: Timings,
     /// Things the user should know (saturation, flagged pixels, …).
     pub warnings: Vec<Warning>,
+    /// What interreflection compensation did, when it was asked for.
+    pub interreflections: Option<InterreflectionSummary>,
 }
 
 impl Reconstruction {
@@ -167,12 +178,23 @@ pub fn reconstruct_normals(
         count: capture.stack.count(),
         unmasked_files,
     };
-    Ok(assemble(
+    let recon = assemble(
         sink.into_solutions(),
         times.model + times.solve + times.sink,
         &facts,
         config,
-    ))
+    );
+    match &config.interreflections {
+        Some(options) => interreflections::compensate_and_resolve(
+            capture,
+            &solve_config,
+            options,
+            recon,
+            &facts,
+            progress,
+        ),
+        None => Ok(recon),
+    }
 }
 
 /// `config` for the solve: without a mask the unsolved pixels are mostly background (dark, or

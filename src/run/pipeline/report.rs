@@ -161,6 +161,10 @@ pub struct Report {
     /// Errors against ground truth, when known (e.g. for the demo scene).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub evaluation: Option<serde_json::Value>,
+    /// What interreflection compensation did, when it was asked for
+    /// ([`crate::ps::interreflection`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub interreflections: Option<super::InterreflectionSummary>,
     /// How a run streamed in row bands used memory ([`crate::run::stream::StreamPlan`]); absent
     /// for in-memory runs.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -205,6 +209,8 @@ pub(crate) struct RunSummary {
     pub timings: Timings,
     /// Warnings raised (in the file, as their text).
     pub warnings: Vec<Warning>,
+    /// What interreflection compensation did.
+    pub interreflections: Option<super::InterreflectionSummary>,
 }
 
 impl RunSummary {
@@ -222,6 +228,7 @@ impl RunSummary {
             integrability: recon.integrability,
             timings: recon.timings,
             warnings: recon.warnings.clone(),
+            interreflections: recon.interreflections.clone(),
         }
     }
 }
@@ -264,6 +271,7 @@ pub(crate) fn commit_with_report(
         integration,
         outputs,
         evaluation,
+        interreflections: run.interreflections,
         streaming: source.streaming.clone(),
     };
     let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Encode {

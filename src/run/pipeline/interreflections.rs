@@ -1,0 +1,133 @@
+//! The interreflection stage ([`crate::ps::interreflection`]): integrate the current normals,
+//! trace the form factors of that shape, subtract the light the surface throws onto itself
+//! and solve again, for the configured number of rounds or until the data show no
+//! interreflections.
+
+use super::{Config, InputFacts, Reconstruction, assemble};
+use crate::capture::dataset::Capture;
+use crate::error::Result;
+use crate::integrate::{IntegrationOptions, integrate_normals};
+use crate::progress::{Progress, Silent};
+use crate::ps::interreflection::{
+    Estimate, FormFactors, InterreflectionOptions, ScaleEstimate, compensate, estimate_scale,
+};
+use crate::run::bands::{Assemble, WholeStack, solve_bands};
+use serde::Serialize;
+use std::time::Instant;
+
+/// One round of the interreflection stage.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct InterreflectionRound {
+    /// Mean fraction of a pixel's hemisphere filled by the surface, on the shape of this round.
+    pub mean_occlusion: f64,
+    /// The reflectance scale used (estimated, or as given), and how it was found.
+    pub scale: ScaleEstimate,
+}
+
+/// What the interreflection stage did.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct InterreflectionSummary {
+    /// Each round, in order (the last may have found nothing to compensate and stopped).
+    pub rounds: Vec<InterreflectionRound>,
+    /// Whether the final result was solved from compensated images.
+    pub applied: bool,
+    /// Time of the stage beyond the first solve (shapes, form factors, the scale search and
+    /// the new solves), in seconds.
+    pub seconds: f64,
+}
+
+/// Runs the rounds on `capture` from the first reconstruction `first`; returns the last
+/// reconstruction, its `interreflections` set.
+pub(super) fn compensate_and_resolve(
+    capture: &Capture,
+    config: &Config,
+    options: &InterreflectionOptions,
+    first: Reconstruction,
+    facts: &InputFacts<'_>,
+    progress: &dyn Progress,
+) -> Result<Reconstruction> {
+    options.validate()?;
+    let t = Instant::now();
+    let integration = IntegrationOptions {
+        camera: None,
+        ..config.integration.unwrap_or_default()
+    };
+    let mut recon = first;
+    let mut rounds = Vec::new();
+    let mut applied = false;
+    let first_solve = recon.timings.solve;
+    for round in 0..options.iterations {
+        if recon.maps.solved.count() == 0 {
+            break;
+        }
+        let depth = integrate_normals(
+            &recon.maps.normals,
+            &recon.maps.solved,
+            &integration,
+            &Silent,
+        )?
+        .depth;
+        let ff = FormFactors::trace(
+            &depth,
+            &recon.maps.normals,
+            &recon.maps.solved,
+            options.rays,
+            options.seed.wrapping_add(round as u64),
+        )?;
+        let estimate = Estimate {
+            albedo: &recon.maps.albedo,
+            normals: &recon.maps.normals,
+        };
+        let scale = match options.scale {
+            Some(scale) => ScaleEstimate {
+                scale,
+                bright_reflectance: scale * estimate.bright_albedo(ff.pixels()),
+                pixels: ff.pixels().len(),
+                residual_without: f64::NAN,
+                residual_with: f64::NAN,
+                curve: Vec::new(),
+            },
+            None => estimate_scale(
+                &capture.stack,
+                &capture.lights,
+                &ff,
+                &estimate,
+                &config.solve,
+            )?,
+        };
+        // The first round's shape is the flattest, so its estimate of the scale is the
+        // largest that the data support: a later round may lower it, never raise it (a rise
+        // means the residual is answering to something other than interreflections).
+        let mut scale = scale;
+        if let Some(previous) = rounds.last().map(|r: &InterreflectionRound| r.scale.scale)
+            && scale.scale > previous
+        {
+            scale.bright_reflectance *= previous / scale.scale;
+            scale.scale = previous;
+        }
+        let s = scale.scale;
+        rounds.push(InterreflectionRound {
+            mean_occlusion: ff.mean_occlusion(),
+            scale,
+        });
+        if s <= 0.0 {
+            break;
+        }
+        let stack = compensate(&capture.stack, &capture.lights, &ff, &estimate, s)?;
+        let mut source = WholeStack::new(&stack, &capture.mask);
+        let (sink, _) = solve_bands(&mut source, &capture.lights, config, progress, |setup| {
+            Ok(Assemble::new(setup))
+        })?;
+        recon = assemble(sink.into_solutions(), first_solve, facts, config);
+        applied = true;
+    }
+    let seconds = t.elapsed().as_secs_f64();
+    // The solve stage's time includes the whole interreflection stage.
+    recon.timings.solve = first_solve + seconds;
+    recon.interreflections = Some(InterreflectionSummary {
+        rounds,
+        applied,
+        seconds,
+    });
+    Ok(recon)
+}
