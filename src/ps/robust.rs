@@ -30,9 +30,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::linalg::{condition_at_most, condition_from_gram, solve_spd};
-use crate::ps::solve::{
-    MIN_SAMPLES, PixelSolution, PixelStatus, insert_descending, reference_level, reference_rank,
-};
+use crate::ps::solve::{MIN_SAMPLES, PixelSolution, PixelStatus, Reference};
 use nalgebra::{Matrix3, Vector3};
 use serde::Serialize;
 
@@ -145,8 +143,10 @@ pub(crate) struct PixelFitter<'a> {
     compact: Compact,
     w: Vec<f64>,
     order: Vec<usize>,
-    /// The brightest usable samples of the loaded pixel, descending.
-    top: Vec<f64>,
+    /// Scratch for the selection of the shadow threshold's reference level.
+    keys: Vec<u64>,
+    /// The reference level of the loaded pixel (−∞ without usable samples or rejection).
+    reference: f64,
 }
 
 impl<'a> PixelFitter<'a> {
@@ -175,7 +175,8 @@ impl<'a> PixelFitter<'a> {
             compact: Compact::default(),
             w: vec![0.0; k],
             order: Vec::with_capacity(k),
-            top: Vec::with_capacity(k),
+            keys: Vec::with_capacity(k),
+            reference: f64::NEG_INFINITY,
         }
     }
 
@@ -184,27 +185,42 @@ impl<'a> PixelFitter<'a> {
         &self.w
     }
 
+    /// The shadow threshold's reference level of the pixel last loaded (by a fit): its
+    /// [`crate::ps::solve::reference_rank`]-th brightest usable sample, −∞ when it has none
+    /// or the fit rejected nothing. To be passed back to [`PixelFitter::fit_with_reference`]
+    /// as [`Reference::Exact`] when the same pixel is fitted again.
+    pub(crate) fn reference(&self) -> f64 {
+        self.reference
+    }
+
     /// Loads a pixel's samples and marks the threshold set (finite, unsaturated, above the
     /// shadow threshold relative to the pixel's reference level: the
     /// [`crate::ps::solve::reference_rank`]-th brightest usable sample), or every finite
-    /// sample when `reject` is false. Returns its size.
-    fn load(&mut self, values: &[f32], saturated: &[bool], reject: bool) -> usize {
-        // The brightest usable samples, descending, as the block kernel keeps them.
-        let cap = reference_rank(values.len(), self.highlight_fraction);
-        self.top.clear();
-        self.top.resize(cap, f64::NEG_INFINITY);
-        let mut usable = 0;
+    /// sample when `reject` is false; `reference` is what is known of the reference level of
+    /// these samples. Returns the threshold set's size.
+    fn load(
+        &mut self,
+        values: &[f32],
+        saturated: &[bool],
+        reject: bool,
+        reference: Reference,
+    ) -> usize {
         for (k, &v) in values.iter().enumerate() {
-            let x = f64::from(v) * f64::from(self.gains[k]);
-            self.v[k] = x;
-            if reject && x.is_finite() && !(self.reject_saturated && saturated[k]) {
-                usable += 1;
-                insert_descending(&mut self.top, x);
-            }
+            self.v[k] = f64::from(v) * f64::from(self.gains[k]);
         }
-        let max = reference_level(&self.top, usable, self.highlight_fraction)
-            .unwrap_or(f64::NEG_INFINITY);
-        let t = (f64::from(self.shadow_threshold) * max).max(0.0);
+        self.reference = if reject {
+            reference.level(
+                values,
+                saturated,
+                self.gains,
+                self.reject_saturated,
+                self.highlight_fraction,
+                &mut self.keys,
+            )
+        } else {
+            f64::NEG_INFINITY
+        };
+        let t = (f64::from(self.shadow_threshold) * self.reference).max(0.0);
         let mut n = 0;
         for (k, &s) in saturated.iter().enumerate() {
             let x = self.v[k];
@@ -225,7 +241,7 @@ impl<'a> PixelFitter<'a> {
         saturated: &[bool],
         reject: bool,
     ) -> ([f64; 6], [f64; 3], usize) {
-        let n = self.load(values, saturated, reject);
+        let n = self.load(values, saturated, reject, Reference::Unknown);
         let mut a = Sym3::default();
         let mut b = Vector3::zeros();
         for (k, l) in self.dirs.iter().enumerate() {
@@ -299,8 +315,21 @@ impl<'a> PixelFitter<'a> {
         saturated: &[bool],
         estimator: Estimator,
     ) -> PixelSolution {
+        self.fit_with_reference(values, saturated, estimator, Reference::Unknown)
+    }
+
+    /// [`PixelFitter::fit`] with what is known of the pixel's shadow-threshold reference level
+    /// ([`Reference`]: the block kernel's, or [`PixelFitter::reference`] after an earlier fit
+    /// of the same samples that rejected samples).
+    pub(crate) fn fit_with_reference(
+        &mut self,
+        values: &[f32],
+        saturated: &[bool],
+        estimator: Estimator,
+        reference: Reference,
+    ) -> PixelSolution {
         let reject = !matches!(estimator, Estimator::Plain { reject: false, .. });
-        let n_base = self.load(values, saturated, reject);
+        let n_base = self.load(values, saturated, reject, reference);
         match estimator {
             Estimator::Plain {
                 intensity_weight, ..

@@ -110,10 +110,13 @@ pub(super) struct Scratch {
     pub(super) values: Vec<f32>,
     /// Saturation flags, laid out as `values`.
     pub(super) saturated: Vec<bool>,
-    /// The brightest usable samples of each block pixel, descending (pass 1).
+    /// The brightest usable samples of the block's pixels (pass 1): `top[q·len + i]` is the
+    /// (q+1)-th brightest of block pixel i so far, −∞ while it has fewer.
     pub(super) top: Vec<f32>,
     /// Usable (finite, unclipped) samples of each block pixel (pass 1).
     pub(super) usable: Vec<u32>,
+    /// The shadow threshold's reference level of each block pixel, over f32 samples (pass 1).
+    pub(super) reference: Vec<f32>,
 }
 
 impl Scratch {
@@ -332,43 +335,38 @@ pub(super) fn solve_block(
     let len: usize = spans.iter().map(|sp| sp.len).sum();
     s.reset(len);
     s.threshold.fill(f32::NEG_INFINITY);
-    // Pass 1: per-pixel threshold from the pixel's reference level, the
-    // ⌈f·n⌉-th brightest of its n usable samples ([`reference_rank`]; a clipped sample's
-    // value says nothing of the pixel's brightness and is dropped anyway). The brightest
-    // `top` usable samples of each pixel are kept in descending order in `s.top`.
+    // Pass 1: per-pixel threshold from the pixel's reference level, the ⌈f·n⌉-th brightest
+    // of its n usable samples ([`reference_rank`]; a clipped sample's value says nothing of
+    // the pixel's brightness and is dropped anyway), from each pixel's list of its brightest
+    // usable samples ([`brightest`]).
+    s.reference.clear();
     if rule.reject {
-        let top = reference_rank(stack.count(), rule.highlight_fraction);
+        let depth = reference_rank(stack.count(), rule.highlight_fraction);
         s.top.clear();
-        s.top.resize(len * top, f32::NEG_INFINITY);
+        s.top.resize(depth * len, f32::NEG_INFINITY);
         s.usable.clear();
         s.usable.resize(len, 0);
-        for k in 0..stack.count() {
-            let plane = stack.plane(k, channel);
-            let bits = if rule.reject_saturated {
-                stack.saturation_bits(k)
-            } else {
-                None
-            };
-            let gain = per.gains[k];
-            let mut off = 0;
-            for sp in spans {
-                let src = &plane[sp.local..sp.local + sp.len];
-                for (j, (p, &v)) in (sp.start..).zip(src).enumerate() {
-                    let v = v * gain;
-                    if !v.is_finite() || bits.is_some_and(|b| sat_bit(b, p)) {
-                        continue;
-                    }
-                    let i = off + j;
-                    s.usable[i] += 1;
-                    insert_descending(&mut s.top[i * top..(i + 1) * top], v);
-                }
-                off += sp.len;
-            }
-        }
+        let images: Vec<ImageSamples> = (0..stack.count())
+            .map(|k| ImageSamples {
+                plane: stack.plane(k, channel),
+                gain: per.gains[k],
+                bits: if rule.reject_saturated {
+                    stack.saturation_bits(k)
+                } else {
+                    None
+                },
+            })
+            .collect();
+        brightest(&images, spans, depth, &mut s.top, &mut s.usable);
         for i in 0..len {
-            let list = &s.top[i * top..(i + 1) * top];
-            let reference = reference_level(list, s.usable[i] as usize, rule.highlight_fraction);
-            s.threshold[i] = rule.threshold(reference.unwrap_or(f32::NEG_INFINITY));
+            let usable = s.usable[i] as usize;
+            let level = if usable == 0 {
+                f32::NEG_INFINITY
+            } else {
+                s.top[(reference_rank(usable, rule.highlight_fraction) - 1) * len + i]
+            };
+            s.threshold[i] = rule.threshold(level);
+            s.reference.push(level);
         }
     }
     // Pass 2: accumulate the normal equations image by image.
@@ -505,6 +503,73 @@ pub(super) fn solve_block(
     out
 }
 
+/// One image's samples as pass 1 reads them.
+pub(super) struct ImageSamples<'a> {
+    /// The image's plane of the solved channel.
+    pub(super) plane: &'a [f32],
+    /// Its intensity correction.
+    pub(super) gain: f32,
+    /// Its saturation bits when clipped samples are rejected.
+    pub(super) bits: Option<&'a [u64]>,
+}
+
+/// For every pixel of `spans` (block pixel i), its `depth` brightest usable samples (times the
+/// image's gain; usable: finite, and unclipped where `bits` are given), in descending order,
+/// into `top[q·len + i]` for q < `depth` (−∞ past its usable samples), and their count into
+/// `usable[i]`; `top` and `usable` come filled with −∞ and 0.
+///
+/// Image by image, each sample is inserted by compare-exchange down its pixel's list (the
+/// entry keeps the larger, the smaller moves on), one list entry at a time across all the
+/// pixels of a span: no branches, and the loops vectorise.
+pub(super) fn brightest(
+    images: &[ImageSamples],
+    spans: &[Span],
+    depth: usize,
+    top: &mut [f32],
+    usable: &mut [u32],
+) {
+    let len = usable.len();
+    let mut x = Vec::new();
+    for img in images {
+        let mut off = 0;
+        for sp in spans {
+            let src = &img.plane[sp.local..sp.local + sp.len];
+            // Unusable samples become −∞, which no list takes.
+            x.clear();
+            x.extend(src.iter().enumerate().map(|(j, &v)| {
+                let v = v * img.gain;
+                let ok = v.is_finite() && !img.bits.is_some_and(|b| sat_bit(b, sp.start + j));
+                usable[off + j] += u32::from(ok);
+                if ok { v } else { f32::NEG_INFINITY }
+            }));
+            for q in 0..depth {
+                compare_exchange(&mut top[q * len + off..q * len + off + sp.len], &mut x);
+            }
+            off += sp.len;
+        }
+    }
+}
+
+/// One step down the lists of brightest samples: each pixel's entry keeps the larger of
+/// itself and the pixel's candidate, and the smaller moves on as the candidate for the next
+/// entry. Applied to every entry from the brightest, it inserts each candidate into its
+/// pixel's descending list and drops the list's smallest value.
+#[inline(always)]
+pub(super) fn compare_exchange(list: &mut [f32], candidates: &mut [f32]) {
+    let n = list.len();
+    let candidates = &mut candidates[..n];
+    for j in 0..n {
+        let (t, c) = (list[j], candidates[j]);
+        let (hi, lo) = if t > c { (t, c) } else { (c, t) };
+        list[j] = hi;
+        candidates[j] = lo;
+    }
+}
+
+/// Pixels gathered together by [`gather_block`]: their rows of samples (all images) stay in
+/// the L1 cache while every image's values for them are written.
+const GATHER_TILE: usize = 32;
+
 /// Copies the block's samples into `s.values`/`s.saturated` as [pixel][image].
 pub(super) fn gather_block(stack: &ImageStack, channel: usize, spans: &[Span], s: &mut Scratch) {
     let k = stack.count();
@@ -513,16 +578,27 @@ pub(super) fn gather_block(stack: &ImageStack, channel: usize, spans: &[Span], s
     s.values.resize(len * k, f32::NAN);
     s.saturated.clear();
     s.saturated.resize(len * k, false);
-    for img in 0..k {
-        let plane = stack.plane(img, channel);
-        let bits = stack.saturation_bits(img);
-        let mut i = 0;
-        for sp in spans {
-            for (p, &v) in (sp.start..).zip(&plane[sp.local..sp.local + sp.len]) {
-                s.values[i * k + img] = v;
-                s.saturated[i * k + img] = bits.is_some_and(|b| sat_bit(b, p));
-                i += 1;
+    let mut i = 0;
+    for sp in spans {
+        let mut x = 0;
+        while x < sp.len {
+            let n = GATHER_TILE.min(sp.len - x);
+            let (local, start) = (sp.local + x, sp.start + x);
+            let values = &mut s.values[i * k..(i + n) * k];
+            let saturated = &mut s.saturated[i * k..(i + n) * k];
+            for img in 0..k {
+                let src = &stack.plane(img, channel)[local..local + n];
+                for (j, &v) in src.iter().enumerate() {
+                    values[j * k + img] = v;
+                }
+                if let Some(bits) = stack.saturation_bits(img) {
+                    for j in 0..n {
+                        saturated[j * k + img] = sat_bit(bits, start + j);
+                    }
+                }
             }
+            i += n;
+            x += n;
         }
     }
 }
@@ -570,7 +646,9 @@ fn fit_block(
         let mut f = fitter(&per.dirs64, &per.gains, options);
         for i in escalated {
             let (v, sat) = s.pixel(i, k);
-            out[i] = escalate(&mut f, v, sat, out[i], options);
+            // The kernel's level over f32 samples spares the fitter its selection.
+            let reference = Reference::Rounded(s.reference[i]);
+            out[i] = escalate(&mut f, v, sat, out[i], options, reference);
         }
         return (out, true);
     }

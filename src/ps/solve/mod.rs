@@ -217,12 +217,11 @@ mod tests {
     use crate::progress::Silent;
     use rand::{RngExt, SeedableRng};
 
-    /// Blocked solve equals the per-pixel reference on random data with shadows, NaNs and
-    /// saturation, for every method.
-    /// The reference rank is ⌈f·n⌉ clamped to [1, n], and the kernel's top list keeps the
-    /// brightest values in descending order.
+    /// The reference rank is ⌈f·n⌉ clamped to [1, n]; the reference level is that rank's
+    /// sample among the usable ones (finite, unclipped when clipped samples are rejected),
+    /// whether selected or found from its f32 rounding, also when an f32 product overflows.
     #[test]
-    fn reference_rank_and_top_list() {
+    fn reference_rank_and_level() {
         assert_eq!(reference_rank(96, 0.1), 10);
         assert_eq!(reference_rank(95, 0.1), 10);
         assert_eq!(reference_rank(12, 0.1), 2);
@@ -230,13 +229,85 @@ mod tests {
         assert_eq!(reference_rank(5, 0.0), 1);
         assert_eq!(reference_rank(0, 0.1), 1);
         assert_eq!(reference_rank(3, 0.49), 2);
-        let mut top = [f32::NEG_INFINITY; 3];
-        for v in [0.5, 0.1, 0.9, 0.3, 0.7, 0.7, -1.0] {
-            insert_descending(&mut top, v);
-        }
-        assert_eq!(top, [0.9, 0.7, 0.7]);
+        let mut keys = Vec::new();
+        // The level selected, and found from its rounding (and from itself).
+        let mut check = |values: &[f32], saturated: &[bool], gains: &[f32], f, want: f64| {
+            let level = |r: Reference, keys: &mut Vec<u64>| {
+                r.level(values, saturated, gains, true, f, keys)
+            };
+            assert_eq!(level(Reference::Unknown, &mut keys), want);
+            assert_eq!(level(Reference::Rounded(want as f32), &mut keys), want);
+            assert_eq!(level(Reference::Exact(want), &mut keys), want);
+        };
+        // 12 samples, rank 2 at f = 0.1: the second brightest usable one.
+        let mut values = [0.5, 0.1, 0.9, 0.3, 0.7, 0.7, -1.0, -0.0, 0.2, 0.4, 0.6, 0.8];
+        let mut clipped = [false; 12];
+        let gains = [1.0; 12];
+        check(&values, &clipped, &gains, 0.1, f64::from(0.8f32));
+        // The brightest is clipped and NaN is never usable: rank 1 of 10 is 0.8; nor is 0.8 × ∞
+        // usable: rank 1 of 9 is 0.7.
+        clipped[2] = true;
+        values[0] = f32::NAN;
+        check(&values, &clipped, &gains, 0.1, f64::from(0.8f32));
+        let mut inf_gain = gains;
+        inf_gain[11] = f32::INFINITY;
+        check(&values, &clipped, &inf_gain, 0.1, f64::from(0.7f32));
+        // Negative levels, and none at all.
+        check(&[-0.5, -0.25, -1.0], &[false; 3], &[1.0; 3], 0.0, -0.25);
+        check(
+            &[f32::NAN; 3],
+            &[false; 3],
+            &[1.0; 3],
+            0.1,
+            f64::NEG_INFINITY,
+        );
+        // Products that round to the same f32: the rank among them decides. (1 + 2⁻²³)² and
+        // 1 + 2⁻²² both round to 1 + 2⁻²².
+        let eps = f32::EPSILON;
+        let tie = [1.0 + eps, 1.0 + 2.0 * eps, 0.5, 0.25];
+        let gains = [1.0 + eps, 1.0, 1.0, 1.0];
+        let (hi, lo) = (f64::from(1.0 + eps).powi(2), f64::from(1.0 + 2.0 * eps));
+        assert!(hi > lo && hi as f32 == lo as f32);
+        check(&tie, &[false; 4], &gains, 0.0, hi);
+        check(&tie, &[false; 4], &gains, 0.49, lo);
+        // A product beyond f32's range counts in f64 only: the level is selected, not found from
+        // the f32 level (6e38, 4, 2, 1 in f64: rank ⌈1.96⌉ = 2 is 4; in f32 3 usable, rank 2: 2).
+        let big = [3e38, 1.0, 2.0, 0.5];
+        let level =
+            Reference::Rounded(2.0).level(&big, &[false; 4], &[2.0; 4], true, 0.49, &mut keys);
+        assert_eq!(level, 4.0);
     }
 
+    /// The kernel's compare-exchange steps keep each pixel's brightest values in descending
+    /// order.
+    #[test]
+    fn compare_exchange_keeps_the_brightest() {
+        let (pixels, depth) = (3, 3);
+        let mut top = vec![f32::NEG_INFINITY; pixels * depth];
+        let samples: [[f32; 3]; 7] = [
+            [0.5, 1.0, f32::NEG_INFINITY],
+            [0.1, 2.0, f32::NEG_INFINITY],
+            [0.9, 3.0, 7.0],
+            [0.3, 0.0, f32::NEG_INFINITY],
+            [0.7, 5.0, f32::NEG_INFINITY],
+            [0.7, 4.0, f32::NEG_INFINITY],
+            [-1.0, 6.0, f32::NEG_INFINITY],
+        ];
+        let mut candidates = vec![0.0; pixels];
+        for row in samples {
+            candidates.copy_from_slice(&row);
+            for q in 0..depth {
+                compare_exchange(&mut top[q * pixels..(q + 1) * pixels], &mut candidates);
+            }
+        }
+        let list = |i: usize| [0, 1, 2].map(|q| top[q * pixels + i]);
+        assert_eq!(list(0), [0.9, 0.7, 0.7]);
+        assert_eq!(list(1), [6.0, 5.0, 4.0]);
+        assert_eq!(list(2), [7.0, f32::NEG_INFINITY, f32::NEG_INFINITY]);
+    }
+
+    /// Blocked solve equals the per-pixel reference on random data with shadows, NaNs and
+    /// saturation, for every method.
     #[test]
     // Pixel p indexes one sample in each of several images.
     #[allow(clippy::needless_range_loop)]

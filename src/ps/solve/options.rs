@@ -33,37 +33,141 @@ pub fn reference_rank(usable: usize, highlight_fraction: f32) -> usize {
     r.clamp(1, usable.max(1))
 }
 
-/// The reference level of a pixel with `usable` usable samples whose brightest ones are `top`
-/// (descending, as [`insert_descending`] keeps them, at least [`reference_rank`] long): its
-/// [`reference_rank`]-th brightest sample; `None` without usable samples.
-pub(crate) fn reference_level<T: Copy>(
-    top: &[T],
-    usable: usize,
-    highlight_fraction: f32,
-) -> Option<T> {
-    if usable == 0 {
-        return None;
+/// A key whose unsigned order is the numeric order of the non-NaN `x` (−0 just below +0), so
+/// that order statistics are selected with integer comparisons.
+#[inline(always)]
+fn order_key(x: f64) -> u64 {
+    let bits = x.to_bits();
+    if bits >> 63 == 1 {
+        !bits
+    } else {
+        bits | 1 << 63
     }
-    top.get(reference_rank(usable, highlight_fraction) - 1)
-        .copied()
 }
 
-/// Inserts `v` into `top` (sorted descending) when it beats its last entry, dropping that: the
-/// running list of a pixel's brightest samples from which [`reference_rank`] picks.
-#[inline]
-pub(crate) fn insert_descending<T: PartialOrd + Copy>(top: &mut [T], v: T) {
-    let Some(last) = top.len().checked_sub(1) else {
-        return;
-    };
-    if v <= top[last] {
-        return;
+/// The value whose [`order_key`] is `key`.
+#[inline(always)]
+fn from_order_key(key: u64) -> f64 {
+    f64::from_bits(if key >> 63 == 1 {
+        key & !(1 << 63)
+    } else {
+        !key
+    })
+}
+
+/// The reference level of a pixel whose usable samples are given as [`order_key`]s in `keys`
+/// (reordered): its [`reference_rank`]-th brightest sample; `None` without usable samples.
+fn reference_level(keys: &mut [u64], highlight_fraction: f32) -> Option<f64> {
+    let n = keys.len();
+    if n == 0 {
+        return None;
     }
-    let mut j = last;
-    while j > 0 && top[j - 1] < v {
-        top[j] = top[j - 1];
-        j -= 1;
+    Some(nth_largest(keys, reference_rank(n, highlight_fraction)))
+}
+
+/// What is known of a pixel's shadow-threshold reference level (its [`reference_rank`]-th
+/// brightest usable sample) before the per-pixel fitter forms it over the exact products
+/// f64(I)·f64(gain) of its samples.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum Reference {
+    /// Nothing: the fitter selects it.
+    Unknown,
+    /// The level itself (from an earlier fit of the same samples).
+    Exact(f64),
+    /// The level over the f32 products I·gain, as the block kernel forms it: the exact level
+    /// rounded to f32.
+    Rounded(f32),
+}
+
+impl Reference {
+    /// The exact reference level of a pixel with samples `values` (before the per-image
+    /// `gains`; NaN: missing) and saturation flags `saturated`: the [`reference_rank`]-th
+    /// brightest of its usable samples (finite, and unclipped when `reject_saturated`); −∞
+    /// without usable samples. `keys` is scratch.
+    ///
+    /// From [`Reference::Rounded`] no selection is needed: a product of two f32 is exact in
+    /// f64 and rounding to f32 is monotone, so the exact level is among the samples whose f32
+    /// product equals the rounded level (almost always one), at the rank left once those above
+    /// it are counted. When the two precisions disagree on which samples are usable (an f32
+    /// overflow), or the rounded level does not fit the samples, the level is selected.
+    pub(crate) fn level(
+        self,
+        values: &[f32],
+        saturated: &[bool],
+        gains: &[f32],
+        reject_saturated: bool,
+        highlight_fraction: f32,
+        keys: &mut Vec<u64>,
+    ) -> f64 {
+        let k = values.len();
+        let (saturated, gains) = (&saturated[..k], &gains[..k]);
+        let rounded = match self {
+            Reference::Exact(level) => return level,
+            Reference::Rounded(level) => level,
+            Reference::Unknown => {
+                keys.clear();
+                keys.resize(k, 0);
+                // Branch-free compaction: each key is written and kept when usable.
+                let mut n = 0;
+                for j in 0..k {
+                    let x = f64::from(values[j]) * f64::from(gains[j]);
+                    keys[n] = order_key(x);
+                    n += usize::from(x.is_finite() && !(reject_saturated && saturated[j]));
+                }
+                return reference_level(&mut keys[..n], highlight_fraction)
+                    .unwrap_or(f64::NEG_INFINITY);
+            }
+        };
+        // One pass of counts and extremes, without stores: the samples usable (in f64), those
+        // whose f32 product is above the rounded level and those equal to it (the ties, among
+        // which the exact level is), the largest and smallest tie, and the samples on which
+        // the two precisions disagree about finiteness.
+        let (mut usable, mut above, mut ties, mut disagree) = (0u32, 0u32, 0u32, 0u32);
+        let (mut tie_max, mut tie_min) = (f64::NEG_INFINITY, f64::INFINITY);
+        for j in 0..k {
+            let (v, g) = (values[j], gains[j]);
+            let (x, y) = (f64::from(v) * f64::from(g), v * g);
+            let ok = x.is_finite() & !(reject_saturated & saturated[j]);
+            disagree += u32::from(x.is_finite() != y.is_finite());
+            usable += u32::from(ok);
+            above += u32::from(ok & (y > rounded));
+            let tie = ok & (y == rounded);
+            ties += u32::from(tie);
+            tie_max = if tie & (x > tie_max) { x } else { tie_max };
+            tie_min = if tie & (x < tie_min) { x } else { tie_min };
+        }
+        let (usable, above, ties) = (usable as usize, above as usize, ties as usize);
+        let rank = reference_rank(usable, highlight_fraction);
+        if usable == 0 {
+            return f64::NEG_INFINITY;
+        }
+        if disagree == 0 && above < rank && rank - above <= ties {
+            // The (rank − above)-th largest tie. The largest or the smallest covers every tie
+            // of one or two samples; a longer one, in the middle, is selected below.
+            if rank - above == 1 {
+                return tie_max;
+            }
+            if rank - above == ties {
+                return tie_min;
+            }
+        }
+        Reference::Unknown.level(
+            values,
+            saturated,
+            gains,
+            reject_saturated,
+            highlight_fraction,
+            keys,
+        )
     }
-    top[j] = v;
+}
+
+/// The `rank`-th largest (counted from 1, at most `keys.len()`) of the values whose
+/// [`order_key`]s are `keys` (reordered).
+fn nth_largest(keys: &mut [u64], rank: usize) -> f64 {
+    let n = keys.len();
+    let (_, &mut key, _) = keys.select_nth_unstable(n - rank);
+    from_order_key(key)
 }
 
 /// The estimator for g.

@@ -139,7 +139,15 @@ pub(crate) fn fit_with(
             if !misfit(&p, f.chi2(&p.g, sigma), options.fit_test_z) {
                 return p;
             }
-            escalate(f, values, saturated, p, options)
+            // The same samples again: their reference level is already known.
+            escalate(
+                f,
+                values,
+                saturated,
+                p,
+                options,
+                Reference::Exact(f.reference()),
+            )
         }
         _ => match options.estimator() {
             Some(e) => f.fit(values, saturated, e),
@@ -159,30 +167,30 @@ pub(super) fn misfit(p: &PixelSolution, chi2: f64, z: f64) -> bool {
 }
 
 /// Refits a pixel that failed the fit test with the robust estimator; keeps the Lambertian
-/// fit `lambertian` when the robust one cannot solve the pixel.
+/// fit `lambertian` when the robust one cannot solve the pixel. `reference`: what is known of
+/// the pixel's shadow-threshold reference level ([`PixelFitter::fit_with_reference`]).
 pub(super) fn escalate(
     f: &mut PixelFitter,
     values: &[f32],
     saturated: &[bool],
     lambertian: PixelSolution,
     options: &SolveOptions,
+    reference: Reference,
 ) -> PixelSolution {
     let Some(estimator) = options.estimator() else {
         return lambertian;
     };
-    let q = f.fit(values, saturated, estimator);
+    let q = f.fit_with_reference(values, saturated, estimator, reference);
     if q.status == PixelStatus::Solved || lambertian.status != PixelStatus::Solved {
         q
     } else {
         // Restore the fitter's weights to the fit that is returned.
-        f.fit(
-            values,
-            saturated,
-            Estimator::Plain {
-                reject: true,
-                intensity_weight: false,
-            },
-        )
+        let plain = Estimator::Plain {
+            reject: true,
+            intensity_weight: false,
+        };
+        let reference = Reference::Exact(f.reference());
+        f.fit_with_reference(values, saturated, plain, reference)
     }
 }
 
