@@ -31,9 +31,10 @@
 //! ([`crate::ps::solve::Method::Threshold`]) over the pixels that see at least
 //! [`MIN_OCCLUSION`] of surface ([`estimate_scale`]), searched over reflectances 0 to 1 of the
 //! brightest albedo ([`SCALE_STEPS`] steps, refined by a parabola). It is applied only when
-//! that residual falls by at least [`MIN_GAIN`] of its value without compensation: otherwise
-//! the data do not show interreflections (a convex object, or one whose residual is set by
-//! noise, highlights or shadows), and nothing is changed.
+//! the fall is more than chance: the paired z statistic of the per-pixel fall in squared
+//! residual must exceed the fit test's deviate ([`SolveOptions::fit_test_z`], 3.09: a 0.1%
+//! false-alarm rate). Otherwise the data do not show interreflections (a convex object, or one
+//! whose residual is set by noise, highlights or shadows), and nothing is changed.
 //!
 //! **Senders.** A sample that is missing or saturated sends the Lambertian prediction
 //! albedo·(n·l)⁺ of the current fit instead of its clipped value.
@@ -71,8 +72,6 @@ pub const MIN_OCCLUSION: f32 = 0.05;
 pub const MIN_PIXELS: usize = 50;
 /// Steps of the search over the brightest pixel's reflectance, 0 to 1.
 pub const SCALE_STEPS: usize = 10;
-/// Least relative fall of the residual for which compensation is applied.
-pub const MIN_GAIN: f64 = 0.05;
 /// Quantile of the albedo taken as the brightest (robust to a few bright outliers).
 pub const BRIGHT_QUANTILE: f64 = 0.99;
 
@@ -305,14 +304,18 @@ pub struct ScaleEstimate {
     pub residual_without: f64,
     /// The same at the chosen scale.
     pub residual_with: f64,
+    /// How far the fall in squared residual per pixel stands above chance: the paired z
+    /// statistic (compensation is applied above the fit test's deviate,
+    /// [`SolveOptions::fit_test_z`]).
+    pub fall_z: f64,
     /// (brightest reflectance, relative residual) at each step of the search.
     pub curve: Vec<(f64, f64)>,
 }
 
 /// The reflectance scale s (ρ = s·albedo) that makes the compensated samples most
 /// Lambertian, over the pixels that see at least [`MIN_OCCLUSION`] of surface (see the module
-/// documentation); s = 0 when there are fewer than [`MIN_PIXELS`] of them or the residual
-/// falls by less than [`MIN_GAIN`].
+/// documentation); s = 0 when there are fewer than [`MIN_PIXELS`] of them or the residual's
+/// fall is not above chance (paired z ≤ [`SolveOptions::fit_test_z`]).
 ///
 /// # Errors
 /// The errors of [`compensate`] and of the solve.
@@ -340,6 +343,7 @@ pub fn estimate_scale(
         pixels,
         residual_without: f64::NAN,
         residual_with: f64::NAN,
+        fall_z: f64::NAN,
         curve: Vec::new(),
     };
     let bright_ok = bright > 0.0; // false for NaN too
@@ -371,7 +375,7 @@ pub fn estimate_scale(
         })
         .collect();
     let n = stack.window().len();
-    let residual_at = |reflectance: f64| -> Result<f64> {
+    let residuals_at = |reflectance: f64| -> Result<Vec<f64>> {
         let scale = reflectance / bright;
         let mut data = stack.data().to_vec();
         data.par_chunks_mut(n.max(1))
@@ -384,40 +388,43 @@ pub fn estimate_scale(
                     sender.subtract(ff.pixels()[row] as usize, scale, h, out);
                 }
             });
-        relative_residual(&stack.with_data(data)?, lights, &mask, &options)
+        relative_residuals(&stack.with_data(data)?, lights, &mask, &options)
     };
     let mut curve = Vec::with_capacity(SCALE_STEPS + 1);
+    let mut residuals = Vec::with_capacity(SCALE_STEPS + 1);
     for step in 0..=SCALE_STEPS {
         let r = step as f64 / SCALE_STEPS as f64;
-        curve.push((r, residual_at(r)?));
+        let v = residuals_at(r)?;
+        curve.push((r, rms(&v)));
+        residuals.push(v);
     }
-    let (best, _) = curve
-        .iter()
-        .enumerate()
-        .min_by(|a, b| a.1.1.total_cmp(&b.1.1))
-        .map(|(i, &(_, v))| (i, v))
-        .unwrap_or((0, f64::NAN));
-    let mut reflectance = curve[best].0;
-    // A parabola through the minimum and its two neighbours.
+    let best = (0..curve.len())
+        .min_by(|&a, &b| curve[a].1.total_cmp(&curve[b].1))
+        .unwrap_or(0);
+    let (mut reflectance, mut with) = curve[best];
+    let mut with_residuals = residuals[best].clone();
+    // A parabola through the minimum and its two neighbours, kept if it fits better.
     if best > 0 && best < SCALE_STEPS {
         let (a, b, c) = (curve[best - 1].1, curve[best].1, curve[best + 1].1);
         let denom = a - 2.0 * b + c;
         if denom > 0.0 {
-            let offset = 0.5 * (a - c) / denom;
-            reflectance += offset.clamp(-0.5, 0.5) / SCALE_STEPS as f64;
+            let refined =
+                reflectance + (0.5 * (a - c) / denom).clamp(-0.5, 0.5) / SCALE_STEPS as f64;
+            let v = residuals_at(refined)?;
+            if rms(&v) < with {
+                (reflectance, with, with_residuals) = (refined, rms(&v), v);
+            }
         }
     }
     let without = curve[0].1;
-    let with = if reflectance == curve[best].0 {
-        curve[best].1
-    } else {
-        residual_at(reflectance)?.min(curve[best].1)
-    };
-    let gained = with < without * (1.0 - MIN_GAIN); // false when either is NaN
-    if !gained {
+    let z = paired_z(&residuals[0], &with_residuals);
+    // The fall must be more than chance at the fit test's false-alarm rate; false for NaN.
+    let shown = reflectance > 0.0 && z > solve_options.fit_test_z;
+    if !shown {
         return Ok(ScaleEstimate {
             residual_without: without,
             residual_with: without,
+            fall_z: z,
             curve,
             ..none
         });
@@ -428,30 +435,70 @@ pub fn estimate_scale(
         pixels,
         residual_without: without,
         residual_with: with,
+        fall_z: z,
         curve,
     })
 }
 
-/// RMS over `mask`'s solved pixels of (each pixel's RMS residual / |g|), summed over channels.
-fn relative_residual(
+/// The RMS of the finite values (NaN when there are none).
+fn rms(values: &[f64]) -> f64 {
+    let (sum, n) = values
+        .iter()
+        .filter(|v| v.is_finite())
+        .fold((0.0, 0usize), |(s, n), v| (s + v * v, n + 1));
+    if n == 0 {
+        f64::NAN
+    } else {
+        (sum / n as f64).sqrt()
+    }
+}
+
+/// The paired z statistic of the fall from `before` to `after` in squared residual, over the
+/// pixels finite in both: mean(d)/(sd(d)/√n) with d = before² − after² (NaN for fewer than
+/// two pixels).
+fn paired_z(before: &[f64], after: &[f64]) -> f64 {
+    let d: Vec<f64> = before
+        .iter()
+        .zip(after)
+        .filter(|(a, b)| a.is_finite() && b.is_finite())
+        .map(|(a, b)| a * a - b * b)
+        .collect();
+    let n = d.len() as f64;
+    if d.len() < 2 {
+        return f64::NAN;
+    }
+    let mean = d.iter().sum::<f64>() / n;
+    let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    if var > 0.0 {
+        mean / (var / n).sqrt()
+    } else if mean > 0.0 {
+        f64::INFINITY
+    } else {
+        0.0
+    }
+}
+
+/// Each of `mask`'s pixels' RMS residual / |g| per channel, in mask order (NaN where a pixel is
+/// not solved).
+fn relative_residuals(
     stack: &ImageStack,
     lights: &Lights,
     mask: &Mask,
     options: &SolveOptions,
-) -> Result<f64> {
+) -> Result<Vec<f64>> {
     let mut values = Vec::new();
     for c in 0..stack.channels() {
         let s = solve(stack, c, lights, mask, options, &Silent)?;
         for ((g, r), &m) in s.g.data().iter().zip(s.residual.data()).zip(mask.data()) {
-            let norm = g.norm();
-            if m && r.is_finite() && norm > 0.0 {
-                values.push(f64::from(r / norm));
+            if m {
+                let norm = g.norm();
+                values.push(if r.is_finite() && norm > 0.0 {
+                    f64::from(r / norm)
+                } else {
+                    f64::NAN
+                });
             }
         }
     }
-    Ok(if values.is_empty() {
-        f64::NAN
-    } else {
-        (values.iter().map(|v| v * v).sum::<f64>() / values.len() as f64).sqrt()
-    })
+    Ok(values)
 }

@@ -85,6 +85,7 @@ pub(super) fn compensate_and_resolve(
                 pixels: ff.pixels().len(),
                 residual_without: f64::NAN,
                 residual_with: f64::NAN,
+                fall_z: f64::NAN,
                 curve: Vec::new(),
             },
             None => estimate_scale(
