@@ -9,6 +9,7 @@ use photostereo::eval::metrics::angular_errors;
 use photostereo::progress::Silent;
 use photostereo::ps::interreflection::InterreflectionOptions;
 use photostereo::run::pipeline::{Config, Reconstruction, reconstruct};
+use photostereo::run::warnings::Warning;
 use photostereo::synth::reflectance::Material;
 use photostereo::synth::render::{RenderOptions, Rendering, render};
 use photostereo::synth::scene::{Albedo, SceneKind};
@@ -104,6 +105,15 @@ fn the_estimated_reflectance_compensates_concave_scenes_and_leaves_a_sphere_alon
             after < 0.4 * before,
             "{}: {after} against {before}",
             kind.name()
+        );
+        // The scale finally used is a measurement, not the search's limit: no warning.
+        assert!(
+            !recon
+                .warnings
+                .iter()
+                .any(|w| matches!(w, Warning::InterreflectionScaleAtLimit)),
+            "{:?}",
+            recon.warnings
         );
         // The scale of the last round that compensated (on the deepest shape) is within a
         // factor 1.5 of the truth, 1 (measured: 0.91 groove, 0.76 bowl: a scale too low

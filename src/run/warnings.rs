@@ -77,6 +77,11 @@ pub enum Warning {
         /// Such pixels.
         pixels: usize,
     },
+    /// The interreflection compensation's reflectance scale was estimated at the top of its
+    /// search, the brightest pixel's reflectance 1 ([`crate::ps::interreflection`]): the data
+    /// asked for at least that much, so the residual may be answering to more than
+    /// interreflections and the compensation may be too strong.
+    InterreflectionScaleAtLimit,
 }
 
 /// Image numbers listed in a warning at most.
@@ -116,6 +121,10 @@ impl fmt::Display for Warning {
                 } else {
                     ""
                 }
+            ),
+            Warning::InterreflectionScaleAtLimit => write!(
+                f,
+                "the interreflection compensation's reflectance scale was estimated at its physical limit (the brightest pixel's reflectance 1): the residual may be answering to more than interreflections, so the compensation may be too strong; compare with a run without it, or give the scale"
             ),
             Warning::Filled { filled, masked } => write!(
                 f,

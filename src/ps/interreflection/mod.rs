@@ -310,6 +310,10 @@ pub struct ScaleEstimate {
     pub fall_z: f64,
     /// (brightest reflectance, relative residual) at each step of the search.
     pub curve: Vec<(f64, f64)>,
+    /// The scale is a bound rather than a measurement: the residual was lowest at the top of
+    /// the search (the brightest reflectance 1), so the data asked for at least this much. In
+    /// a later round that kept an earlier round's scale, the earlier round's flag.
+    pub at_limit: bool,
 }
 
 /// The reflectance scale s (ρ = s·albedo) that makes the compensated samples most
@@ -345,6 +349,7 @@ pub fn estimate_scale(
         residual_with: f64::NAN,
         fall_z: f64::NAN,
         curve: Vec::new(),
+        at_limit: false,
     };
     let bright_ok = bright > 0.0; // false for NaN too
     if pixels < MIN_PIXELS || !bright_ok {
@@ -437,6 +442,7 @@ pub fn estimate_scale(
         residual_with: with,
         fall_z: z,
         curve,
+        at_limit: best == SCALE_STEPS,
     })
 }
 

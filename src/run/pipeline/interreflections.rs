@@ -12,6 +12,7 @@ use crate::ps::interreflection::{
     Estimate, FormFactors, InterreflectionOptions, ScaleEstimate, compensate, estimate_scale,
 };
 use crate::run::bands::{Assemble, WholeStack, solve_bands};
+use crate::run::warnings::Warning;
 use serde::Serialize;
 use std::time::Instant;
 
@@ -87,6 +88,7 @@ pub(super) fn compensate_and_resolve(
                 residual_with: f64::NAN,
                 fall_z: f64::NAN,
                 curve: Vec::new(),
+                at_limit: false,
             },
             None => estimate_scale(
                 &capture.stack,
@@ -100,11 +102,13 @@ pub(super) fn compensate_and_resolve(
         // largest that the data support: a later round may lower it, never raise it (a rise
         // means the residual is answering to something other than interreflections).
         let mut scale = scale;
-        if let Some(previous) = rounds.last().map(|r: &InterreflectionRound| r.scale.scale)
-            && scale.scale > previous
+        if let Some(previous) = rounds.last().map(|r: &InterreflectionRound| &r.scale)
+            && scale.scale > previous.scale
         {
-            scale.bright_reflectance *= previous / scale.scale;
-            scale.scale = previous;
+            scale.bright_reflectance *= previous.scale / scale.scale;
+            scale.scale = previous.scale;
+            // The scale used is the earlier round's, and so is whether it was a bound.
+            scale.at_limit = previous.at_limit;
         }
         let s = scale.scale;
         rounds.push(InterreflectionRound {
@@ -125,6 +129,17 @@ pub(super) fn compensate_and_resolve(
     let seconds = t.elapsed().as_secs_f64();
     // The solve stage's time includes the whole interreflection stage.
     recon.timings.solve = first_solve + seconds;
+    // An estimate at the top of the search (the brightest reflectance 1) is a bound, not a
+    // measurement: say so when the scale finally used was one (the first round's flattened
+    // shape may ask for too much; later rounds correct that).
+    let at_limit = rounds
+        .iter()
+        .rev()
+        .find(|r| r.scale.scale > 0.0)
+        .is_some_and(|r| r.scale.at_limit);
+    if applied && at_limit {
+        recon.warnings.push(Warning::InterreflectionScaleAtLimit);
+    }
     recon.interreflections = Some(InterreflectionSummary {
         rounds,
         applied,
