@@ -3,7 +3,7 @@
 //! and solve again, for the configured number of rounds or until the data show no
 //! interreflections.
 
-use super::{Config, InputFacts, Reconstruction, assemble};
+use super::{Config, InputFacts, Reconstruction, solve_whole};
 use crate::capture::dataset::Capture;
 use crate::error::Result;
 use crate::integrate::{IntegrationOptions, integrate_normals};
@@ -11,7 +11,6 @@ use crate::progress::{Progress, Silent};
 use crate::ps::interreflection::{
     Estimate, FormFactors, InterreflectionOptions, ScaleEstimate, compensate, estimate_scale,
 };
-use crate::run::bands::{Assemble, WholeStack, solve_bands};
 use crate::run::warnings::Warning;
 use serde::Serialize;
 use std::time::Instant;
@@ -37,11 +36,12 @@ pub struct InterreflectionSummary {
     pub seconds: f64,
 }
 
-/// Runs the rounds on `capture` from the first reconstruction `first`; returns the last
-/// reconstruction, its `interreflections` set.
+/// Runs the rounds on `capture` from the first reconstruction `first` (`configs`: the solve's
+/// and the run's, as [`super::reconstruct_normals`] has them); returns the last reconstruction,
+/// its `interreflections` set.
 pub(super) fn compensate_and_resolve(
     capture: &Capture,
-    config: &Config,
+    (solve_config, config): (&Config, &Config),
     options: &InterreflectionOptions,
     first: Reconstruction,
     facts: &InputFacts<'_>,
@@ -119,11 +119,7 @@ pub(super) fn compensate_and_resolve(
             break;
         }
         let stack = compensate(&capture.stack, &capture.lights, &ff, &estimate, s)?;
-        let mut source = WholeStack::new(&stack, &capture.mask);
-        let (sink, _) = solve_bands(&mut source, &capture.lights, config, progress, |setup| {
-            Ok(Assemble::new(setup))
-        })?;
-        recon = assemble(sink.into_solutions(), first_solve, facts, config);
+        recon = solve_whole(&stack, capture, solve_config, config, facts, progress)?;
         applied = true;
     }
     let seconds = t.elapsed().as_secs_f64();

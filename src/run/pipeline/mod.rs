@@ -23,7 +23,7 @@ pub use report::*;
 
 use crate::capture::dataset::Capture;
 use crate::capture::lights::MAX_LIGHT_CONDITION;
-use crate::capture::stack::ColorMode;
+use crate::capture::stack::{ColorMode, ImageStack};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
 use crate::integrate::{Integration, IntegrationOptions, integrate_normals};
@@ -163,31 +163,25 @@ pub fn reconstruct_normals(
     progress: &dyn Progress,
 ) -> Result<Reconstruction> {
     capture.lights.check_usable(MAX_LIGHT_CONDITION)?;
-    let mut source = WholeStack::new(&capture.stack, &capture.mask);
     let unmasked_files = capture.mask_source.is_none() && !capture.images.is_empty();
     let solve_config = fill_only_inside_a_mask(config, unmasked_files);
-    let (sink, times) = solve_bands(
-        &mut source,
-        &capture.lights,
-        &solve_config,
-        progress,
-        |setup| Ok(Assemble::new(setup)),
-    )?;
     let facts = InputFacts {
         info: capture.stack.info(),
         count: capture.stack.count(),
         unmasked_files,
     };
-    let recon = assemble(
-        sink.into_solutions(),
-        times.model + times.solve + times.sink,
-        &facts,
+    let recon = solve_whole(
+        &capture.stack,
+        capture,
+        &solve_config,
         config,
-    );
+        &facts,
+        progress,
+    )?;
     match &config.interreflections {
         Some(options) => interreflections::compensate_and_resolve(
             capture,
-            &solve_config,
+            (&solve_config, config),
             options,
             recon,
             &facts,
@@ -195,6 +189,32 @@ pub fn reconstruct_normals(
         ),
         None => Ok(recon),
     }
+}
+
+/// Solves `stack` (the capture's images, or a corrected copy of them) over the capture's mask
+/// with `solve_config`, and assembles the maps and summaries with `config`.
+fn solve_whole(
+    stack: &ImageStack,
+    capture: &Capture,
+    solve_config: &Config,
+    config: &Config,
+    facts: &InputFacts<'_>,
+    progress: &dyn Progress,
+) -> Result<Reconstruction> {
+    let mut source = WholeStack::new(stack, &capture.mask);
+    let (sink, times) = solve_bands(
+        &mut source,
+        &capture.lights,
+        solve_config,
+        progress,
+        |setup| Ok(Assemble::new(setup)),
+    )?;
+    Ok(assemble(
+        sink.into_solutions(),
+        times.model + times.solve + times.sink,
+        facts,
+        config,
+    ))
 }
 
 /// `config` for the solve: without a mask the unsolved pixels are mostly background (dark, or
