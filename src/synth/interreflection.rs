@@ -448,6 +448,31 @@ mod tests {
     }
 
     /// The mean over rows 150..250 of column `c` of `img` − `base`.
+    /// Rays per pixel of the groove tests.
+    const GROOVE_SAMPLES: usize = 256;
+
+    /// The groove tests' two lights (overhead, and 40° above +x) and a renderer of `scene`
+    /// under them with a given number of bounces ([`GROOVE_SAMPLES`] rays per pixel).
+    fn groove_lights(
+        scene: &Scene,
+    ) -> (
+        [Vector3<f64>; 2],
+        impl Fn(usize) -> Vec<Vec<Grid<f32>>> + '_,
+    ) {
+        let e = 40f64.to_radians();
+        let dirs = [Vector3::z(), Vector3::new(e.cos(), 0.0, e.sin())];
+        let lights = Lights::from_directions(&dirs).unwrap();
+        let with = move |bounces| {
+            let o = RenderOptions {
+                bounces,
+                bounce_samples: GROOVE_SAMPLES,
+                ..RenderOptions::default()
+            };
+            render(scene, &lights, &o).unwrap().images
+        };
+        (dirs, with)
+    }
+
     fn row_mean(img: &Grid<f32>, base: &Grid<f32>, c: usize) -> f64 {
         (150..250)
             .map(|r| f64::from(img.at(c, r) - base.at(c, r)))
@@ -468,18 +493,7 @@ mod tests {
     fn one_bounce_in_a_groove_matches_crossed_strings() {
         let (scene, half, depth) = long_groove();
         let fs = faces(half, depth);
-        let e = 40f64.to_radians();
-        let dirs = [Vector3::z(), Vector3::new(e.cos(), 0.0, e.sin())];
-        let lights = Lights::from_directions(&dirs).unwrap();
-        let samples = 256;
-        let with = |bounces| {
-            let o = RenderOptions {
-                bounces,
-                bounce_samples: samples,
-                ..RenderOptions::default()
-            };
-            render(&scene, &lights, &o).unwrap().images
-        };
+        let (dirs, with) = groove_lights(&scene);
         let (base, one) = (with(0), with(1));
         for (k, l) in dirs.iter().enumerate() {
             let (b0, b1) = (&base[k][0], &one[k][0]);
@@ -489,7 +503,7 @@ mod tests {
                 * fs.iter()
                     .map(|f| f.normal.dot(&Vector2::new(l.x, l.z)))
                     .fold(0.0, f64::max);
-            let sigma = RHO * b_max / (2.0 * ((samples * 100) as f64).sqrt());
+            let sigma = RHO * b_max / (2.0 * ((GROOVE_SAMPLES * 100) as f64).sqrt());
             for c in 0..40 {
                 let x = c as f64 - 19.5;
                 if x.abs() >= half {
@@ -527,18 +541,7 @@ mod tests {
     fn bounces_converge_to_the_radiosity_solution_in_a_groove() {
         let (scene, half, depth) = long_groove();
         let fs = faces(half, depth);
-        let e = 40f64.to_radians();
-        let dirs = [Vector3::z(), Vector3::new(e.cos(), 0.0, e.sin())];
-        let lights = Lights::from_directions(&dirs).unwrap();
-        let samples = 256;
-        let with = |bounces| {
-            let o = RenderOptions {
-                bounces,
-                bounce_samples: samples,
-                ..RenderOptions::default()
-            };
-            render(&scene, &lights, &o).unwrap().images
-        };
+        let (dirs, with) = groove_lights(&scene);
         // ρF between the faces is ≤ 0.8·0.5: 12 bounces leave 0.4¹³ ≈ 10⁻⁵.
         let (base, many) = (with(0), with(12));
         let n = 240;
@@ -574,7 +577,7 @@ mod tests {
                     .map(|f| f.normal.dot(&Vector2::new(l.x, l.z)))
                     .fold(0.0, f64::max);
             // Σ_k (ρF)^k amplifies the one-bounce error by at most 1/(1 − 0.4).
-            let sigma = RHO * b_max / (2.0 * ((samples * 100) as f64).sqrt()) / 0.6;
+            let sigma = RHO * b_max / (2.0 * ((GROOVE_SAMPLES * 100) as f64).sqrt()) / 0.6;
             for c in 0..40 {
                 let x = c as f64 - 19.5;
                 if x.abs() >= half {
