@@ -450,27 +450,24 @@ mod tests {
     /// The mean over rows 150..250 of column `c` of `img` − `base`.
     /// Rays per pixel of the groove tests.
     const GROOVE_SAMPLES: usize = 256;
+    /// Per light, its channel planes ([`Rendering::images`]).
+    type Images = Vec<Vec<Grid<f32>>>;
 
-    /// The groove tests' two lights (overhead, and 40° above +x) and a renderer of `scene`
-    /// under them with a given number of bounces ([`GROOVE_SAMPLES`] rays per pixel).
-    fn groove_lights(
-        scene: &Scene,
-    ) -> (
-        [Vector3<f64>; 2],
-        impl Fn(usize) -> Vec<Vec<Grid<f32>>> + '_,
-    ) {
+    /// The groove tests' two lights (overhead, and 40° above +x), and `scene` rendered under
+    /// them with each of `bounces` ([`GROOVE_SAMPLES`] rays per pixel).
+    fn groove_renders(scene: &Scene, bounces: [usize; 2]) -> ([Vector3<f64>; 2], [Images; 2]) {
         let e = 40f64.to_radians();
         let dirs = [Vector3::z(), Vector3::new(e.cos(), 0.0, e.sin())];
         let lights = Lights::from_directions(&dirs).unwrap();
-        let with = move |bounces| {
+        let images = bounces.map(|bounces| {
             let o = RenderOptions {
                 bounces,
                 bounce_samples: GROOVE_SAMPLES,
                 ..RenderOptions::default()
             };
             render(scene, &lights, &o).unwrap().images
-        };
-        (dirs, with)
+        });
+        (dirs, images)
     }
 
     fn row_mean(img: &Grid<f32>, base: &Grid<f32>, c: usize) -> f64 {
@@ -493,8 +490,7 @@ mod tests {
     fn one_bounce_in_a_groove_matches_crossed_strings() {
         let (scene, half, depth) = long_groove();
         let fs = faces(half, depth);
-        let (dirs, with) = groove_lights(&scene);
-        let (base, one) = (with(0), with(1));
+        let (dirs, [base, one]) = groove_renders(&scene, [0, 1]);
         for (k, l) in dirs.iter().enumerate() {
             let (b0, b1) = (&base[k][0], &one[k][0]);
             // Standard deviation of a row mean of ρ·H for independent rays (the stratified
@@ -541,9 +537,8 @@ mod tests {
     fn bounces_converge_to_the_radiosity_solution_in_a_groove() {
         let (scene, half, depth) = long_groove();
         let fs = faces(half, depth);
-        let (dirs, with) = groove_lights(&scene);
         // ρF between the faces is ≤ 0.8·0.5: 12 bounces leave 0.4¹³ ≈ 10⁻⁵.
-        let (base, many) = (with(0), with(12));
+        let (dirs, [base, many]) = groove_renders(&scene, [0, 12]);
         let n = 240;
         // Strips 0..n on the left face, n..2n on the right, from the crease out.
         let strip = |i: usize| {
