@@ -7,14 +7,16 @@
 //! (natural) boundary, so masks of any shape and depth discontinuities along the silhouette are
 //! handled. Each connected part is integrated independently (anchored at
 //! one pixel, then made zero-mean). Its normal equations are the mask's graph Laplacian L z = b,
-//! solved by sparse Cholesky or by conjugate gradients preconditioned with the DCT solve of the
-//! enclosing rectangle (a few tens of iterations for compact masks).
+//! solved by sparse Cholesky, by conjugate gradients preconditioned with the DCT solve of the
+//! enclosing rectangle (a few tens of iterations for compact masks), or by conjugate gradients
+//! preconditioned with aggregation multigrid (linear time and memory on any mask).
 //!
 //! Assumes a continuous surface inside each part: a depth jump inside the mask is smeared over
 //! its neighbourhood (see the bilateral integrator for that case).
 
+use super::multigrid::Multigrid;
 use super::poisson::NeumannSolver;
-use super::sparse::{Direct, LinearSolver, Preconditioner, Stencil, Unknowns, pcg};
+use super::sparse::{Direct, LinearSolver, Preconditioner, SolveMethod, Stencil, Unknowns, pcg};
 use super::{Censoring, edge_differences};
 use crate::error::Result;
 use crate::grid::{Mask, ScalarMap};
@@ -29,8 +31,8 @@ const CG_MAX_ITER: usize = 2000;
 pub struct SolveInfo {
     /// Unknowns.
     pub unknowns: usize,
-    /// Whether the direct solver was used.
-    pub direct: bool,
+    /// The solver used.
+    pub method: SolveMethod,
     /// Conjugate-gradient iterations (0 for the direct solver).
     pub iterations: usize,
 }
@@ -66,29 +68,38 @@ pub fn integrate_masked_ls(
     }
     // The DCT preconditioner assumes uniform weights; censored edges make it approximate only,
     // which costs iterations, not accuracy.
-    let direct = solver.direct_for(n);
-    let (mut z, iterations) = if direct {
-        (Direct::new(&u)?.solve(&a, &b)?, 0)
+    let method = if solver.direct_for(n) {
+        SolveMethod::Direct
+    } else if solver == LinearSolver::Multigrid {
+        SolveMethod::MultigridCg
     } else {
-        let pre = NeumannSolver::new(u.w, u.h);
-        let mut z = vec![0f64; n];
-        let it = pcg(
-            &u,
-            &a,
-            &b,
-            &mut z,
-            &Preconditioner::Dct(&pre),
-            CG_TOL,
-            CG_MAX_ITER,
-        );
-        (z, it)
+        SolveMethod::DctCg
+    };
+    let (mut z, iterations) = match method {
+        SolveMethod::Direct => (Direct::new(&u)?.solve(&a, &b)?, 0),
+        _ => {
+            let mut z = vec![0f64; n];
+            let it = match method {
+                SolveMethod::MultigridCg => {
+                    let m = Multigrid::new(&u, &a);
+                    let pre = Preconditioner::Multigrid(&m);
+                    pcg(&u, &a, &b, &mut z, &pre, CG_TOL, CG_MAX_ITER)
+                }
+                _ => {
+                    let dct = NeumannSolver::new(u.w, u.h);
+                    let pre = Preconditioner::Dct(&dct);
+                    pcg(&u, &a, &b, &mut z, &pre, CG_TOL, CG_MAX_ITER)
+                }
+            };
+            (z, it)
+        }
     };
     u.zero_mean_parts(&mut z);
     Ok((
         u.to_map(&z),
         SolveInfo {
             unknowns: n,
-            direct,
+            method,
             iterations,
         },
     ))

@@ -33,13 +33,14 @@
 pub mod bilateral;
 pub mod fourier;
 pub mod masked;
+pub(crate) mod multigrid;
 pub mod path;
 pub mod poisson;
 pub(crate) mod sparse;
 
 pub use bilateral::BilateralParams;
 pub use masked::SolveInfo;
-pub use sparse::LinearSolver;
+pub use sparse::{LinearSolver, SolveMethod};
 
 use crate::camera::Intrinsics;
 use crate::error::{Error, Result};

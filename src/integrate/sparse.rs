@@ -26,14 +26,23 @@ pub(crate) const NONE: u32 = u32::MAX;
 /// How the linear systems of the masked integrators are solved.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
 #[serde(rename_all = "kebab-case")]
+#[non_exhaustive]
 pub enum LinearSolver {
-    /// Direct up to 100 000 unknowns, conjugate gradients beyond.
+    /// Direct up to [`DIRECT_MAX_UNKNOWNS`], iterative beyond: masked least squares by
+    /// conjugate gradients preconditioned with the DCT solve of the enclosing rectangle; the
+    /// bilateral integrator's reweighting steps always by conjugate gradients preconditioned with
+    /// multigrid (Jacobi, as published, for its soft-weighted variant without re-integration),
+    /// its final re-integration with multigrid beyond the direct limit.
     #[default]
     Auto,
     /// Sparse Cholesky factorisation (exact; memory grows like n log n).
     Direct,
-    /// Preconditioned conjugate gradients (memory linear in n).
+    /// Conjugate gradients with the simplest preconditioner that fits: the rectangle's DCT solve
+    /// for masked least squares, Jacobi (as published) for the bilateral integrator.
     ConjugateGradient,
+    /// Conjugate gradients preconditioned with aggregation multigrid ([`super::multigrid`]):
+    /// time and memory linear in n, for any mask and any weights.
+    Multigrid,
 }
 
 /// Largest system [`LinearSolver::Auto`] solves directly.
@@ -45,7 +54,34 @@ impl LinearSolver {
         match self {
             LinearSolver::Auto => n <= DIRECT_MAX_UNKNOWNS,
             LinearSolver::Direct => true,
-            LinearSolver::ConjugateGradient => false,
+            LinearSolver::ConjugateGradient | LinearSolver::Multigrid => false,
+        }
+    }
+}
+
+/// How one linear system was solved.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+#[non_exhaustive]
+pub enum SolveMethod {
+    /// Sparse Cholesky.
+    Direct,
+    /// Conjugate gradients, Jacobi preconditioner.
+    JacobiCg,
+    /// Conjugate gradients, DCT preconditioner.
+    DctCg,
+    /// Conjugate gradients, multigrid preconditioner.
+    MultigridCg,
+}
+
+impl SolveMethod {
+    /// A short name for messages and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            SolveMethod::Direct => "direct",
+            SolveMethod::JacobiCg => "jacobi-cg",
+            SolveMethod::DctCg => "dct-cg",
+            SolveMethod::MultigridCg => "multigrid-cg",
         }
     }
 }
@@ -413,6 +449,8 @@ pub(crate) enum Preconditioner<'a> {
     Jacobi,
     /// The DCT Neumann solve on the enclosing w×h grid (for uniform-weight Laplacians).
     Dct(&'a NeumannSolver),
+    /// One V-cycle of aggregation multigrid ([`super::multigrid`]).
+    Multigrid(&'a super::multigrid::Multigrid),
 }
 
 /// Elements summed per chunk of [`dot`]: a fixed partition of the vectors.
@@ -457,7 +495,7 @@ pub(crate) fn pcg(
     let mut r: Vec<f64> = b.iter().zip(&ax).map(|(b, a)| b - a).collect();
     let mut grid = match pre {
         Preconditioner::Dct(_) => vec![0f64; u.w * u.h],
-        Preconditioner::Jacobi => Vec::new(),
+        Preconditioner::Jacobi | Preconditioner::Multigrid(_) => Vec::new(),
     };
     let mut precondition = |r: &[f64], z: &mut [f64]| match pre {
         Preconditioner::Jacobi => {
@@ -475,7 +513,10 @@ pub(crate) fn pcg(
                 z[k] = grid[p as usize];
             }
         }
+        Preconditioner::Multigrid(m) => m.apply(r, z),
     };
+    let flexible = matches!(pre, Preconditioner::Multigrid(_));
+    let mut r_prev = if flexible { vec![0f64; n] } else { Vec::new() };
     let mut z = vec![0f64; n];
     precondition(&r, &mut z);
     let mut p = z.clone();
@@ -491,13 +532,23 @@ pub(crate) fn pcg(
             return it;
         }
         let alpha = rz / pap;
+        if flexible {
+            r_prev.copy_from_slice(&r);
+        }
         x.par_iter_mut().zip(&p).for_each(|(x, p)| *x += alpha * p);
         r.par_iter_mut()
             .zip(&ap)
             .for_each(|(r, ap)| *r -= alpha * ap);
         precondition(&r, &mut z);
         let rz_new = dot(&r, &z);
-        let beta = rz_new / rz;
+        // Flexible (Polak–Ribière) β, for preconditioners that are not a fixed linear map (the
+        // K-cycle of multigrid): zᵀ(r − r_prev)/ρ_prev. With a fixed preconditioner it equals
+        // the usual zᵀr/ρ_prev, since then zᵀr_prev = 0.
+        let beta = if flexible {
+            (rz_new - dot(&z, &r_prev)) / rz
+        } else {
+            rz_new / rz
+        };
         rz = rz_new;
         p.par_iter_mut()
             .zip(&z)

@@ -641,8 +641,10 @@ pub enum SolverArg {
     Auto,
     /// Sparse Cholesky.
     Direct,
-    /// Preconditioned conjugate gradients.
+    /// Preconditioned conjugate gradients (DCT for masked-ls, Jacobi for bilateral).
     Cg,
+    /// Conjugate gradients preconditioned with aggregation multigrid (linear time and memory).
+    Multigrid,
 }
 
 /// Options of normal integration shared by the main command, `demo` and `integrate`.
@@ -652,8 +654,10 @@ pub struct IntegrationArgs {
     /// the distance along the optical axis, up to scale.
     #[arg(long, value_name = "K.txt")]
     pub camera: Option<PathBuf>,
-    /// Linear solver of `masked-ls` (auto: direct up to 100 000 pixels) and `bilateral` (auto: the
-    /// published inexact conjugate gradients; direct: exact solves, a different fixed point).
+    /// Linear solver of `masked-ls` (auto: direct up to 100 000 pixels, DCT-preconditioned
+    /// conjugate gradients beyond) and `bilateral` (auto: each reweighting step by
+    /// multigrid-preconditioned conjugate gradients to the published tolerance; cg: Jacobi, as
+    /// published; direct: exact steps, a different fixed point).
     #[arg(long, value_enum, default_value_t = SolverArg::Auto)]
     pub solver: SolverArg,
     /// Bilateral: sigmoid sharpness k (larger keeps more discontinuities).
@@ -698,6 +702,7 @@ impl IntegrationArgs {
                 SolverArg::Auto => LinearSolver::Auto,
                 SolverArg::Direct => LinearSolver::Direct,
                 SolverArg::Cg => LinearSolver::ConjugateGradient,
+                SolverArg::Multigrid => LinearSolver::Multigrid,
             },
             bilateral: BilateralParams {
                 k: self.bilateral_k,

@@ -32,7 +32,7 @@ use photostereo::eval::demo;
 use photostereo::eval::metrics::{angular_errors, depth_errors, scaled_depth_errors};
 use photostereo::grid::Grid;
 use photostereo::grid::Mask;
-use photostereo::integrate::integrate_normals;
+use photostereo::integrate::{SolveMethod, integrate_normals};
 use photostereo::io::decode::read_normal_map;
 use photostereo::io::mesh::Mesh;
 use photostereo::io::output::OutputDir;
@@ -523,12 +523,12 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
         secs,
         match (&r.solve, r.iterations) {
             (Some(s), it) if it > 0 => format!(
-                " ({} reweighting iterations, {} solver)",
+                " ({} reweighting iterations, final solve {})",
                 it,
-                if s.direct { "direct" } else { "cg" }
+                s.method.name()
             ),
-            (Some(s), _) if s.direct => " (direct solver)".to_string(),
-            (Some(s), _) => format!(" (cg, {} iterations)", s.iterations),
+            (Some(s), _) if s.method == SolveMethod::Direct => " (direct solver)".to_string(),
+            (Some(s), _) => format!(" ({}, {} iterations)", s.method.name(), s.iterations),
             _ => String::new(),
         },
         mean_res
