@@ -284,6 +284,19 @@ fn diligent_depth_with_the_camera() {
                 ..base
             },
         );
+        // The default: the occlusions of both show in the circulation, so bilateral is chosen.
+        let auto = run(
+            "auto",
+            IntegrationOptions {
+                method: Integrator::Auto,
+                ..base
+            },
+        );
+        assert!(auto <= published, "{obj} auto {auto}");
+        assert!(
+            (auto - bilateral).abs() < 1e-12,
+            "{obj} auto {auto} vs bilateral {bilateral}"
+        );
         // Measured: cat 0.058 and 0.057 (exact inner solves), bear 0.029 and 0.027.
         assert!(bilateral <= published, "{obj} bilateral {bilateral}");
         assert!(
@@ -499,5 +512,68 @@ fn integrate_command_writes_depth_and_mesh() {
         assert!(out.starts_with(&mask.count().to_string()), "{out}");
     } else {
         eprintln!("SKIPPED the trimesh check: python3 with trimesh is not available");
+    }
+}
+
+/// Normals of `field` with N(0, σ) added to each component and renormalised (one fixed draw).
+fn noisy(normals: &NormalMap, sigma: f32, seed: u64) -> NormalMap {
+    let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(seed);
+    let noise = Normal::new(0.0f32, sigma).unwrap();
+    normals.map(|n| {
+        let v = Vector3::new(
+            n.x + noise.sample(&mut rng),
+            n.y + noise.sample(&mut rng),
+            n.z + noise.sample(&mut rng),
+        );
+        v.normalize()
+    })
+}
+
+/// `auto` keeps masked least squares on a smooth surface (its depth, bit for bit: a smooth
+/// object pays nothing for discontinuities) and switches to bilateral integration where a ball
+/// floats above a tilted ground, a depth jump whose height varies along the ball's occluding
+/// contour — with normal noise in both, so that the test has noise to tell the jump from.
+#[test]
+fn auto_chooses_from_the_residual() {
+    let (w, h) = (96, 96);
+    let mask = Grid::new(w, h, true);
+    // Smooth: a Gaussian bump on a tilted plane.
+    let (_, _, _, smooth) = field(w, h, |x, y| {
+        let g = 20.0 * (-(x * x + y * y) / 600.0).exp();
+        (
+            g + 0.2 * x,
+            -2.0 * x / 600.0 * g + 0.2,
+            -2.0 * y / 600.0 * g,
+        )
+    });
+    // A jump: a ball of radius 28 floating 25 px above a ground tilted at slope 0.3, so that
+    // the jump's height varies along the ball's occluding contour.
+    let r = 28.0;
+    let (_, _, _, jump) = field(w, h, |x, y| {
+        if x * x + y * y < r * r {
+            let s = (r * r - x * x - y * y).sqrt().max(1e-3);
+            (25.0 + s, -x / s, -y / s)
+        } else {
+            (0.3 * x, 0.3, 0.0)
+        }
+    });
+    for (name, normals, expect) in [
+        ("bump", noisy(&smooth, 0.01, 1), Integrator::MaskedLs),
+        (
+            "floating ball",
+            noisy(&jump, 0.01, 2),
+            Integrator::Bilateral,
+        ),
+    ] {
+        let auto = integrate_normals(&normals, &mask, &options(Integrator::Auto), &Silent).unwrap();
+        let d = auto.auto.expect("auto reports its decision");
+        println!("{name}: {}", d.reason());
+        assert_eq!(d.chosen, expect, "{name}: {}", d.reason());
+        let chosen = integrate_normals(&normals, &mask, &options(expect), &Silent).unwrap();
+        assert_eq!(
+            auto.depth.data(),
+            chosen.depth.data(),
+            "{name}: auto returns the chosen method's depth"
+        );
     }
 }

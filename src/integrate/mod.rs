@@ -10,8 +10,10 @@
 //! per connected part (returned with geometric mean 1).
 //!
 //! Methods ([`Integrator`]), each with its assumptions and failure modes:
-//! - `masked-ls` (default): least squares on the mask only (free boundary); smooths over depth
-//!   jumps inside the mask.
+//! - `auto` (default): `masked-ls`, unless its misfit shows depth jumps inside the mask, then
+//!   `bilateral` ([`auto`]: a test on the least-squares residual; the decision is returned).
+//! - `masked-ls`: least squares on the mask only (free boundary); smooths over depth jumps
+//!   inside the mask.
 //! - `poisson`: DCT least squares on the whole rectangle; fast, but treats the background as flat.
 //! - `path`: quality-guided path integration on the mask; noise accumulates along paths.
 //! - `fc`: Frankot–Chellappa by FFT; assumes periodicity, distorts near the image border.
@@ -30,6 +32,7 @@
 //! residual |Δz − that difference| (RMS over the pixel's edges) shows where the result is not
 //! faithful to the normals: discontinuities, or non-integrable (wrong) normals.
 
+pub mod auto;
 pub mod bilateral;
 pub mod fourier;
 pub mod masked;
@@ -38,6 +41,7 @@ pub mod path;
 pub mod poisson;
 pub(crate) mod sparse;
 
+pub use auto::AutoDecision;
 pub use bilateral::BilateralParams;
 pub use masked::SolveInfo;
 pub use sparse::{LinearSolver, SolveMethod};
@@ -63,23 +67,27 @@ pub enum Integrator {
     Path,
     /// Frankot–Chellappa (1988): least squares in the Fourier basis; periodic boundary.
     FrankotChellappa,
-    /// Least squares on the mask only, free boundary, sparse solve. The default: exact on any
-    /// mask shape, at a few times the cost of DCT Poisson.
-    #[default]
+    /// Least squares on the mask only, free boundary, sparse solve: exact on any mask shape,
+    /// at a few times the cost of DCT Poisson.
     MaskedLs,
     /// Bilateral normal integration (Cao et al. 2022): discontinuity preserving; re-integrated
     /// over the edges it cuts ([`bilateral`]).
     Bilateral,
+    /// The default: masked least squares, or bilateral integration when the least-squares
+    /// misfit shows depth jumps inside the mask ([`auto`]); the decision is reported.
+    #[default]
+    Auto,
 }
 
 impl Integrator {
     /// Every method, for listings and benchmarks.
-    pub const ALL: [Integrator; 5] = [
+    pub const ALL: [Integrator; 6] = [
         Integrator::Poisson,
         Integrator::Path,
         Integrator::FrankotChellappa,
         Integrator::MaskedLs,
         Integrator::Bilateral,
+        Integrator::Auto,
     ];
 
     /// The name used on the command line and in reports.
@@ -90,6 +98,7 @@ impl Integrator {
             Integrator::FrankotChellappa => "fc",
             Integrator::MaskedLs => "masked-ls",
             Integrator::Bilateral => "bilateral",
+            Integrator::Auto => "auto",
         }
     }
 }
@@ -125,6 +134,8 @@ pub struct Integration {
     pub solve: Option<SolveInfo>,
     /// Bilateral only: reweighting iterations.
     pub iterations: usize,
+    /// [`Integrator::Auto`] only: what it found and chose.
+    pub auto: Option<AutoDecision>,
 }
 
 /// Log-depth gradients (∂z̃/∂x, ∂z̃/∂y with x right, y up) under a pinhole camera; m is clamped
@@ -221,10 +232,13 @@ pub fn integrate_censored_gradients(
             let (z, info) = masked::integrate_masked_ls(p, q, censoring, &domain, solver)?;
             (z, Some(info))
         }
-        Integrator::Bilateral => {
+        Integrator::Bilateral | Integrator::Auto => {
             return Err(Error::param(
                 "method",
-                "bilateral integration works on normals, not gradients: use integrate_normals",
+                format!(
+                    "{} integration works on normals, not gradients: use integrate_normals",
+                    method.name()
+                ),
             ));
         }
     })
@@ -245,7 +259,7 @@ pub fn integrate_normals(
     let (p, q) = normal_gradients(normals, mask, options.camera.as_ref());
     let domain = gradient_domain(&p, &q, mask)?;
     progress.begin(options.method.name(), 1);
-    let (z, solve, weights, iterations) = if options.method == Integrator::Bilateral {
+    let bilateral = || -> Result<_> {
         let r = bilateral::integrate_bilateral(
             normals,
             &domain,
@@ -253,13 +267,30 @@ pub fn integrate_normals(
             &options.bilateral,
             options.solver,
         )?;
-        (r.z, Some(r.solve), Some((r.wu, r.wv)), r.iterations)
-    } else {
-        // Gradients clamped at MIN_NZ are left uncensored: the rim profile through them is
-        // insensitive to a large |g| (measured: censoring them raised the error on a sphere from
-        // 0.016 to 0.020 px, on DiLiGenT bear from 0.096 to 0.111 mm).
-        let (z, solve) = integrate_gradients(&p, &q, &domain, options.method, options.solver)?;
-        (z, solve, None, 0)
+        Ok((r.z, Some(r.solve), Some((r.wu, r.wv)), r.iterations))
+    };
+    // Gradients clamped at MIN_NZ are left uncensored: the rim profile through them is
+    // insensitive to a large |g| (measured: censoring them raised the error on a sphere from
+    // 0.016 to 0.020 px, on DiLiGenT bear from 0.096 to 0.111 mm).
+    let smooth = || integrate_gradients(&p, &q, &domain, Integrator::MaskedLs, options.solver);
+    let mut decision = None;
+    let (z, solve, weights, iterations) = match options.method {
+        Integrator::Bilateral => bilateral()?,
+        Integrator::Auto => {
+            let a = normal_factor(normals, &domain, options.camera.as_ref());
+            let d = auto::decide(&p, &q, &a, &domain);
+            decision = Some(d);
+            if d.jumps() {
+                bilateral()?
+            } else {
+                let (z, solve) = smooth()?;
+                (z, solve, None, 0)
+            }
+        }
+        method => {
+            let (z, solve) = integrate_gradients(&p, &q, &domain, method, options.solver)?;
+            (z, solve, None, 0)
+        }
     };
     progress.advance(1);
     progress.end();
@@ -274,7 +305,39 @@ pub fn integrate_normals(
         weights,
         solve,
         iterations,
+        auto: decision,
     })
+}
+
+/// Per pixel, the factor a that multiplies a gradient into the normal's components (n_z
+/// orthographic, m = n_z − n_x(u − c_x)/f_x + n_y(v − c_y)/f_y perspective): a gradient's noise
+/// grows like 1/a, so a² is the inverse-variance weight of its equations. 0 outside `domain`.
+pub(crate) fn normal_factor(
+    normals: &NormalMap,
+    domain: &Mask,
+    camera: Option<&Intrinsics>,
+) -> Vec<f64> {
+    let w = normals.width();
+    normals
+        .data()
+        .iter()
+        .zip(domain.data())
+        .enumerate()
+        .map(|(i, (n, m))| {
+            if !*m {
+                return 0.0;
+            }
+            let n = n.cast::<f64>();
+            match camera {
+                None => n.z,
+                Some(k) => {
+                    let (col, row) = ((i % w) as f64, (i / w) as f64);
+                    n.z - n.x * (col - k.cx) / k.fx + n.y * (row - k.cy) / k.fy
+                }
+            }
+            .abs()
+        })
+        .collect()
 }
 
 /// Pixels of `mask` where both gradients are finite.

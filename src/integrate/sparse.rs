@@ -28,7 +28,7 @@ pub(crate) const NONE: u32 = u32::MAX;
 #[serde(rename_all = "kebab-case")]
 #[non_exhaustive]
 pub enum LinearSolver {
-    /// Direct up to [`DIRECT_MAX_UNKNOWNS`], iterative beyond: masked least squares by
+    /// Direct up to 100 000 unknowns, iterative beyond: masked least squares by
     /// conjugate gradients preconditioned with the DCT solve of the enclosing rectangle; the
     /// bilateral integrator's reweighting steps always by conjugate gradients preconditioned with
     /// multigrid (Jacobi, as published, for its soft-weighted variant without re-integration),
@@ -40,7 +40,7 @@ pub enum LinearSolver {
     /// Conjugate gradients with the simplest preconditioner that fits: the rectangle's DCT solve
     /// for masked least squares, Jacobi (as published) for the bilateral integrator.
     ConjugateGradient,
-    /// Conjugate gradients preconditioned with aggregation multigrid ([`super::multigrid`]):
+    /// Conjugate gradients preconditioned with aggregation multigrid (`integrate/multigrid.rs`):
     /// time and memory linear in n, for any mask and any weights.
     Multigrid,
 }
@@ -449,7 +449,7 @@ pub(crate) enum Preconditioner<'a> {
     Jacobi,
     /// The DCT Neumann solve on the enclosing w×h grid (for uniform-weight Laplacians).
     Dct(&'a NeumannSolver),
-    /// One V-cycle of aggregation multigrid ([`super::multigrid`]).
+    /// One V-cycle of aggregation multigrid (`integrate/multigrid.rs`).
     Multigrid(&'a super::multigrid::Multigrid),
 }
 

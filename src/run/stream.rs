@@ -965,7 +965,7 @@ impl Integrator {
             // Gradients, depth and the transform buffers.
             Integrator::Poisson | Integrator::FrankotChellappa => 32 * n,
             Integrator::Path => 40 * n,
-            Integrator::MaskedLs | Integrator::Bilateral => {
+            Integrator::MaskedLs | Integrator::Bilateral | Integrator::Auto => {
                 let index = 4 * n + 48 * m;
                 let system = if solver.direct_for(masked) {
                     m * 40 * 12

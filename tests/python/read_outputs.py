@@ -54,7 +54,10 @@ summary["mean_angular_error_deg"] = float(np.degrees(np.arccos(cos)).mean())
 check(summary["mean_angular_error_deg"] < 1.0, f"normals disagree with ground truth: {summary}")
 
 depth, _ = channels(f"{out}/depth.exr")
-check(sorted(depth) == ["Z", "residual"] and depth["Z"].shape == (h, w), f"depth.exr channels {list(depth)}")
+# The integrator that report.json names: bilateral adds its weights wu, wv.
+used = json.load(open(f"{out}/report.json"))["integration"]["method"]
+expected = ["Z", "residual", "wu", "wv"] if used == "bilateral" else ["Z", "residual"]
+check(sorted(depth) == expected and depth["Z"].shape == (h, w), f"depth.exr channels {list(depth)} ({used})")
 check((np.isfinite(depth["Z"]) == valid).all(), "depth NaN mask differs from the normal map's")
 dgt, _ = channels(f"{out}/scene/gt/depth_gt.exr")
 d, t = depth["Z"][valid], dgt["Z"][valid]

@@ -116,10 +116,11 @@ pub struct MethodArgs {
     /// rejection + Tukey).
     #[arg(long, value_enum, default_value_t = MethodArg::Auto)]
     pub method: MethodArg,
-    /// Normal integration: `masked-ls` (least squares on the mask only), `poisson` (DCT, fast,
-    /// flat background), `path` (mask-aware paths), `fc` (Frankot–Chellappa FFT, periodic),
-    /// `bilateral` (discontinuity preserving), or `none`.
-    #[arg(long, value_enum, default_value_t = IntegrateArg::MaskedLs)]
+    /// Normal integration: `auto` (masked-ls, or bilateral when its misfit shows depth jumps;
+    /// the choice is reported), `masked-ls` (least squares on the mask only), `poisson` (DCT,
+    /// fast, flat background), `path` (mask-aware paths), `fc` (Frankot–Chellappa FFT,
+    /// periodic), `bilateral` (discontinuity preserving), or `none`.
+    #[arg(long, value_enum, default_value_t = IntegrateArg::Auto)]
     pub integrate: IntegrateArg,
     /// Integration details (camera, solver, bilateral parameters).
     #[command(flatten)]
@@ -325,7 +326,7 @@ pub struct IntegrateArgs {
     #[arg(long, value_name = "FILE")]
     pub mask: Option<PathBuf>,
     /// Integration method.
-    #[arg(long, value_enum, default_value_t = IntegrateArg::MaskedLs)]
+    #[arg(long, value_enum, default_value_t = IntegrateArg::Auto)]
     pub method: IntegrateArg,
     /// Integration details.
     #[command(flatten)]
@@ -616,6 +617,8 @@ pub enum IntegrateArg {
     MaskedLs,
     /// Bilateral normal integration.
     Bilateral,
+    /// Masked least squares, or bilateral when its misfit shows depth jumps.
+    Auto,
     /// No depth.
     None,
 }
@@ -629,6 +632,7 @@ impl IntegrateArg {
             IntegrateArg::Fc => Some(Integrator::FrankotChellappa),
             IntegrateArg::MaskedLs => Some(Integrator::MaskedLs),
             IntegrateArg::Bilateral => Some(Integrator::Bilateral),
+            IntegrateArg::Auto => Some(Integrator::Auto),
             IntegrateArg::None => None,
         }
     }

@@ -499,8 +499,13 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
             .to_string(),
         Some(_) => "Z: depth along the optical axis, up to scale, larger is farther".to_string(),
     };
+    // `auto` names its choice.
+    let used = match &r.auto {
+        Some(d) => format!("auto ({})", d.chosen.name()),
+        None => method.name().to_string(),
+    };
     let attrs = [
-        ("photostereo:integration", method.name().to_string()),
+        ("photostereo:integration", used.clone()),
         ("photostereo:units", units),
     ];
     write_staged(&a.output, |out, name| {
@@ -513,7 +518,7 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
     let mean_res = photostereo::stats::summarize(&r.residual).mean;
     say!(
         "{}: {} pixels, {} in {:.3} s{}; mean integration residual {:.3e}",
-        method.name(),
+        used,
         mask.count(),
         if options.camera.is_some() {
             "perspective"
@@ -533,6 +538,9 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
         },
         mean_res
     );
+    if let Some(d) = &r.auto {
+        say!("  auto: {}", d.reason());
+    }
     say!(
         "  wrote {}{}",
         a.output.display(),
@@ -585,6 +593,9 @@ fn print_summary(report: &Report, dir: &Path) {
         report.integrability.median_abs_curl,
         report.integrability.p95_abs_curl
     );
+    if let Some(a) = report.integration.as_ref().and_then(|i| i.auto.as_ref()) {
+        say!("  integration: {}", a.reason);
+    }
     let t = &report.timings_s;
     say!(
         "  time: load {:.3} s, solve {:.3} s, normals {:.3} s, integrate {:.3} s, write {:.3} s",

@@ -180,7 +180,7 @@ pub fn vase_rows(path: &Path) -> Result<Vec<RealDepthRow>> {
         });
         for m in Integrator::ALL {
             let t = Instant::now();
-            let d = if m == Integrator::Bilateral {
+            let d = if matches!(m, Integrator::Bilateral | Integrator::Auto) {
                 let o = IntegrationOptions {
                     method: m,
                     ..IntegrationOptions::default()

@@ -114,11 +114,25 @@ pub struct ResidualSummary {
     pub median: f64,
 }
 
+/// `auto`'s decision in the report.
+#[derive(Debug, Clone, Serialize)]
+pub struct AutoSummary {
+    /// The numbers of the test.
+    #[serde(flatten)]
+    pub decision: crate::integrate::AutoDecision,
+    /// The decision in one sentence.
+    pub reason: String,
+}
+
 /// How depth was integrated and how faithful it is to the normals.
 #[derive(Debug, Clone, Serialize)]
 pub struct IntegrationSummary {
-    /// The method's name.
+    /// The method's name (the one whose depth was kept: `auto` reports its choice here and
+    /// its evidence in `auto`).
     pub method: &'static str,
+    /// What `auto` found and chose, with the reason in words.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub auto: Option<AutoSummary>,
     /// Perspective (with intrinsics) or orthographic.
     pub perspective: bool,
     /// How the linear system was solved, for the masked methods.
@@ -249,7 +263,11 @@ pub(crate) fn commit_with_report(
     let integration = integration.zip(config.integration.as_ref()).map(|(i, o)| {
         let r = crate::stats::summarize(&i.residual);
         IntegrationSummary {
-            method: o.method.name(),
+            method: i.auto.map_or(o.method, |d| d.chosen).name(),
+            auto: i.auto.map(|d| AutoSummary {
+                decision: d,
+                reason: d.reason(),
+            }),
             perspective: o.camera.is_some(),
             solve: i.solve,
             iterations: i.iterations,

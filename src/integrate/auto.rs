@@ -1,0 +1,178 @@
+//! `auto`: choose, from the normals themselves, between the smooth integrator (masked least
+//! squares) and the discontinuity-preserving one (bilateral), and say why.
+//!
+//! A continuous surface's normals are integrable up to noise: after masked least squares, the
+//! residual e_ij = z_j − z_i − d_ij on an edge (d_ij the depth difference the gradients give,
+//! the module's shared discretisation) is noise, spread over the whole mask. A depth jump inside
+//! the mask (a self-occlusion) is not in the normals: least squares spreads the missing jump
+//! over the edges near it, which leaves a few edges, along the jump, with residuals far above
+//! the noise — and they carry most of the misfit. So:
+//! 1. integrate by masked least squares;
+//! 2. on the **interior edges** (both pixels with all four neighbours in the domain: the
+//!    silhouette is left out, where nothing lies across and grazing normals make gradients
+//!    unreliable anyway), estimate the noise of the residual robustly, σ̂ = 1.4826 · median |e|;
+//! 3. call an edge **outlying** when |e| > τσ̂, with τ the two-sided Gaussian quantile at which
+//!    all m interior edges together expect [`FALSE_ALARMS`] false alarms (Bonferroni:
+//!    P(|N(0,1)| > τ) = [`FALSE_ALARMS`]/m; τ ≈ 5.3 for 10⁵ edges), so that noise alone almost
+//!    never produces one;
+//! 4. the surface has **depth jumps** when the outlying edges carry more than half of the
+//!    residual's energy Σe² ([`JUMP_SHARE`]): the misfit is then concentrated, not noise.
+//!
+//! With jumps the bilateral integrator runs (its cost is paid only then); without, the masked
+//! least-squares depth is returned as it is. The decision and its numbers are returned
+//! ([`AutoDecision`]) and reported.
+//!
+//! Where it breaks: a jump whose height is constant along a closed curve (a floating object in
+//! front of a background) leaves no residual — the normals carry no trace of it, and no
+//! integrator recovers its height; a jump that a discontinuity-preserving integrator only
+//! partly cuts can leave the bilateral depth worse than the smooth one (DiLiGenT goblet:
+//! 9.65 mm against 7.84, `docs/integration.md`).
+
+use super::{Censoring, Integrator, edge_differences};
+use crate::grid::{Mask, ScalarMap};
+use serde::Serialize;
+
+/// Expected number of interior edges that noise alone makes outlying (the Bonferroni level of
+/// the test, over all interior edges together).
+pub const FALSE_ALARMS: f64 = 0.01;
+/// The surface has depth jumps when the outlying edges carry more than this share of the
+/// residual energy of the smooth fit (a majority).
+pub const JUMP_SHARE: f64 = 0.5;
+
+/// What `auto` found and chose.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct AutoDecision {
+    /// The integrator whose depth is returned.
+    pub chosen: Integrator,
+    /// Loops (2×2 pixel squares in the domain) tested.
+    pub loops: usize,
+    /// Robust noise σ̂ of the weighted circulation (height or log-depth units).
+    pub noise: f64,
+    /// τ: a loop is outlying beyond τσ̂.
+    pub tau: f64,
+    /// Outlying loops.
+    pub outlying_loops: usize,
+    /// Share of the circulation's energy on the outlying loops.
+    pub outlying_share: f64,
+}
+
+impl AutoDecision {
+    /// Whether the smooth fit's misfit shows depth jumps.
+    pub fn jumps(&self) -> bool {
+        self.chosen == Integrator::Bilateral
+    }
+
+    /// One sentence: what was chosen and why.
+    pub fn reason(&self) -> String {
+        if self.jumps() {
+            format!(
+                "depth jumps: {} of {} pixel loops whose gradients do not close beyond {:.1}σ carry {:.0}% of the non-integrability, so the discontinuity-preserving integrator was used",
+                self.outlying_loops,
+                self.loops,
+                self.tau,
+                100.0 * self.outlying_share
+            )
+        } else {
+            format!(
+                "no depth jumps: {} of {} pixel loops not closing beyond {:.1}σ carry {:.0}% of the non-integrability, so the smooth integrator was kept",
+                self.outlying_loops,
+                self.loops,
+                self.tau,
+                100.0 * self.outlying_share
+            )
+        }
+    }
+}
+
+/// Two-sided Gaussian quantile τ with P(|N(0,1)| > τ) = `p`, by bisection on the complementary
+/// error function (accurate to 1e-6 in τ).
+pub(crate) fn two_sided_quantile(p: f64) -> f64 {
+    let (mut lo, mut hi) = (0.0f64, 40.0f64);
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if libm::erfc(mid / std::f64::consts::SQRT_2) > p {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
+/// The test of the module documentation on the gradients (p, q) over `domain`, with `a` the
+/// per-pixel normal factor ([`super::normal_factor`]): the decision, with
+/// [`Integrator::Bilateral`] chosen when the circulation shows depth jumps and
+/// [`Integrator::MaskedLs`] otherwise.
+pub(crate) fn decide(p: &ScalarMap, q: &ScalarMap, a: &[f64], domain: &Mask) -> AutoDecision {
+    let (w, h) = (p.width(), p.height());
+    let (right, down) = edge_differences(p, q, domain, &Censoring::None);
+    // Circulation around the 2×2 loop with top-left pixel i, in units of its noise: the
+    // smallest a² of its four pixels is the weight (the noisiest gradient dominates).
+    let mut loops = Vec::new();
+    for y in 0..h.saturating_sub(1) {
+        for x in 0..w.saturating_sub(1) {
+            let i = y * w + x;
+            let c = right[i] + down[i + 1] - right[i + w] - down[i];
+            if !c.is_finite() {
+                continue;
+            }
+            let a2 = [i, i + 1, i + w, i + w + 1]
+                .iter()
+                .map(|&k| a[k] * a[k])
+                .fold(f64::INFINITY, f64::min);
+            let e = (a2.sqrt() * c).abs();
+            if e.is_finite() {
+                loops.push(e);
+            }
+        }
+    }
+    let count = loops.len();
+    let mut sorted = loops.clone();
+    let noise = if count == 0 {
+        0.0
+    } else {
+        let mid = count / 2;
+        1.4826 * *sorted.select_nth_unstable_by(mid, f64::total_cmp).1
+    };
+    let tau = two_sided_quantile(FALSE_ALARMS / count.max(1) as f64);
+    let limit = tau * noise;
+    let (mut outlying, mut energy_out, mut energy) = (0usize, 0.0f64, 0.0f64);
+    for e in &loops {
+        energy += e * e;
+        if *e > limit {
+            outlying += 1;
+            energy_out += e * e;
+        }
+    }
+    let share = if energy > 0.0 {
+        energy_out / energy
+    } else {
+        0.0
+    };
+    AutoDecision {
+        chosen: if outlying > 0 && share > JUMP_SHARE {
+            Integrator::Bilateral
+        } else {
+            Integrator::MaskedLs
+        },
+        loops: count,
+        noise,
+        tau,
+        outlying_loops: outlying,
+        outlying_share: share,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantiles_match_the_gaussian_tail() {
+        // Known two-sided quantiles: 5% → 1.959964, 1e-4 → 3.890592, 1e-7 → 5.326724.
+        for (p, tau) in [(0.05, 1.959_964), (1e-4, 3.890_592), (1e-7, 5.326_724)] {
+            let got = two_sided_quantile(p);
+            assert!((got - tau).abs() < 1e-4, "p {p}: {got} vs {tau}");
+        }
+    }
+}
