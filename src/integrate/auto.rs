@@ -1,32 +1,38 @@
 //! `auto`: choose, from the normals themselves, between the smooth integrator (masked least
 //! squares) and the discontinuity-preserving one (bilateral), and say why.
 //!
-//! A continuous surface's normals are integrable up to noise: after masked least squares, the
-//! residual e_ij = z_j − z_i − d_ij on an edge (d_ij the depth difference the gradients give,
-//! the module's shared discretisation) is noise, spread over the whole mask. A depth jump inside
-//! the mask (a self-occlusion) is not in the normals: least squares spreads the missing jump
-//! over the edges near it, which leaves a few edges, along the jump, with residuals far above
-//! the noise — and they carry most of the misfit. So:
-//! 1. integrate by masked least squares;
-//! 2. on the **interior edges** (both pixels with all four neighbours in the domain: the
-//!    silhouette is left out, where nothing lies across and grazing normals make gradients
-//!    unreliable anyway), estimate the noise of the residual robustly, σ̂ = 1.4826 · median |e|;
-//! 3. call an edge **outlying** when |e| > τσ̂, with τ the two-sided Gaussian quantile at which
-//!    all m interior edges together expect [`FALSE_ALARMS`] false alarms (Bonferroni:
-//!    P(|N(0,1)| > τ) = [`FALSE_ALARMS`]/m; τ ≈ 5.3 for 10⁵ edges), so that noise alone almost
+//! A continuous surface's gradients are integrable up to noise: around every 2×2 loop of pixels
+//! the four depth differences the gradients give (the module's shared discretisation) sum to
+//! zero, up to noise. A depth jump inside the mask (a self-occlusion) is not in the normals, and
+//! where its height changes along it the loops that straddle it do not close: their circulation
+//! is far above the noise, and those few loops carry most of the field's non-integrability.
+//! So, before integrating:
+//! 1. weight each loop's circulation c by its noise: a gradient's noise grows like 1/a (a = n_z,
+//!    or m with a camera; [`super::normal_factor`]), so the loop is scaled by the smallest a of
+//!    its four pixels, and grazing normals, whose gradients are unreliable anyway, weigh little;
+//! 2. estimate the noise robustly, σ̂ = 1.4826 · median |c|;
+//! 3. call a loop **outlying** when |c| > τσ̂, with τ the two-sided Gaussian quantile at which all
+//!    m loops together expect [`FALSE_ALARMS`] false alarms (Bonferroni:
+//!    P(|N(0,1)| > τ) = [`FALSE_ALARMS`]/m; τ ≈ 5.2 for 4·10⁴ loops), so that noise alone almost
 //!    never produces one;
-//! 4. the surface has **depth jumps** when the outlying edges carry more than half of the
-//!    residual's energy Σe² ([`JUMP_SHARE`]): the misfit is then concentrated, not noise.
+//! 4. the surface has **depth jumps** when the outlying loops carry more than half of the
+//!    circulation's energy Σc² ([`JUMP_SHARE`]): the non-integrability is then concentrated, not
+//!    noise.
 //!
-//! With jumps the bilateral integrator runs (its cost is paid only then); without, the masked
-//! least-squares depth is returned as it is. The decision and its numbers are returned
+//! (A first version tested the masked least-squares residual instead; least squares spreads a
+//! jump's missing height over a wide neighbourhood, which raises the noise estimate itself, and a
+//! rendered tilted disc floating above the ground went undetected.)
+//!
+//! With jumps the bilateral integrator runs (its cost is paid only then); without, masked least
+//! squares runs, and a smooth object pays one pass over its gradients for the test. The decision and its numbers are returned
 //! ([`AutoDecision`]) and reported.
 //!
-//! Where it breaks: a jump whose height is constant along a closed curve (a floating object in
-//! front of a background) leaves no residual — the normals carry no trace of it, and no
-//! integrator recovers its height; a jump that a discontinuity-preserving integrator only
-//! partly cuts can leave the bilateral depth worse than the smooth one (DiLiGenT goblet:
-//! 9.65 mm against 7.84, `docs/integration.md`).
+//! Where it breaks: a jump whose height is constant along a closed curve (a disc floating
+//! parallel to the ground) closes every loop — the normals carry no trace of it, and no
+//! integrator recovers its height; a jump that the bilateral integrator only partly cuts can
+//! leave its depth worse than the smooth one (DiLiGenT goblet: 9.65 mm against 7.84; the demo
+//! scene's hemisphere; `docs/integration.md`); exact synthetic normals have no noise to compare
+//! with, and their discretisation error at high curvature reads as jumps.
 
 use super::{Censoring, Integrator, edge_differences};
 use crate::grid::{Mask, ScalarMap};
@@ -57,7 +63,7 @@ pub struct AutoDecision {
 }
 
 impl AutoDecision {
-    /// Whether the smooth fit's misfit shows depth jumps.
+    /// Whether the test found depth jumps (and bilateral integration ran).
     pub fn jumps(&self) -> bool {
         self.chosen == Integrator::Bilateral
     }

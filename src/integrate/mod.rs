@@ -10,8 +10,8 @@
 //! per connected part (returned with geometric mean 1).
 //!
 //! Methods ([`Integrator`]), each with its assumptions and failure modes:
-//! - `auto` (default): `masked-ls`, unless its misfit shows depth jumps inside the mask, then
-//!   `bilateral` ([`auto`]: a test on the least-squares residual; the decision is returned).
+//! - `auto` (default): `masked-ls`, unless the gradients' circulation shows depth jumps inside
+//!   the mask, then `bilateral` ([`auto`]; the decision is returned).
 //! - `masked-ls`: least squares on the mask only (free boundary); smooths over depth jumps
 //!   inside the mask.
 //! - `poisson`: DCT least squares on the whole rectangle; fast, but treats the background as flat.
@@ -73,8 +73,8 @@ pub enum Integrator {
     /// Bilateral normal integration (Cao et al. 2022): discontinuity preserving; re-integrated
     /// over the edges it cuts ([`bilateral`]).
     Bilateral,
-    /// The default: masked least squares, or bilateral integration when the least-squares
-    /// misfit shows depth jumps inside the mask ([`auto`]); the decision is reported.
+    /// The default: masked least squares, or bilateral integration when the gradients'
+    /// circulation shows depth jumps inside the mask ([`auto`]); the decision is reported.
     #[default]
     Auto,
 }

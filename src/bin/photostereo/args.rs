@@ -116,7 +116,7 @@ pub struct MethodArgs {
     /// rejection + Tukey).
     #[arg(long, value_enum, default_value_t = MethodArg::Auto)]
     pub method: MethodArg,
-    /// Normal integration: `auto` (masked-ls, or bilateral when its misfit shows depth jumps;
+    /// Normal integration: `auto` (masked-ls, or bilateral when the normals show depth jumps;
     /// the choice is reported), `masked-ls` (least squares on the mask only), `poisson` (DCT,
     /// fast, flat background), `path` (mask-aware paths), `fc` (Frankot–Chellappa FFT,
     /// periodic), `bilateral` (discontinuity preserving), or `none`.
@@ -617,7 +617,7 @@ pub enum IntegrateArg {
     MaskedLs,
     /// Bilateral normal integration.
     Bilateral,
-    /// Masked least squares, or bilateral when its misfit shows depth jumps.
+    /// Masked least squares, or bilateral when the normals show depth jumps.
     Auto,
     /// No depth.
     None,
