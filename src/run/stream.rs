@@ -965,7 +965,13 @@ impl Integrator {
             // Gradients, depth and the transform buffers.
             Integrator::Poisson | Integrator::FrankotChellappa => 32 * n,
             Integrator::Path => 40 * n,
-            Integrator::MaskedLs | Integrator::Bilateral | Integrator::Auto => {
+            // The bilateral integrator (and `auto`, which may run it) holds per unknown its
+            // equation coefficients and weights, the reweighting system, the multigrid
+            // hierarchy and the re-integration's edge list besides the masked arrays: measured
+            // on a 1024² sphere (667 064 unknowns) 462 MB peak against 156 MB for masked least
+            // squares by conjugate gradients, about 640 B an unknown in all.
+            Integrator::Bilateral | Integrator::Auto => 48 * n + 640 * m,
+            Integrator::MaskedLs => {
                 let index = 4 * n + 48 * m;
                 let system = if solver.direct_for(masked) {
                     m * 40 * 12
