@@ -8,7 +8,7 @@
 //! is far above the noise, and those few loops carry most of the field's non-integrability.
 //! So, before integrating:
 //! 1. weight each loop's circulation c by its noise: a gradient's noise grows like 1/a (a = n_z,
-//!    or m with a camera; [`super::normal_factor`]), so the loop is scaled by the smallest a of
+//!    or m with a camera), so the loop is scaled by the smallest a of
 //!    its four pixels, and grazing normals, whose gradients are unreliable anyway, weigh little;
 //! 2. estimate the noise robustly, σ̂ = 1.4826 · median |c|;
 //! 3. call a loop **outlying** when |c| > τσ̂, with τ the two-sided Gaussian quantile at which all

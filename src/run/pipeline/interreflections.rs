@@ -6,7 +6,7 @@
 use super::{Config, InputFacts, Reconstruction, solve_whole};
 use crate::capture::dataset::Capture;
 use crate::error::Result;
-use crate::integrate::{IntegrationOptions, integrate_normals};
+use crate::integrate::{IntegrationOptions, Integrator, integrate_normals};
 use crate::progress::{Progress, Silent};
 use crate::ps::interreflection::{
     Estimate, FormFactors, InterreflectionOptions, ScaleEstimate, compensate, estimate_scale,
@@ -49,9 +49,18 @@ pub(super) fn compensate_and_resolve(
 ) -> Result<Reconstruction> {
     options.validate()?;
     let t = Instant::now();
+    // The rounds trace the surface of the run's integrator, orthographic; `auto` (and a run
+    // without depth) trace the masked least-squares surface, on which the compensation was
+    // chosen and measured: with `auto`'s bilateral depth of DiLiGenT cat the rounds give 4.90°
+    // against 4.79° and take twice as long.
+    let base = config.integration.unwrap_or_default();
     let integration = IntegrationOptions {
         camera: None,
-        ..config.integration.unwrap_or_default()
+        method: match base.method {
+            Integrator::Auto => Integrator::MaskedLs,
+            method => method,
+        },
+        ..base
     };
     let mut recon = first;
     let mut rounds = Vec::new();
