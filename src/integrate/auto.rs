@@ -8,8 +8,8 @@
 //! is far above the noise, and those few loops carry most of the field's non-integrability.
 //! So, before integrating:
 //! 1. weight each loop's circulation c by its noise: a gradient's noise grows like 1/a (a = n_z,
-//!    or m with a camera), so the loop is scaled by the smallest a of
-//!    its four pixels, and grazing normals, whose gradients are unreliable anyway, weigh little;
+//!    or m with a camera), so the loop is scaled by the smallest a of its four pixels, and
+//!    grazing normals, whose gradients are unreliable anyway, weigh little;
 //! 2. estimate the noise robustly, σ̂ = 1.4826 · median |c|;
 //! 3. call a loop **outlying** when |c| > τσ̂, with τ the two-sided Gaussian quantile at which all
 //!    m loops together expect [`FALSE_ALARMS`] false alarms (Bonferroni:
@@ -24,8 +24,8 @@
 //! rendered tilted disc floating above the ground went undetected.)
 //!
 //! With jumps the bilateral integrator runs (its cost is paid only then); without, masked least
-//! squares runs, and a smooth object pays one pass over its gradients for the test. The decision and its numbers are returned
-//! ([`AutoDecision`]) and reported.
+//! squares runs, and a smooth object pays one pass over its gradients for the test. The
+//! decision and its numbers are returned ([`AutoDecision`]) and reported.
 //!
 //! Where it breaks: a jump whose height is constant along a closed curve (a disc floating
 //! parallel to the ground) closes every loop — the normals carry no trace of it, and no
@@ -38,11 +38,11 @@ use super::{Censoring, Integrator, edge_differences};
 use crate::grid::{Mask, ScalarMap};
 use serde::Serialize;
 
-/// Expected number of interior edges that noise alone makes outlying (the Bonferroni level of
-/// the test, over all interior edges together).
+/// Expected number of loops that noise alone makes outlying (the Bonferroni level of the test,
+/// over all loops together).
 pub const FALSE_ALARMS: f64 = 0.01;
-/// The surface has depth jumps when the outlying edges carry more than this share of the
-/// residual energy of the smooth fit (a majority).
+/// The surface has depth jumps when the outlying loops carry more than this share of the
+/// circulation's energy (a majority).
 pub const JUMP_SHARE: f64 = 0.5;
 
 /// What `auto` found and chose.

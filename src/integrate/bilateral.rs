@@ -52,9 +52,12 @@
 use super::masked::SolveInfo;
 use super::multigrid::Multigrid;
 use super::sparse::{
-    Direct, LinearSolver, NONE, Preconditioner, SolveMethod, Stencil, Unknowns, pcg,
+    Direct, LinearSolver, NONE, Preconditioner, SolveMethod, Stencil, Unknowns, pcg, solve,
 };
-use super::{Censoring, Cuts, edge_differences, edge_differences_with_cuts, normal_gradients};
+use super::{
+    Censoring, Cuts, edge_differences, edge_differences_with_cuts, normal_gradients,
+    perspective_factor,
+};
 use crate::camera::Intrinsics;
 use crate::error::Result;
 use crate::grid::{Mask, NormalMap, ScalarMap};
@@ -133,8 +136,7 @@ fn coefficients(normals: &NormalMap, u: &Unknowns, camera: Option<&Intrinsics>) 
             match camera {
                 None => [n.z, -n.x, n.z, n.y],
                 Some(k) => {
-                    let (col, row) = ((p as usize % u.w) as f64, (p as usize / u.w) as f64);
-                    let m = n.z - n.x * (col - k.cx) / k.fx + n.y * (row - k.cy) / k.fy;
+                    let m = perspective_factor(&n, p as usize % u.w, p as usize / u.w, k);
                     [k.fx * m, n.x, k.fy * m, -n.y]
                 }
             }
@@ -400,34 +402,15 @@ fn reintegrate(
     } else {
         SolveMethod::MultigridCg
     };
-    let iterations = match method {
-        SolveMethod::Direct => {
-            *z = Direct::new(u)?.solve(&a, &rhs)?;
-            0
-        }
-        SolveMethod::MultigridCg => {
-            let m = Multigrid::new(u, &a);
-            let pre = Preconditioner::Multigrid(&m);
-            pcg(
-                u,
-                &a,
-                &rhs,
-                z,
-                &pre,
-                REINTEGRATE_CG_TOL,
-                REINTEGRATE_CG_MAX_ITER,
-            )
-        }
-        _ => pcg(
-            u,
-            &a,
-            &rhs,
-            z,
-            &Preconditioner::Jacobi,
-            REINTEGRATE_CG_TOL,
-            REINTEGRATE_CG_MAX_ITER,
-        ),
-    };
+    let iterations = solve(
+        u,
+        &a,
+        &rhs,
+        z,
+        method,
+        REINTEGRATE_CG_TOL,
+        REINTEGRATE_CG_MAX_ITER,
+    )?;
     Ok((
         count,
         SolveInfo {

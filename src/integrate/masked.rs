@@ -14,9 +14,7 @@
 //! Assumes a continuous surface inside each part: a depth jump inside the mask is smeared over
 //! its neighbourhood (see the bilateral integrator for that case).
 
-use super::multigrid::Multigrid;
-use super::poisson::NeumannSolver;
-use super::sparse::{Direct, LinearSolver, Preconditioner, SolveMethod, Stencil, Unknowns, pcg};
+use super::sparse::{LinearSolver, SolveMethod, Stencil, Unknowns, solve};
 use super::{Censoring, edge_differences};
 use crate::error::Result;
 use crate::grid::{Mask, ScalarMap};
@@ -75,25 +73,8 @@ pub fn integrate_masked_ls(
     } else {
         SolveMethod::DctCg
     };
-    let (mut z, iterations) = match method {
-        SolveMethod::Direct => (Direct::new(&u)?.solve(&a, &b)?, 0),
-        _ => {
-            let mut z = vec![0f64; n];
-            let it = match method {
-                SolveMethod::MultigridCg => {
-                    let m = Multigrid::new(&u, &a);
-                    let pre = Preconditioner::Multigrid(&m);
-                    pcg(&u, &a, &b, &mut z, &pre, CG_TOL, CG_MAX_ITER)
-                }
-                _ => {
-                    let dct = NeumannSolver::new(u.w, u.h);
-                    let pre = Preconditioner::Dct(&dct);
-                    pcg(&u, &a, &b, &mut z, &pre, CG_TOL, CG_MAX_ITER)
-                }
-            };
-            (z, it)
-        }
-    };
+    let mut z = vec![0f64; n];
+    let iterations = solve(&u, &a, &b, &mut z, method, CG_TOL, CG_MAX_ITER)?;
     u.zero_mean_parts(&mut z);
     Ok((
         u.to_map(&z),

@@ -443,6 +443,41 @@ impl Direct {
     }
 }
 
+/// Solves the consistent system A x = b by `method`: the sparse factorisation, or conjugate
+/// gradients from the initial `x` to a relative residual of `tol` (at most `max_iter`
+/// iterations) with the method's preconditioner. Returns the conjugate-gradient iterations (0 for
+/// the direct solver).
+///
+/// # Errors
+/// [`Error::InvalidParameter`] when the sparse factorisation fails.
+pub(crate) fn solve(
+    u: &Unknowns,
+    a: &Stencil,
+    b: &[f64],
+    x: &mut Vec<f64>,
+    method: SolveMethod,
+    tol: f64,
+    max_iter: usize,
+) -> Result<usize> {
+    let (dct, multigrid);
+    let pre = match method {
+        SolveMethod::Direct => {
+            *x = Direct::new(u)?.solve(a, b)?;
+            return Ok(0);
+        }
+        SolveMethod::JacobiCg => Preconditioner::Jacobi,
+        SolveMethod::DctCg => {
+            dct = NeumannSolver::new(u.w, u.h);
+            Preconditioner::Dct(&dct)
+        }
+        SolveMethod::MultigridCg => {
+            multigrid = super::multigrid::Multigrid::new(u, a);
+            Preconditioner::Multigrid(&multigrid)
+        }
+    };
+    Ok(pcg(u, a, b, x, &pre, tol, max_iter))
+}
+
 /// Preconditioners for [`pcg`].
 pub(crate) enum Preconditioner<'a> {
     /// Divide by the diagonal.
