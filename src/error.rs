@@ -111,6 +111,20 @@ pub enum Error {
         /// What does not match, and how to fix it.
         reason: String,
     },
+    /// Numbered images given in text order (as a shell sorts `name.*.png`: `name.10.png`
+    /// before `name.2.png`) while the lights are a plain list paired by position.
+    #[error(
+        "the images are numbered but given in text order ({} before {}, as a shell sorts them), so a plain list of lights would be paired with the wrong images; in numeric order they are: {}. Give the images in that order, or name each light's image in the lights file",
+        .earlier.display(), .later.display(), crate::capture::order::short_list(.natural, 12)
+    )]
+    ImageOrder {
+        /// An image given before `later` but numbered after it.
+        earlier: PathBuf,
+        /// The image that should come first.
+        later: PathBuf,
+        /// All images in numeric order.
+        natural: Vec<PathBuf>,
+    },
     /// Too few images or lights to determine a normal (three are needed).
     #[error(
         "{count} image(s) given; photometric stereo needs at least 3 lights in general position"

@@ -6,6 +6,7 @@
 //! and `mask.png` (optional; object pixels > 0).
 
 use crate::capture::lights::Lights;
+use crate::capture::order::ImageOrder;
 use crate::capture::stack::{ImageStack, LoadOptions, load_stack};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask};
@@ -222,18 +223,44 @@ pub struct CaptureFiles {
 
 impl CaptureFiles {
     /// `images` lit by the lights of `lights_file` (matched as [`Capture::from_files`] does),
-    /// with an optional mask file.
+    /// with an optional mask file; numbered images in text order are refused when the lights
+    /// are a plain list ([`ImageOrder::Checked`]).
     ///
     /// # Errors
-    /// The errors of [`Lights::from_file`] and [`Lights::matched_to`].
+    /// The errors of [`Lights::from_file`], [`Lights::matched_to`] and
+    /// [`crate::capture::order::apply`].
     pub fn from_files(
         images: &[PathBuf],
         lights_file: &Path,
         mask_file: Option<&Path>,
     ) -> Result<Self> {
+        Self::from_files_ordered(images, lights_file, mask_file, ImageOrder::Checked)
+    }
+
+    /// As [`CaptureFiles::from_files`], with the images put in the order `order` asks for
+    /// before lights given as a plain list are paired with them by position. Lights that name
+    /// their image are matched by name whatever the order; under [`ImageOrder::Checked`] their
+    /// images are not checked.
+    ///
+    /// # Errors
+    /// As [`CaptureFiles::from_files`]; [`Error::ImageOrder`] (with the numeric order) for
+    /// numbered images in text order under [`ImageOrder::Checked`].
+    pub fn from_files_ordered(
+        images: &[PathBuf],
+        lights_file: &Path,
+        mask_file: Option<&Path>,
+        order: ImageOrder,
+    ) -> Result<Self> {
+        let lights = Lights::from_file(lights_file)?;
+        let named = lights.lights().iter().any(|l| l.file.is_some());
+        let images = if named && order == ImageOrder::Checked {
+            images.to_vec()
+        } else {
+            crate::capture::order::apply(images, order)?
+        };
         Ok(CaptureFiles {
-            lights: Lights::from_file(lights_file)?.matched_to(images)?,
-            images: images.to_vec(),
+            lights: lights.matched_to(&images)?,
+            images,
             lights_source: Some(lights_file.to_path_buf()),
             mask_source: mask_file.map(Path::to_path_buf),
         })

@@ -5,12 +5,15 @@
 //! Files are resolved first ([`dataset::CaptureFiles`]: paths, lights, mask, nothing decoded),
 //! then loaded whole ([`dataset::Capture`]) or read in row bands by [`crate::run::stream`].
 //! Decoding of each file format lives in [`crate::io`]; this folder converts samples
-//! (transfer curve, saturation, light intensity, colour mix) and keeps the stack.
+//! (transfer curve, saturation, light intensity, colour mix) and keeps the stack; [`order`]
+//! catches numbered images sorted as text before they are paired with a plain list of lights.
 
 pub mod dataset;
 pub mod lights;
+pub mod order;
 pub mod stack;
 
 pub use dataset::{Capture, CaptureFiles};
 pub use lights::{Light, Lights};
+pub use order::ImageOrder;
 pub use stack::{ColorMode, ImageStack, LoadOptions};

@@ -40,7 +40,10 @@ pub enum ColorMode {
     /// Divide each channel by its light intensity, then mix with [`GREY_WEIGHTS`].
     #[default]
     Grey,
-    /// Keep R, G and B (each divided by its intensity) for three separate solves.
+    /// Keep R, G and B (each divided by its intensity) for a colour solve
+    /// ([`crate::ps::color::ColorSolve`]: one shared normal, or three separate solves).
+    /// Reported as `"rgb"`.
+    #[serde(rename = "rgb")]
     PerChannel,
 }
 

@@ -242,6 +242,66 @@ pub fn integrate_censored_gradients(
     })
 }
 
+/// Where a normal map without a mask defines the surface, and what was left out.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NormalDomain {
+    /// Pixels with a usable normal that is not the background's.
+    pub mask: Mask,
+    /// The code taken as background: the normal shared by at least 90% of the border pixels
+    /// (a rendered or exported map's uniform background, such as white or (0, 0, 1)), if any.
+    pub background: Option<[f32; 3]>,
+    /// Pixels left out as background.
+    pub background_pixels: usize,
+}
+
+/// The pixels of a normal map to integrate when no mask is given: those with a finite,
+/// unit-ish normal (encoded maps use black for "none"), less a uniform background — the
+/// normal that at least 90% of the border pixels share exactly, which no real surface
+/// fills the frame's edge with. Without that test a white or flat background would be
+/// integrated with the object, joining them by a smooth sheet.
+pub fn normal_domain(normals: &NormalMap) -> NormalDomain {
+    let (w, h) = (normals.width(), normals.height());
+    let usable = |n: &nalgebra::Vector3<f32>| n.iter().all(|v| v.is_finite()) && n.norm() > 0.5;
+    let mut border: Vec<[u32; 3]> = Vec::new();
+    for y in 0..h {
+        for x in 0..w {
+            if y == 0 || x == 0 || y + 1 == h || x + 1 == w {
+                let n = *normals.at(x, y);
+                if usable(&n) {
+                    border.push([n.x.to_bits(), n.y.to_bits(), n.z.to_bits()]);
+                }
+            }
+        }
+    }
+    let edge = 2 * (w + h).saturating_sub(2).max(1);
+    border.sort_unstable();
+    let mut best: Option<([u32; 3], usize)> = None;
+    for run in border.chunk_by(|a, b| a == b) {
+        if best.is_none_or(|(_, c)| run.len() > c) {
+            best = Some((run[0], run.len()));
+        }
+    }
+    let background = best
+        .filter(|&(_, count)| count as f64 >= 0.9 * edge as f64)
+        .map(|(b, _)| b.map(f32::from_bits));
+    let mut background_pixels = 0;
+    let mask = normals.map(|n| {
+        if !usable(n) {
+            return false;
+        }
+        if background.is_some_and(|b| [n.x, n.y, n.z] == b) {
+            background_pixels += 1;
+            return false;
+        }
+        true
+    });
+    NormalDomain {
+        mask,
+        background,
+        background_pixels,
+    }
+}
+
 /// Integrates a normal map over `mask` (see the module documentation).
 ///
 /// # Errors
@@ -639,6 +699,53 @@ pub(crate) fn finish_depth(z: Vec<f64>, domain: &Mask) -> ScalarMap {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A hemisphere on a uniform white background (as an exported 16-bit normal map has it):
+    /// the background is found from the border and left out, and the object alone remains; on
+    /// a map whose border varies (a surface filling the frame) nothing is left out.
+    #[test]
+    fn a_uniform_background_is_told_from_the_object() {
+        let (w, h, r) = (40usize, 30usize, 10.0f32);
+        let white = nalgebra::Vector3::new(1.0f32, 1.0, 1.0).normalize();
+        let mut inside = 0;
+        let map = Grid::from_vec(
+            w,
+            h,
+            (0..w * h)
+                .map(|i| {
+                    let (x, y) = ((i % w) as f32 - 20.0, (i / w) as f32 - 15.0);
+                    let d2 = x * x + y * y;
+                    if d2 < r * r {
+                        inside += 1;
+                        nalgebra::Vector3::new(x / r, -y / r, (1.0 - d2 / (r * r)).sqrt())
+                    } else {
+                        white
+                    }
+                })
+                .collect(),
+        )
+        .unwrap();
+        let d = normal_domain(&map);
+        assert_eq!(d.background, Some([white.x, white.y, white.z]));
+        assert_eq!(d.mask.count(), inside);
+        assert_eq!(d.background_pixels, w * h - inside);
+        // A curved surface filling the frame: its border varies, so nothing is background.
+        let ramp = Grid::from_vec(
+            w,
+            h,
+            (0..w * h)
+                .map(|i| nalgebra::Vector3::new((i % w) as f32 * 0.01, 0.1, 1.0).normalize())
+                .collect(),
+        )
+        .unwrap();
+        let d = normal_domain(&ramp);
+        assert_eq!(d.background, None);
+        assert_eq!(d.mask.count(), w * h);
+        // Black codes (NaN after decoding) are never part of the surface.
+        let mut holes = ramp.clone();
+        *holes.at_mut(5, 5) = nalgebra::Vector3::repeat(f32::NAN);
+        assert_eq!(normal_domain(&holes).mask.count(), w * h - 1);
+    }
 
     /// Samples of the profile c/√(t − t₀) at t = 0, 1, 2, … (the rim pixel at 0).
     fn profile(c: f64, t0: f64, n: usize) -> Vec<f64> {

@@ -10,7 +10,7 @@ use crate::io::png::decode_png;
 use nalgebra::Vector3;
 use serde::Serialize;
 
-pub use crate::io::exr::read_exr_channel;
+pub use crate::io::exr::{read_exr_channel, read_exr_text};
 use std::ops::Range;
 use std::path::Path;
 

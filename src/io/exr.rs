@@ -147,6 +147,39 @@ pub fn read_exr_channel(path: &Path, name: &str) -> Result<crate::grid::ScalarMa
     Grid::from_vec(w, h, ch.sample_data.values_as_f32().take(w * h).collect())
 }
 
+/// The text attribute `name` of an EXR file's first layer (such as the `photostereo:units`
+/// this tool writes), or `None` when the file has no such attribute or is not an EXR.
+///
+/// # Errors
+/// [`Error::Io`] or [`Error::Decode`] naming the file when an EXR header cannot be read.
+pub fn read_exr_text(path: &Path, name: &str) -> Result<Option<String>> {
+    if !path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("exr"))
+    {
+        return Ok(None);
+    }
+    let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| match e {
+        exr::error::Error::Io(io) => Error::io(path, io),
+        other => decode_error(path, other),
+    })?;
+    let Some(header) = meta.headers.first() else {
+        return Ok(None);
+    };
+    let key = Text::new_or_none(name);
+    Ok(key.and_then(|k| {
+        [
+            &header.own_attributes.other,
+            &header.shared_attributes.other,
+        ]
+        .into_iter()
+        .find_map(|m| match m.get(&k) {
+            Some(exr::meta::attribute::AttributeValue::Text(t)) => Some(t.to_string()),
+            _ => None,
+        })
+    }))
+}
+
 impl BandReader {
     pub(crate) fn open_exr(path: &Path) -> Result<Self> {
         use exr::meta::attribute::SampleType;

@@ -207,6 +207,51 @@ pub fn ensure_fresh_dir(dir: &Path) -> Result<()> {
     }
 }
 
+/// Checks, before any work is done, that files can be created in the output folder `dir`:
+/// in `dir` itself when it exists, else in its nearest existing parent (where it would be
+/// created). A probe file is created there and removed at once.
+///
+/// # Errors
+/// [`Error::Io`] naming `dir` (and the folder tried) when nothing can be created there.
+pub fn ensure_writable_dir(dir: &Path) -> Result<()> {
+    let mut base = dir;
+    while std::fs::symlink_metadata(base).is_err() {
+        match base.parent() {
+            Some(p) if !p.as_os_str().is_empty() => base = p,
+            _ => {
+                base = Path::new(".");
+                break;
+            }
+        }
+    }
+    let probe = base.join(format!(".photostereo-write-check-{}", std::process::id()));
+    match std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&probe)
+    {
+        Ok(_) => {
+            // Best effort: the probe is empty and hidden.
+            let _ = std::fs::remove_file(&probe);
+            Ok(())
+        }
+        Err(e) => Err(Error::io(
+            dir,
+            std::io::Error::new(
+                e.kind(),
+                if base == dir {
+                    format!("the output folder cannot be written: {e}")
+                } else {
+                    format!(
+                        "the output folder cannot be created in {}: {e}",
+                        base.display()
+                    )
+                },
+            ),
+        )),
+    }
+}
+
 /// Checks that the output file `path` does not exist yet.
 ///
 /// # Errors
@@ -481,10 +526,41 @@ pub fn normal_preview(normals: &NormalMap) -> Vec<u8> {
 
 /// A depth map shown as a shaded relief (normals of the depth map lit from the upper left),
 /// black where undefined.
-pub fn depth_preview(depth: &ScalarMap) -> Vec<u8> {
+///
+/// Without `camera` the map is an orthographic height in pixel units (larger is nearer). With
+/// one, it is depth along the optical axis up to scale (larger is farther), whose changes from
+/// pixel to pixel are a tiny fraction of its value; it is first turned into a height in pixel
+/// units at the object's median distance Z̄, h = −Z·f/Z̄ with f the mean focal length in
+/// pixels, so that the relief shows the object's slopes (a pixel spans Z̄/f there).
+pub fn depth_preview(depth: &ScalarMap, camera: Option<&crate::camera::Intrinsics>) -> Vec<u8> {
     let (w, h) = (depth.width(), depth.height());
     let l = nalgebra::Vector3::new(-1.0f32, 1.0, 1.0).normalize();
-    let d = depth.data();
+    let scaled: Vec<f32>;
+    let d = match camera {
+        None => depth.data(),
+        Some(k) => {
+            let mut finite: Vec<f32> = depth
+                .data()
+                .iter()
+                .copied()
+                .filter(|v| v.is_finite())
+                .collect();
+            let median = if finite.is_empty() {
+                1.0
+            } else {
+                let mid = finite.len() / 2;
+                *finite.select_nth_unstable_by(mid, f32::total_cmp).1
+            };
+            let f = 0.5 * (k.fx + k.fy) as f32;
+            let s = if median.abs() > f32::MIN_POSITIVE && f.is_finite() {
+                -f / median
+            } else {
+                -1.0
+            };
+            scaled = depth.data().iter().map(|v| v * s).collect();
+            &scaled
+        }
+    };
     let at = |x: isize, y: isize| -> Option<f32> {
         (x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h)
             .then(|| d[y as usize * w + x as usize])

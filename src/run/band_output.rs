@@ -60,14 +60,14 @@ pub(crate) struct Written {
 
 impl BandOutput {
     /// Opens the files of `out` that are written band by band, for a run set up as `setup`;
-    /// `attributes` go into every EXR header.
+    /// `attributes(file)` are the EXR header attributes of `file`.
     ///
     /// # Errors
     /// [`crate::Error::Io`] when a temporary cannot be made or a writer cannot start.
     pub(crate) fn start(
         out: &OutputDir,
         setup: &Setup,
-        attributes: &[(&str, String)],
+        attributes: &dyn Fn(&str) -> Vec<(&'static str, String)>,
     ) -> Result<Self> {
         let (w, h) = (setup.width, setup.height);
         let blank_rows = setup.band_rows.clamp(1, h.max(1));
@@ -76,7 +76,7 @@ impl BandOutput {
         // One albedo map per solved channel (grey, or R, G, B for either colour solve).
         let albedo_count = blank.len();
         let exr = |name: &str, names: &[&str]| -> Result<ExrRows> {
-            ExrRows::start(out.begin(name)?, w, h, names, attributes)
+            ExrRows::start(out.begin(name)?, w, h, names, &attributes(name))
         };
         Ok(BandOutput {
             width: w,

@@ -333,12 +333,26 @@ fn plan_for(
         return Err(Error::param(
             "max-memory",
             format!(
-                "{} MiB cannot hold the outputs and integration of a {}x{} image ({} MiB) plus a band of {MIN_BAND_ROWS} rows of {count} images ({} MiB); raise it, or integrate with a method that needs less memory (Poisson, or none)",
+                "{} MiB cannot hold the outputs{} of a {}x{} image ({} MiB) plus a band of {MIN_BAND_ROWS} rows of {count} images ({} MiB); {}",
                 options.max_memory >> 20,
+                if config.integration.is_some() {
+                    " and integration"
+                } else {
+                    ""
+                },
                 o.width,
                 o.height,
                 resident >> 20,
-                (row_bytes * MIN_BAND_ROWS as u64) >> 20
+                (row_bytes * MIN_BAND_ROWS as u64) >> 20,
+                match config.integration.as_ref().map(|i| i.method) {
+                    None => "raise it",
+                    Some(crate::integrate::Integrator::Poisson) => {
+                        "raise it, or leave out integration"
+                    }
+                    Some(_) => {
+                        "raise it, or integrate with a method that needs less memory (Poisson), or leave out integration"
+                    }
+                }
             ),
         ));
     }
@@ -876,7 +890,7 @@ pub fn reconstruct_and_write_streamed(
     progress: &dyn Progress,
 ) -> Result<(Report, StreamPlan)> {
     let mut out = OutputDir::create(dir)?;
-    let attrs = exr_attributes(&files.lights, config);
+    let attrs = |file: &str| exr_attributes(&files.lights, config, file);
     let (sink, run) = run_bands(
         files,
         load,
@@ -916,7 +930,15 @@ pub fn reconstruct_and_write_streamed(
         &source,
         config,
         progress,
-        |out| out.stage_exr("curl.exr", w, h, &[("curl", curl.data())], &attrs),
+        |out| {
+            out.stage_exr(
+                "curl.exr",
+                w,
+                h,
+                &[("curl", curl.data())],
+                &attrs("curl.exr"),
+            )
+        },
     )?;
     drop(curl);
     let summary = RunSummary {

@@ -9,9 +9,20 @@ use photostereo::synth::write::{ImageFormat, write_synthetic};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+/// The repository's top folder (the library's manifest folder; the command-line tool's tests
+/// live one level down, in `cli/`).
+pub fn repo() -> PathBuf {
+    let m = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    if m.ends_with("cli") {
+        m.parent().map(Path::to_path_buf).unwrap_or(m)
+    } else {
+        m
+    }
+}
+
 /// `../shared/data` beside the repository, or `None` (the caller prints why it skips).
 pub fn shared_data() -> Option<PathBuf> {
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
+    let p = repo().join("../shared/data");
     p.is_dir().then_some(p)
 }
 
@@ -35,9 +46,13 @@ macro_rules! require_shared {
     };
 }
 
-/// The photostereo binary built for these tests.
+/// The photostereo binary built for these tests (the tests of the `cli/` package).
 pub fn bin() -> PathBuf {
-    PathBuf::from(env!("CARGO_BIN_EXE_photostereo"))
+    // Set by cargo for the tests of the package that builds the binary (`cli/`) only.
+    match option_env!("CARGO_BIN_EXE_photostereo") {
+        Some(p) => PathBuf::from(p),
+        None => panic!("the photostereo binary is built for the tests of the cli package only"),
+    }
 }
 
 /// Runs the photostereo binary with `args`.

@@ -778,7 +778,33 @@ mod tests {
                 solve: SolveOptions::with_method(method),
                 ..Config::default()
             };
-            let attrs = exr_attributes(&lights, &config);
+            // Every file's units say what that file holds, in ASCII (EXR text is Latin-1).
+            for file in ["normal.exr", "albedo.exr", "residual.exr", "curl.exr"] {
+                let units = units_of(file, &config);
+                assert!(
+                    units.is_ascii() && !units.starts_with("Z:"),
+                    "{file}: {units}"
+                );
+                assert!(
+                    units.starts_with(&file[..3]) || file == "normal.exr",
+                    "{units}"
+                );
+            }
+            let camera = Config {
+                integration: Some(crate::integrate::IntegrationOptions {
+                    camera: Some(crate::camera::Intrinsics {
+                        fx: 500.0,
+                        fy: 500.0,
+                        cx: 32.0,
+                        cy: 24.0,
+                    }),
+                    ..Default::default()
+                }),
+                ..config
+            };
+            assert!(units_of("curl.exr", &camera).contains("log-depth"));
+            assert!(units_of("depth.exr", &camera).contains("optical axis"));
+            let attrs = exr_attributes(&lights, &config, "depth.exr");
             let keys: Vec<&str> = attrs.iter().map(|a| a.0).collect();
             assert_eq!(
                 keys,

@@ -22,11 +22,42 @@ pub const OUTPUT_FILES: [&str; 10] = [
 pub(super) const ORTHOGRAPHIC_UNITS: &str =
     "Z: height towards the camera in pixel units (orthographic), larger is nearer";
 
-/// The string attributes of every EXR header: method, frame, units, light count and the light
-/// directions (a JSON list of [x, y, z] in the camera frame).
+/// What the values of the EXR output `file` are, for its `photostereo:units` attribute: each
+/// file says what its own channels hold (depth and curl under a camera differ from the
+/// orthographic ones). ASCII only: EXR text attributes are Latin-1, and others are dropped.
+pub(crate) fn units_of(file: &str, config: &Config) -> String {
+    let camera = config.integration.as_ref().and_then(|o| o.camera.as_ref());
+    match (file, camera) {
+        ("normal.exr", _) => {
+            "R, G, B: unit surface normal n_x, n_y, n_z (dimensionless), NaN where unsolved".into()
+        }
+        ("albedo.exr", _) => {
+            "albedo rho = |g| of I = rho n.l: linear image intensity per unit light intensity at normal incidence".into()
+        }
+        ("residual.exr", _) => {
+            "residual: RMS of I - rho n.l in linear image intensity; samples: images used; condition: condition number of their lights; robust, filled: 1 where a robust fit was used or the normal filled in".into()
+        }
+        ("curl.exr", None) => {
+            "curl: dp/dy - dq/dx of the orthographic depth gradients p = -n_x/n_z, q = -n_y/n_z, per pixel (0 where integrable)".into()
+        }
+        ("curl.exr", Some(_)) => {
+            "curl: dp/dy - dq/dx of the log-depth gradients under the pinhole camera, per pixel (0 where integrable)".into()
+        }
+        (_, None) => ORTHOGRAPHIC_UNITS.into(),
+        (_, Some(k)) => format!(
+            "Z: depth along the optical axis, up to scale (pinhole fx={} fy={} cx={} cy={}), larger is farther",
+            k.fx, k.fy, k.cx, k.cy
+        ),
+    }
+}
+
+/// The string attributes of the EXR header of the output `file`: method, frame, units
+/// ([`units_of`]), light count and the light directions (a JSON list of [x, y, z] in the
+/// camera frame).
 pub(crate) fn exr_attributes(
     lights: &crate::capture::lights::Lights,
     config: &Config,
+    file: &str,
 ) -> Vec<(&'static str, String)> {
     vec![
         ("photostereo:method", config.solve.method.name().to_string()),
@@ -34,7 +65,7 @@ pub(crate) fn exr_attributes(
             "photostereo:frame",
             "x right, y up, z towards the camera; row 0 at the top".to_string(),
         ),
-        ("photostereo:units", ORTHOGRAPHIC_UNITS.to_string()),
+        ("photostereo:units", units_of(file, config)),
         ("photostereo:lights", lights.len().to_string()),
         (
             "photostereo:light_directions",
@@ -175,30 +206,36 @@ pub(super) fn stage_maps(
     config: &Config,
 ) -> Result<()> {
     let (w, h) = (recon.maps.normals.width(), recon.maps.normals.height());
-    let attrs = exr_attributes(source.lights, config);
+    let attrs = |file: &str| exr_attributes(source.lights, config, file);
     let rows = map_rows(&recon.maps);
     out.stage_exr(
         "normal.exr",
         w,
         h,
         &named(&NORMAL_CHANNELS, &rows.normal),
-        &attrs,
+        &attrs("normal.exr"),
     )?;
     out.stage_exr(
         "albedo.exr",
         w,
         h,
         &named(albedo_channels(rows.albedo.len())?, &rows.albedo),
-        &attrs,
+        &attrs("albedo.exr"),
     )?;
     out.stage_exr(
         "residual.exr",
         w,
         h,
         &named(&RESIDUAL_CHANNELS, &rows.residual),
-        &attrs,
+        &attrs("residual.exr"),
     )?;
-    out.stage_exr("curl.exr", w, h, &[("curl", recon.curl.data())], &attrs)?;
+    out.stage_exr(
+        "curl.exr",
+        w,
+        h,
+        &[("curl", recon.curl.data())],
+        &attrs("curl.exr"),
+    )?;
     out.stage_png8("mask.png", w, h, 1, &rows.mask)?;
     out.stage_png8("normal.png", w, h, 3, &rows.normal_png)?;
     let albedo: Vec<ScalarMap> = rows
@@ -210,8 +247,9 @@ pub(super) fn stage_maps(
     Ok(())
 }
 
-/// Stages the outputs that depend on depth: `depth.exr` (NaN without integration, with the
-/// integration residual and weights), `depth.png`, and `mesh.ply` when asked for.
+/// Stages the outputs that depend on depth: `depth.exr` (with the integration residual and
+/// weights), `depth.png`, and `mesh.ply` when asked for. Without integration nothing is
+/// staged: no depth file is written that holds no depth.
 pub(crate) fn stage_depth(
     out: &mut OutputDir,
     normals: &NormalMap,
@@ -219,36 +257,32 @@ pub(crate) fn stage_depth(
     source: &Described,
     config: &Config,
 ) -> Result<()> {
+    let Some(i) = integration else {
+        return Ok(());
+    };
     let (w, h) = (normals.width(), normals.height());
-    let nan_map = Grid::new(w, h, f32::NAN);
-    let depth = integration.map_or(&nan_map, |i| &i.depth);
-    let mut depth_channels: Vec<(&str, &[f32])> = vec![("Z", depth.data())];
-    if let Some(i) = integration {
-        depth_channels.push(("residual", i.residual.data()));
-        if let Some((wu, wv)) = &i.weights {
-            depth_channels.push(("wu", wu.data()));
-            depth_channels.push(("wv", wv.data()));
-        }
+    let mut depth_channels: Vec<(&str, &[f32])> =
+        vec![("Z", i.depth.data()), ("residual", i.residual.data())];
+    if let Some((wu, wv)) = &i.weights {
+        depth_channels.push(("wu", wu.data()));
+        depth_channels.push(("wv", wv.data()));
     }
-    let mut depth_attrs = exr_attributes(source.lights, config);
+    let mut depth_attrs = exr_attributes(source.lights, config, "depth.exr");
+    let camera = config.integration.as_ref().and_then(|o| o.camera);
     if let Some(options) = &config.integration {
         depth_attrs.push(("photostereo:integration", options.method.name().to_string()));
-        depth_attrs[2].1 = match &options.camera {
-            None => ORTHOGRAPHIC_UNITS.into(),
-            Some(k) => format!(
-                "Z: depth along the optical axis, up to scale (pinhole fx={} fy={} cx={} cy={}), larger is farther",
-                k.fx, k.fy, k.cx, k.cy
-            ),
-        };
     }
     out.stage_exr("depth.exr", w, h, &depth_channels, &depth_attrs)?;
-    if config.mesh
-        && let Some(i) = integration
-    {
-        let camera = config.integration.as_ref().and_then(|o| o.camera);
+    if config.mesh {
         let mesh = crate::io::mesh::Mesh::from_depth(&i.depth, normals, camera.as_ref())?;
         out.stage_bytes("mesh.ply", &mesh.to_ply())?;
     }
-    out.stage_png8("depth.png", w, h, 1, &depth_preview(depth))?;
+    out.stage_png8(
+        "depth.png",
+        w,
+        h,
+        1,
+        &depth_preview(&i.depth, camera.as_ref()),
+    )?;
     Ok(())
 }

@@ -256,7 +256,11 @@ pub(crate) fn commit_with_report(
     config: &Config,
     evaluation: Option<serde_json::Value>,
 ) -> Result<Report> {
-    let mut outputs: Vec<String> = OUTPUT_FILES.iter().map(|s| s.to_string()).collect();
+    let mut outputs: Vec<String> = OUTPUT_FILES
+        .iter()
+        .filter(|f| integration.is_some() || !f.starts_with("depth."))
+        .map(|s| s.to_string())
+        .collect();
     if config.mesh && integration.is_some() {
         outputs.push("mesh.ply".into());
     }
@@ -292,10 +296,17 @@ pub(crate) fn commit_with_report(
         interreflections: run.interreflections,
         streaming: source.streaming.clone(),
     };
-    let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Encode {
+    let encode_error = |e: serde_json::Error| Error::Encode {
         path: out.path().join("report.json"),
         reason: e.to_string(),
-    })?;
+    };
+    let mut value = serde_json::to_value(&report).map_err(encode_error)?;
+    // A grey stack has no colour solve: `config.color` says so rather than naming the
+    // colour solve a 3-channel stack would have had.
+    if report.inputs.color == ColorMode::Grey {
+        value["config"]["color"] = serde_json::Value::from("grey");
+    }
+    let json = serde_json::to_vec_pretty(&value).map_err(encode_error)?;
     out.stage_bytes("report.json", &json)?;
     out.commit()?;
     Ok(report)

@@ -3,6 +3,7 @@
 //! that can still be solved give a warning and a complete result instead. The README's table
 //! of messages comes from this test (`cargo test --test bad_inputs -- --nocapture` prints it).
 
+#[path = "../../tests/common/mod.rs"]
 mod common;
 
 use common::{listing, os, run, sphere_dataset};

@@ -174,9 +174,17 @@ pub fn write_file_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 fn capture_files(rc: &RunConfig) -> Result<CaptureFiles> {
     Ok(match &rc.source {
         Source::Diligent(dir) => CaptureFiles::from_diligent(dir, rc.mask.as_deref())?,
-        Source::Files { images, lights } => {
-            CaptureFiles::from_files(images, lights, rc.mask.as_deref())?
-        }
+        Source::Files {
+            images,
+            lights,
+            order,
+        } => CaptureFiles::from_files_ordered(images, lights, rc.mask.as_deref(), *order)
+            .map_err(|e| match e {
+                photostereo::Error::ImageOrder { .. } => anyhow::anyhow!(
+                    "{e}; or pass --image-order natural to sort them numerically (--image-order given keeps the order)"
+                ),
+                e => e.into(),
+            })?,
     })
 }
 
@@ -188,12 +196,54 @@ fn available_memory() -> Option<u64> {
     Some(kib * 1024)
 }
 
-/// Streaming options: `--max-memory` when given; `--band-rows` alone streams within half the
-/// available memory (or without a cap where that is unknown); otherwise streaming within half
-/// the available memory when the stack and outputs would need more than 80% of it, else `None`.
+/// Bytes an in-memory run of `files` needs: the stack (the mask's window of every image, f32
+/// per channel) and the maps, integration included.
+fn in_memory_bytes(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<u64>> {
+    let Some(first) = files.images.first() else {
+        return Ok(None);
+    };
+    let (w, h) = photostereo::io::decode::image_size(first)?;
+    let channels: u64 = if rc.load.color == photostereo::capture::stack::ColorMode::PerChannel {
+        3
+    } else {
+        1
+    };
+    // Only the window the mask spans is stored; the mask is small to read.
+    let (window, masked) = match &files.mask_source {
+        Some(m) => {
+            let mask = photostereo::io::decode::read_mask(m)?;
+            let window = mask
+                .bounding_box()
+                .map_or(w * h, |b| b.width() * b.height());
+            (window, mask.count())
+        }
+        None => (w * h, w * h),
+    };
+    let stack = files.images.len() as u64 * channels * window as u64 * 4;
+    let resident =
+        photostereo::run::stream::resident_bytes(w, h, channels as usize, masked, &rc.config);
+    Ok(Some(stack + resident))
+}
+
+/// Streaming options. `--max-memory` streams when the in-memory run would not fit in it (a
+/// run that fits is loaded whole, and says so); `--band-rows` streams in any case (within
+/// `--max-memory`, else half the available memory, or without a cap where that is unknown);
+/// with neither, the run streams within half the available memory when it would need more
+/// than 80% of it, else `None`.
 fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOptions>> {
-    if rc.stream.is_some() {
-        return Ok(rc.stream);
+    if let Some(options) = rc.stream {
+        if rc.band_rows.is_none()
+            && let Some(need) = in_memory_bytes(rc, files)?
+            && need <= options.max_memory
+        {
+            say!(
+                "the stack and outputs need about {} MiB, within --max-memory {} MiB: loading the images whole (--band-rows streams in any case)",
+                need.div_ceil(1 << 20),
+                options.max_memory >> 20
+            );
+            return Ok(None);
+        }
+        return Ok(Some(options));
     }
     let available = available_memory();
     if let Some(rows) = rc.band_rows {
@@ -213,22 +263,13 @@ fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOption
     let Some(available) = available else {
         return Ok(None);
     };
-    let Some(first) = files.images.first() else {
+    let Some(need) = in_memory_bytes(rc, files)? else {
         return Ok(None);
     };
-    let (w, h) = photostereo::io::decode::image_size(first)?;
-    let channels: u64 = if rc.load.color == photostereo::capture::stack::ColorMode::PerChannel {
-        3
-    } else {
-        1
-    };
-    let stack = files.images.len() as u64 * channels * (w * h) as u64 * 4;
-    let resident =
-        photostereo::run::stream::resident_bytes(w, h, channels as usize, w * h, &rc.config);
-    if (stack + resident) as f64 > 0.8 * available as f64 {
+    if need as f64 > 0.8 * available as f64 {
         say!(
-            "the stack needs {} MiB in memory and {} MiB are available: streaming it in row bands within {} MiB (set the budget with --max-memory)",
-            stack >> 20,
+            "the run needs about {} MiB in memory and {} MiB are available: streaming the images in row bands within {} MiB (set the budget with --max-memory)",
+            need.div_ceil(1 << 20),
             available >> 20,
             (available / 2) >> 20
         );
@@ -361,8 +402,10 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         }
         _ => None,
     };
+    let mut warnings: Vec<String> = Vec::new();
     let depth = match (&a.depth, &a.depth_gt) {
         (Some(d), Some(g)) => {
+            warnings.extend(depth_unit_warnings(d, g, a.align)?);
             let (est, gt) = (read_depth(d)?, read_depth(g)?);
             let mask = mask_for(gt.width(), gt.height())?;
             Some(match a.align {
@@ -374,7 +417,7 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         }
         _ => None,
     };
-    let out = match (normals, depth) {
+    let mut out = match (normals, depth) {
         (Some(n), None) => n,
         (None, Some(d)) => d,
         (Some(n), Some(d)) => serde_json::json!({ "normals": n, "depth": d }),
@@ -382,8 +425,68 @@ fn run_eval(a: EvalArgs) -> Result<()> {
             "nothing to evaluate: give --normals and --gt, and/or --depth and --depth-gt"
         ),
     };
+    if !warnings.is_empty() {
+        out["warnings"] = serde_json::to_value(&warnings)?;
+    }
     say!("{}", serde_json::to_string_pretty(&out)?);
+    for w in &warnings {
+        eprintln!("warning: {w}");
+    }
     Ok(())
+}
+
+/// What a depth map's `photostereo:units` says it holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum DepthKind {
+    /// Orthographic height in pixel units, larger nearer.
+    Height,
+    /// Depth along the optical axis, up to scale or in world units, larger farther.
+    AxisDepth,
+}
+
+fn depth_kind(path: &Path) -> Result<Option<(DepthKind, String)>> {
+    let units = photostereo::io::decode::read_exr_text(path, "photostereo:units")?;
+    Ok(units.and_then(|u| {
+        if u.contains("orthographic") {
+            Some((DepthKind::Height, u))
+        } else if u.contains("optical axis") {
+            Some((DepthKind::AxisDepth, u))
+        } else {
+            None
+        }
+    }))
+}
+
+/// Warnings when the two depth maps, or the alignment, do not fit what the headers say: an
+/// orthographic height in pixels compared with depth along the axis (in mm, or up to scale),
+/// a median-scale alignment of a height (it assumes depths from the camera), an offset
+/// alignment of a depth known only up to scale.
+fn depth_unit_warnings(est: &Path, gt: &Path, align: DepthAlign) -> Result<Vec<String>> {
+    let (e, g) = (depth_kind(est)?, depth_kind(gt)?);
+    let mut out = Vec::new();
+    if let (Some((ek, eu)), Some((gk, gu))) = (&e, &g)
+        && ek != gk
+    {
+        out.push(format!(
+            "{} holds \"{eu}\" but {} holds \"{gu}\": the two maps measure different things, so the figures are not a depth error",
+            est.display(),
+            gt.display()
+        ));
+    }
+    match (&e, align) {
+        (Some((DepthKind::Height, _)), DepthAlign::MedianScale) => out.push(format!(
+            "{} is an orthographic height in pixel units (larger is nearer); median-scale alignment assumes depths along the optical axis from the camera (as written with --camera K.txt), so the figures are not a depth error",
+            est.display()
+        )),
+        (Some((DepthKind::AxisDepth, u)), DepthAlign::Offset) if u.contains("up to scale") => {
+            out.push(format!(
+                "{} is a depth known only up to scale; an offset alignment does not fix the scale: use --align median-scale",
+                est.display()
+            ))
+        }
+        _ => {}
+    }
+    Ok(out)
 }
 
 /// `eval --diligent`: reconstruct DiLiGenT-layout folders with each method, compare with the
@@ -477,8 +580,21 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
             );
             m
         }
-        // Where the normal map holds a unit-ish vector (encoded maps use black for "none").
-        None => normals.map(|n| n.iter().all(|v| v.is_finite()) && n.norm() > 0.5),
+        // Where the normal map holds a unit-ish vector, less a uniform background.
+        None => {
+            let domain = photostereo::integrate::normal_domain(&normals);
+            if let Some(b) = domain.background {
+                eprintln!(
+                    "warning: no --mask: {} pixels with the border's normal ({:.3}, {:.3}, {:.3}) are taken as background and left out; pass --mask to choose the pixels",
+                    domain.background_pixels, b[0], b[1], b[2]
+                );
+            } else if domain.mask.count() == w * h {
+                eprintln!(
+                    "warning: no --mask and every pixel has a normal: the whole image is integrated as one surface, background included; pass --mask to integrate the object alone"
+                );
+            }
+            domain.mask
+        }
     };
     let method = a
         .method
@@ -587,11 +703,29 @@ fn print_summary(report: &Report, dir: &Path) {
             }
         );
     }
+    // Under a camera the gradients are of log-depth, a thousand times smaller than pixel
+    // slopes: four decimals would print zeros.
+    let curl = |v: f64| {
+        if v != 0.0 && v.abs() < 1e-3 {
+            format!("{v:.2e}")
+        } else {
+            format!("{v:.4}")
+        }
+    };
+    let perspective = config
+        .integration
+        .as_ref()
+        .is_some_and(|o| o.camera.is_some());
     say!(
-        "  integrability: mean |curl| {:.4}, median {:.4}, 95th pct {:.4} (per pixel)",
-        report.integrability.mean_abs_curl,
-        report.integrability.median_abs_curl,
-        report.integrability.p95_abs_curl
+        "  integrability: mean |curl| {}, median {}, 95th pct {} ({})",
+        curl(report.integrability.mean_abs_curl),
+        curl(report.integrability.median_abs_curl),
+        curl(report.integrability.p95_abs_curl),
+        if perspective {
+            "log-depth gradients, per pixel"
+        } else {
+            "per pixel"
+        }
     );
     if let Some(a) = report.integration.as_ref().and_then(|i| i.auto.as_ref()) {
         say!("  integration: {}", a.reason);

@@ -1,6 +1,7 @@
 //! Out-of-core streaming (`photostereo::run::stream`, `--max-memory`): a capture solved in row bands
 //! must give what the in-memory pipeline gives, for every file format and band height.
 
+#[path = "../../tests/common/mod.rs"]
 mod common;
 
 use photostereo::capture::dataset::CaptureFiles;
@@ -561,6 +562,8 @@ fn a_streamed_run_refuses_interreflection_compensation() {
         lights.as_os_str(),
         common::os("--max-memory"),
         common::os("400M"),
+        common::os("--band-rows"),
+        common::os("8"),
         common::os("--interreflections"),
         common::os("-q"),
         common::os("-o"),

@@ -7,7 +7,7 @@ use plotters::prelude::*;
 use std::path::Path;
 
 /// The font every chart uses (Bitstream Vera / DejaVu licence, `assets/fonts/LICENSE-DejaVu.txt`).
-const FONT: &[u8] = include_bytes!("../../../assets/fonts/DejaVuSans.ttf");
+const FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
 /// Chart size in pixels (PNG) and user units (SVG).
 const SIZE: (u32, u32) = (900, 600);
 

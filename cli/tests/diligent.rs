@@ -1,6 +1,7 @@
 //! Conventions proven on real data: plain least squares on DiLiGenT reproduces the published
 //! baseline (mean angular error 8.41° on cat, 8.39° on bear), end to end through the CLI.
 
+#[path = "../../tests/common/mod.rs"]
 mod common;
 
 use std::path::Path;

@@ -2,6 +2,7 @@
 //! with the documented channel names, sizes and NaN masks (`.ci/run` installs the packages;
 //! the test skips with a message where they are missing).
 
+#[path = "../../tests/common/mod.rs"]
 mod common;
 
 use std::process::Command;
@@ -25,7 +26,10 @@ fn python_openexr_reads_every_output() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/read_outputs.py");
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../tests/python/read_outputs.py"
+    );
     let r = Command::new("python3")
         .arg(script)
         .arg(&out)

@@ -20,12 +20,12 @@ use std::process::Command;
 type Digests = BTreeMap<String, BTreeMap<String, String>>;
 
 fn golden_path() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/golden/outputs.json")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/golden/outputs.json")
 }
 
 fn shared(sub: &str) -> Option<PathBuf> {
     let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data")
+        .join("../../shared/data")
         .join(sub);
     p.exists().then_some(p)
 }
@@ -163,7 +163,13 @@ fn runs() -> Vec<(String, Vec<String>)> {
                 if object == "cat" {
                     runs.push((
                         "cat streamed".to_string(),
-                        vec![dir, "--max-memory".into(), "300M".into()],
+                        vec![
+                            dir,
+                            "--max-memory".into(),
+                            "300M".into(),
+                            "--band-rows".into(),
+                            "100".into(),
+                        ],
                     ));
                 }
             }

@@ -30,6 +30,7 @@ use std::path::PathBuf;
     version,
     args_conflicts_with_subcommands = true,
     subcommand_negates_reqs = true,
+    arg_required_else_help = true,
     verbatim_doc_comment
 )]
 pub struct Cli {
@@ -93,9 +94,9 @@ pub struct RunArgs {
     /// How images are read.
     #[command(flatten)]
     pub load: LoadArgs,
-    /// Stream the images in row bands within this memory budget (e.g. 2G, 1536M) instead of
-    /// loading the whole stack: for stacks larger than memory (PNG without interlacing, TIFF,
-    /// EXR). Without it, a stack that would not fit in the available memory is streamed
+    /// Memory budget (e.g. 2G, 1536M): a run that would not fit in it loads the images in row
+    /// bands instead of whole (PNG without interlacing, TIFF, EXR); one that fits is loaded
+    /// whole. Without it, a stack that would not fit in the available memory is streamed
     /// within half of it.
     #[arg(long, value_name = "SIZE")]
     pub max_memory: Option<String>,
@@ -103,6 +104,36 @@ pub struct RunArgs {
     /// streams within half the available memory.
     #[arg(long, value_name = "ROWS")]
     pub band_rows: Option<usize>,
+    /// Order of the images before a plain list of lights (one that names no image files) is
+    /// paired with them by position. `checked`: keep the order given, but refuse numbered names
+    /// in text order that differs from numeric order, as a shell glob gives for name.1.png …
+    /// name.12.png; `natural`: sort the names numerically (2 before 10); `given`: keep the
+    /// order given.
+    #[arg(long, value_enum, default_value = "checked", value_name = "ORDER")]
+    pub image_order: ImageOrderArg,
+}
+
+/// `--image-order` values.
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum ImageOrderArg {
+    /// Keep the order given; refuse numbered names sorted as text.
+    Checked,
+    /// Sort numerically.
+    Natural,
+    /// Keep the order given.
+    Given,
+}
+
+impl ImageOrderArg {
+    /// The library's image order.
+    pub fn order(self) -> photostereo::capture::ImageOrder {
+        use photostereo::capture::ImageOrder;
+        match self {
+            ImageOrderArg::Checked => ImageOrder::Checked,
+            ImageOrderArg::Natural => ImageOrder::Natural,
+            ImageOrderArg::Given => ImageOrder::AsGiven,
+        }
+    }
 }
 
 /// Solver options shared by the main command and the demo.
@@ -814,6 +845,8 @@ pub enum Source {
         images: Vec<PathBuf>,
         /// The lights file.
         lights: PathBuf,
+        /// How the images are ordered before plain lights are paired with them.
+        order: photostereo::capture::ImageOrder,
     },
 }
 
@@ -838,17 +871,34 @@ pub struct RunConfig {
 impl RunArgs {
     /// Validates the flags of the main command.
     pub fn validate(self) -> Result<RunConfig> {
+        if self.inputs.is_empty() {
+            bail!(
+                "no input images: give image files and --lights FILE, or a DiLiGenT folder (see --help), or run `photostereo demo -o out/`"
+            );
+        }
+        let missing: Vec<&PathBuf> = self.inputs.iter().filter(|p| !p.exists()).collect();
+        match (&missing[..], self.inputs.len()) {
+            ([], _) => {}
+            ([one], 1) => bail!("{}: no such file or folder", one.display()),
+            ([one], n) => bail!("{}: no such file (1 of the {n} inputs)", one.display()),
+            (gone, n) => bail!(
+                "{} of the {n} inputs do not exist: {}",
+                gone.len(),
+                gone.iter()
+                    .take(8)
+                    .map(|p| p.display().to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+                    + if gone.len() > 8 { ", …" } else { "" }
+            ),
+        }
         let output = self
             .output
             .context("no output folder: pass -o DIR (see --help)")?;
         if !self.force {
             photostereo::io::output::ensure_fresh_dir(&output)?;
         }
-        if self.inputs.is_empty() {
-            bail!(
-                "no input images: give image files and --lights FILE, or a DiLiGenT folder (see --help), or run `photostereo demo -o out/`"
-            );
-        }
+        photostereo::io::output::ensure_writable_dir(&output)?;
         let mut list_mask = None;
         let source = if self.inputs.len() == 1 && self.inputs[0].is_dir() {
             let dir = self.inputs[0].clone();
@@ -878,11 +928,14 @@ impl RunArgs {
                 Source::Files {
                     images: list.images,
                     lights,
+                    // The list's order is the one meant.
+                    order: photostereo::capture::ImageOrder::AsGiven,
                 }
             } else {
                 Source::Files {
                     images: self.inputs,
                     lights,
+                    order: self.image_order.order(),
                 }
             }
         };

@@ -2,6 +2,7 @@
 //! README table, printed with `--nocapture`), stability under noise, a wrong light and a frontal
 //! light, light estimation, and the `sfs` command end to end.
 
+#[path = "../../tests/common/mod.rs"]
 mod common;
 
 use photostereo::Error;

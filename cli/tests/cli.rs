@@ -1,6 +1,7 @@
 //! The command line end to end: data sets written to disk, read back, reconstructed, written,
 //! evaluated — and bad input answered with a clear error and no partial output.
 
+#[path = "../../tests/common/mod.rs"]
 mod common;
 
 use common::{listing, os, run, sphere_dataset};

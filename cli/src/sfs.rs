@@ -99,6 +99,9 @@ pub fn run(a: SfsArgs) -> Result<()> {
                 .to_string(),
         ),
     ];
+    let mut normal_attrs = attrs.clone();
+    normal_attrs[2].1 =
+        "R, G, B: unit surface normal n_x, n_y, n_z (dimensionless), NaN where unsolved".into();
     let mut out = OutputDir::create(&a.output)?;
     out.stage_exr(
         "depth.exr",
@@ -113,10 +116,10 @@ pub fn run(a: SfsArgs) -> Result<()> {
         w,
         h,
         &[("R", &nx), ("G", &ny), ("B", &nz)],
-        &attrs,
+        &normal_attrs,
     )?;
     out.stage_png8("normal.png", w, h, 3, &normal_preview(&r.normals))?;
-    out.stage_png8("depth.png", w, h, 1, &depth_preview(&r.depth))?;
+    out.stage_png8("depth.png", w, h, 1, &depth_preview(&r.depth, None))?;
     let svg = rmap.contour_svg(3.0, &CONTOUR_LEVELS, 241)?;
     out.stage_bytes("reflectance_map.svg", svg.as_bytes())?;
     let report = serde_json::json!({

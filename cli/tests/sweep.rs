@@ -5,6 +5,7 @@
 //! per-part depth error and the normal perturbation match closed forms, and the commands write
 //! every table and chart.
 
+#[path = "../../tests/common/mod.rs"]
 mod common;
 
 use photostereo::eval::metrics::{angular_errors, depth_errors, depth_rmse_per_part};
@@ -438,8 +439,7 @@ fn bench_all_writes_every_table_and_chart() {
 #[test]
 fn bench_diligent_reports_per_stage_ratios() {
     let dir = require_shared!("diligent/catPNG");
-    let peer =
-        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/peers/numpy_ps.py");
+    let peer = common::repo().join("../shared/peers/numpy_ps.py");
     let o = common::run(&[
         common::os("bench"),
         common::os("diligent"),
@@ -592,8 +592,7 @@ fn bench_all_on_real_data() {
         .and_then(|p| p.parent())
         .unwrap()
         .to_path_buf();
-    let peer =
-        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/peers/numpy_ps.py");
+    let peer = common::repo().join("../shared/peers/numpy_ps.py");
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("bench");
     let o = bench_all_quick(&out, &data, &peer);

@@ -1,6 +1,7 @@
 //! Normal integration: exactness on fields with known integrals, the survey vase with noise, the
 //! DiLiGenT depth benchmark with its camera, discontinuities, and the `integrate` command.
 
+#[path = "../../tests/common/mod.rs"]
 mod common;
 
 use nalgebra::Vector3;

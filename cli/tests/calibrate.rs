@@ -2,6 +2,7 @@
 //! matte spheres and grey cards (intensities), and the classic 12-light capture, where the
 //! calibrated lights are judged by how well they explain real images.
 
+#[path = "../../tests/common/mod.rs"]
 mod common;
 
 use nalgebra::Vector3;
