@@ -115,7 +115,9 @@ pub enum Error {
     /// before `name.2.png`) while the lights are a plain list paired by position.
     #[error(
         "the images are numbered but given in text order ({} before {}, as a shell sorts them), so a plain list of lights would be paired with the wrong images; in numeric order they are: {}. Give the images in that order, or name each light's image in the lights file",
-        .earlier.display(), .later.display(), crate::capture::order::short_list(.natural, 12)
+        crate::capture::order::short_list(std::slice::from_ref(.earlier), 1),
+        crate::capture::order::short_list(std::slice::from_ref(.later), 1),
+        crate::capture::order::short_list(.natural, 12)
     )]
     ImageOrder {
         /// An image given before `later` but numbered after it.

@@ -1557,3 +1557,115 @@ fn window_stores_only_those_pixels() {
         other => panic!("expected a mask error, got {:?}", other.is_ok()),
     }
 }
+
+/// JPEG, as phones and cameras write it: 8-bit sRGB, lossy. A rendered sphere written as 8-bit
+/// sRGB PNG and as JPEG (quality 95) reads back within JPEG's error of the PNG, is linearised,
+/// gives normals within 3° of the truth (the PNG's error plus what the compression adds), and
+/// the run says the inputs are lossy.
+#[test]
+fn jpeg_is_read_linearised_and_reported_lossy() {
+    use photostereo::capture::dataset::CaptureFiles;
+    use photostereo::eval::demo::synthesize;
+    use photostereo::eval::metrics::angular_errors;
+    use photostereo::run::{Config, Warning, reconstruct};
+    use photostereo::synth::render::RenderOptions;
+    use photostereo::synth::scene::{Albedo, Scene};
+    use photostereo::synth::write::{ImageFormat, write_synthetic};
+    let dir = tempfile::tempdir().unwrap();
+    let scene = Scene::sphere(
+        96,
+        40.0,
+        Albedo::Smooth {
+            mean: 0.6,
+            amplitude: 0.2,
+            period: 23.0,
+        },
+    );
+    let lights = Lights::fibonacci(10, 30.0).unwrap();
+    let synth = synthesize(scene, lights.clone(), &RenderOptions::default()).unwrap();
+    write_synthetic(
+        &synth.rendering,
+        &lights,
+        dir.path(),
+        ImageFormat::Png8 { srgb: true },
+    )
+    .unwrap();
+    // A plain list of directions, so the JPEG files pair by position.
+    let text: String = lights
+        .directions()
+        .iter()
+        .map(|d| format!("{} {} {}\n", d.x, d.y, d.z))
+        .collect();
+    let list = dir.path().join("lights.txt");
+    std::fs::write(&list, text).unwrap();
+    let png: Vec<PathBuf> = (0..10)
+        .map(|k| dir.path().join(format!("img_{k:03}.png")))
+        .collect();
+    let jpg: Vec<PathBuf> = png.iter().map(|p| p.with_extension("jpg")).collect();
+    for (p, j) in png.iter().zip(&jpg) {
+        let img = image::open(p).unwrap().to_luma8();
+        let mut bytes = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, 95)
+            .encode_image(&img)
+            .unwrap();
+        std::fs::write(j, bytes).unwrap();
+    }
+    let a = read_image(&png[0]).unwrap();
+    let b = read_image(&jpg[0]).unwrap();
+    assert_eq!(
+        (b.width, b.height, b.channels, b.format),
+        (96, 96, 1, SampleFormat::U8)
+    );
+    let diff = a
+        .data
+        .iter()
+        .zip(&b.data)
+        .map(|(x, y)| (x - y).abs())
+        .sum::<f32>()
+        / a.data.len() as f32;
+    assert!(
+        diff < 0.01,
+        "JPEG differs from the PNG by {diff} on average"
+    );
+
+    let mask = dir.path().join("mask.png");
+    let mut errors = Vec::new();
+    for files in [&png, &jpg] {
+        let capture = CaptureFiles::from_files(files, &list, Some(&mask))
+            .unwrap()
+            .load(&LoadOptions::default(), &Silent)
+            .unwrap();
+        assert!(capture.stack.info().iter().all(|i| i.linearised));
+        let config = Config {
+            integration: None,
+            ..Config::default()
+        };
+        let recon = reconstruct(&capture, &config, &Silent).unwrap();
+        let e = angular_errors(&recon.maps.normals, &synth.truth.normals, &capture.mask).unwrap();
+        let lossy = recon
+            .warnings
+            .iter()
+            .any(|w| matches!(w, Warning::Lossy { images: 10 }));
+        errors.push((e.mean_deg, lossy));
+    }
+    let (png_err, png_lossy) = errors[0];
+    let (jpg_err, jpg_lossy) = errors[1];
+    assert!(!png_lossy && jpg_lossy, "{errors:?}");
+    assert!(jpg_err < 3.0 && png_err < 3.0, "{errors:?}");
+}
+
+/// Formats that are not read are refused with the list of those that are.
+#[test]
+fn unread_formats_list_the_read_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("frame.bmp");
+    image::GrayImage::from_pixel(8, 8, image::Luma([90]))
+        .save(dir.path().join("frame.png"))
+        .unwrap();
+    std::fs::write(&path, b"BM not really a bitmap").unwrap();
+    let e = read_image(&path).unwrap_err().to_string();
+    assert!(
+        e.contains("frame.bmp") && e.contains("JPEG") && e.contains("TIFF"),
+        "{e}"
+    );
+}

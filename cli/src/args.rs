@@ -72,7 +72,7 @@ pub enum Command {
 /// Reconstruction of user images.
 #[derive(Debug, Args)]
 pub struct RunArgs {
-    /// Image files (EXR, PNG, TIFF), one per light; or one folder in the DiLiGenT layout; or
+    /// Image files (EXR, PNG, TIFF, JPEG), one per light; or one folder in the DiLiGenT layout; or
     /// one image list (`<name>.txt`: the count, the image paths, optionally the mask).
     #[arg(value_name = "INPUTS")]
     pub inputs: Vec<PathBuf>,
@@ -330,8 +330,8 @@ pub struct EvalArgs {
     /// 20°, timings).
     #[arg(long, value_name = "DIR", num_args = 1.., conflicts_with_all = ["normals", "depth"])]
     pub diligent: Vec<PathBuf>,
-    /// With `--diligent`: the estimators to evaluate.
-    #[arg(long, value_enum, value_delimiter = ',', default_values_t = [MethodArg::Auto])]
+    /// With `--diligent`: the estimators to evaluate; lists are comma- or space-separated.
+    #[arg(long, value_enum, num_args = 1.., value_delimiter = ',', default_values_t = [MethodArg::Auto])]
     pub methods: Vec<MethodArg>,
     /// With `--diligent`: shadow labelling after each solve.
     #[command(flatten)]
@@ -407,8 +407,9 @@ pub enum BenchCommand {
 /// `bench all` options.
 #[derive(Debug, Args)]
 pub struct AllBenchArgs {
-    /// Folder for every table, chart and the generated README.md.
-    #[arg(long, short, value_name = "DIR", default_value = "docs/bench")]
+    /// Folder for every table, chart and the generated README.md (required: the
+    /// repository's own figures are regenerated with `--out docs/bench`).
+    #[arg(long, short, value_name = "DIR", required = true)]
     pub out: PathBuf,
     /// Folder of the real data (DiLiGenT cat and bear under `diligent/`); their part is
     /// skipped, with a message, when absent.
@@ -434,11 +435,11 @@ pub struct SweepBenchArgs {
     /// Timed runs per point; medians are reported.
     #[arg(long, default_value_t = photostereo::eval::bench::DEFAULT_REPEAT)]
     pub repeat: usize,
-    /// Estimators (default: all).
-    #[arg(long, value_enum, value_delimiter = ',')]
+    /// Estimators (default: all); lists are comma- or space-separated.
+    #[arg(long, value_enum, num_args = 1.., value_delimiter = ',')]
     pub methods: Vec<MethodArg>,
-    /// Folder for the tables and charts.
-    #[arg(long, short, value_name = "DIR", default_value = "docs/bench")]
+    /// Folder for the tables and charts (required).
+    #[arg(long, short, value_name = "DIR", required = true)]
     pub out: PathBuf,
     /// A 64² image and a few levels of each axis: a smoke run of a few seconds.
     #[arg(long)]
@@ -448,14 +449,14 @@ pub struct SweepBenchArgs {
 /// `bench scaling` options.
 #[derive(Debug, Args)]
 pub struct ScalingBenchArgs {
-    /// Image sizes (square; the sphere fills 0.45 of it).
-    #[arg(long, num_args = 1.., default_values_t = scaling::DEFAULT_SIZES)]
+    /// Image sizes (square; the sphere fills 0.45 of it); lists are comma- or space-separated.
+    #[arg(long, num_args = 1.., value_delimiter = ',', default_values_t = scaling::DEFAULT_SIZES)]
     pub sizes: Vec<usize>,
-    /// Light counts (Fibonacci spiral, elevation ≥ 30°).
-    #[arg(long, num_args = 1.., default_values_t = scaling::DEFAULT_LIGHTS)]
+    /// Light counts (Fibonacci spiral, elevation ≥ 30°); lists are comma- or space-separated.
+    #[arg(long, num_args = 1.., value_delimiter = ',', default_values_t = scaling::DEFAULT_LIGHTS)]
     pub lights: Vec<usize>,
-    /// Estimators (default: ls, threshold, auto, trim, huber).
-    #[arg(long, value_enum, num_args = 1..)]
+    /// Estimators (default: ls, threshold, auto, trim, huber); lists are comma- or space-separated.
+    #[arg(long, value_enum, num_args = 1.., value_delimiter = ',')]
     pub methods: Vec<MethodArg>,
     /// Runs per point; medians are reported.
     #[arg(long, default_value_t = photostereo::eval::bench::DEFAULT_REPEAT)]
@@ -521,8 +522,8 @@ pub struct SpecularityBenchArgs {
     /// Number of lights (Fibonacci spiral up to 60° from the view direction).
     #[arg(long, default_value_t = specularity::DEFAULT_LIGHTS)]
     pub lights: usize,
-    /// Specular reflectances k_s to sweep.
-    #[arg(long, value_delimiter = ',', default_values_t = specularity::DEFAULT_KS)]
+    /// Specular reflectances k_s to sweep; lists are comma- or space-separated.
+    #[arg(long, num_args = 1.., value_delimiter = ',', default_values_t = specularity::DEFAULT_KS)]
     pub ks: Vec<f64>,
     /// Gaussian image noise σ (images peak near 1).
     #[arg(long, default_value_t = specularity::DEFAULT_NOISE)]
@@ -531,8 +532,8 @@ pub struct SpecularityBenchArgs {
     /// reference (see the main command's flag of the same name).
     #[arg(long, default_value_t = DEFAULT_HIGHLIGHT_FRACTION, value_name = "FRACTION")]
     pub highlight_fraction: f32,
-    /// Estimators to compare (default: all).
-    #[arg(long, value_enum, value_delimiter = ',')]
+    /// Estimators to compare (default: all); lists are comma- or space-separated.
+    #[arg(long, value_enum, num_args = 1.., value_delimiter = ',')]
     pub methods: Vec<MethodArg>,
     /// Also print a Markdown table (to standard error).
     #[arg(long)]
@@ -542,11 +543,11 @@ pub struct SpecularityBenchArgs {
 /// `bench integration` options.
 #[derive(Debug, Args)]
 pub struct IntegrationBenchArgs {
-    /// Image sizes (square).
-    #[arg(long, value_delimiter = ',', default_values_t = integration::DEFAULT_SIZES)]
+    /// Image sizes (square); lists are comma- or space-separated.
+    #[arg(long, num_args = 1.., value_delimiter = ',', default_values_t = integration::DEFAULT_SIZES)]
     pub sizes: Vec<usize>,
-    /// Methods to time (default: all).
-    #[arg(long, value_enum, value_delimiter = ',')]
+    /// Methods to time (default: all); lists are comma- or space-separated.
+    #[arg(long, value_enum, num_args = 1.., value_delimiter = ',')]
     pub methods: Vec<IntegrateArg>,
     /// Repetitions at sizes up to 512² (one run above); medians are reported.
     #[arg(long, default_value_t = photostereo::eval::bench::DEFAULT_REPEAT)]
@@ -1007,7 +1008,7 @@ pub struct CalibrateArgs {
 /// `sfs` options.
 #[derive(Debug, Args)]
 pub struct SfsArgs {
-    /// The image (EXR, PNG or TIFF; RGB is mixed to grey; 8-bit is decoded as sRGB).
+    /// The image (EXR, PNG, TIFF or JPEG; RGB is mixed to grey; 8-bit is decoded as sRGB).
     #[arg(value_name = "IMAGE")]
     pub image: PathBuf,
     /// Light direction x,y,z (towards the light; x right, y up, z to the camera); estimated from
@@ -1102,4 +1103,90 @@ fn parse_direction(s: &str) -> Result<[f64; 3]> {
         bail!("{s:?}: the direction must be finite and non-zero");
     }
     Ok([x, y, z])
+}
+
+/// Parsing as a user types it: lists with commas or spaces alike, the usage for no arguments,
+/// the image order, and `bench all` without a folder refused rather than writing into the
+/// repository.
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(args: &[&str]) -> std::result::Result<Cli, clap::Error> {
+        Cli::try_parse_from(std::iter::once("photostereo").chain(args.iter().copied()))
+    }
+
+    #[test]
+    fn lists_take_commas_or_spaces() {
+        for args in [
+            &["bench", "integration", "--sizes", "256,512"][..],
+            &["bench", "integration", "--sizes", "256", "512"][..],
+        ] {
+            match parse(args).unwrap().command {
+                Some(Command::Bench(BenchCommand::Integration(a))) => {
+                    assert_eq!(a.sizes, [256, 512], "{args:?}")
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        for args in [
+            &["bench", "scaling", "--lights", "8,16", "--sizes", "64"][..],
+            &["bench", "scaling", "--lights", "8", "16", "--sizes", "64"][..],
+        ] {
+            match parse(args).unwrap().command {
+                Some(Command::Bench(BenchCommand::Scaling(a))) => {
+                    assert_eq!((a.lights, a.sizes), (vec![8, 16], vec![64]), "{args:?}")
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        for args in [
+            &["eval", "--diligent", "d", "--methods", "ls,threshold"][..],
+            &["eval", "--diligent", "d", "--methods", "ls", "threshold"][..],
+        ] {
+            match parse(args).unwrap().command {
+                Some(Command::Eval(a)) => assert_eq!(a.methods.len(), 2, "{args:?}"),
+                other => panic!("{other:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn no_arguments_show_the_usage() {
+        let e = parse(&[]).unwrap_err();
+        assert_eq!(
+            e.kind(),
+            clap::error::ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand
+        );
+        assert!(e.to_string().contains("Usage:"), "{e}");
+    }
+
+    #[test]
+    fn bench_outputs_go_where_the_user_says() {
+        let e = parse(&["bench", "all", "--quick"]).unwrap_err();
+        assert_eq!(e.kind(), clap::error::ErrorKind::MissingRequiredArgument);
+        assert!(e.to_string().contains("--out"), "{e}");
+        assert!(parse(&["bench", "sweep", "--quick"]).is_err());
+        assert!(parse(&["bench", "all", "--quick", "--out", "/tmp/b"]).is_ok());
+    }
+
+    #[test]
+    fn image_order_defaults_to_checked() {
+        let cli = parse(&["a.png", "--lights", "l.txt", "-o", "o"]).unwrap();
+        assert!(matches!(cli.run.image_order, ImageOrderArg::Checked));
+        let cli = parse(&[
+            "a.png",
+            "--lights",
+            "l.txt",
+            "-o",
+            "o",
+            "--image-order",
+            "natural",
+        ])
+        .unwrap();
+        assert_eq!(
+            cli.run.image_order.order(),
+            photostereo::capture::ImageOrder::Natural
+        );
+    }
 }

@@ -146,7 +146,7 @@ fn diligent_chart(rows: &[Value], out: &Path) -> Result<()> {
         );
         series.push(
             Series::line(
-                if k == 0 { "Pareto front" } else { "" },
+                format!("{object}: Pareto front"),
                 front.iter().map(|&i| pts[i]).collect(),
                 k,
             )

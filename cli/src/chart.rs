@@ -20,7 +20,8 @@ pub enum Style {
     Markers,
     /// A thin line without markers (a fitted model).
     Fit,
-    /// The Pareto front: a black line through hollow rings.
+    /// The Pareto front: a thin line through hollow rings in order of x, black (in the
+    /// series' colour when a chart has several fronts).
     Front,
 }
 
@@ -180,6 +181,39 @@ fn short(v: f64) -> String {
     }
 }
 
+/// Approximate width in pixels of `text` at the 11 px label size.
+fn label_width(text: &str) -> i32 {
+    (text.chars().count() as f64 * 6.5).ceil() as i32
+}
+
+/// The offset of a label from its point (pixel `(px, py)`): the first of eight spots around
+/// the point whose box overlaps no label placed before (above right, below right, above left,
+/// below left, then further out), else the first; the box is added to `placed`.
+fn place_label(px: i32, py: i32, text: &str, placed: &mut Vec<(i32, i32, i32, i32)>) -> (i32, i32) {
+    let (w, h) = (label_width(text), 12);
+    let spots = [
+        (6, -14),
+        (6, 3),
+        (-6 - w, -14),
+        (-6 - w, 3),
+        (6, -28),
+        (6, 17),
+        (-6 - w, -28),
+        (-6 - w, 17),
+    ];
+    let boxed = |(dx, dy): (i32, i32)| (px + dx, py + dy, px + dx + w, py + dy + h);
+    let overlaps = |a: (i32, i32, i32, i32), b: &(i32, i32, i32, i32)| {
+        a.0 < b.2 && b.0 < a.2 && a.1 < b.3 && b.1 < a.3
+    };
+    let chosen = spots
+        .iter()
+        .copied()
+        .find(|&o| !placed.iter().any(|b| overlaps(boxed(o), b)))
+        .unwrap_or(spots[0]);
+    placed.push(boxed(chosen));
+    chosen
+}
+
 fn draw<DB: DrawingBackend>(chart: &Chart, root: DrawingArea<DB, Shift>) -> Result<()>
 where
     DB::ErrorType: 'static,
@@ -220,17 +254,36 @@ where
                 .axis_desc_style(("sans-serif", 16))
                 .draw()
                 .map_err(err)?;
+            // Labels already placed, as pixel boxes: a new one takes the first free spot
+            // around its point.
+            let mut placed: Vec<(i32, i32, i32, i32)> = Vec::new();
+            // One front is black; several (one per object) take their series' colours.
+            let fronts = chart
+                .series
+                .iter()
+                .filter(|s| s.style == Style::Front)
+                .count();
             for s in &chart.series {
-                let color = if s.style == Style::Front {
+                let color = if s.style == Style::Front && fronts == 1 {
                     BLACK.to_rgba()
                 } else {
                     Palette99::pick(s.color).to_rgba()
                 };
-                let width = if s.style == Style::Fit { 1 } else { 2 };
+                let width = if matches!(s.style, Style::Fit | Style::Front) {
+                    1
+                } else {
+                    2
+                };
+                let mut points = s.points.clone();
+                if s.style == Style::Front {
+                    // A front is a staircase in x: drawn in any other order its line crosses
+                    // itself.
+                    points.sort_by(|a, b| a.0.total_cmp(&b.0));
+                }
                 if s.style != Style::Markers {
                     let drawn = c
                         .draw_series(LineSeries::new(
-                            s.points.iter().copied(),
+                            points.iter().copied(),
                             color.stroke_width(width),
                         ))
                         .map_err(err)?;
@@ -264,13 +317,15 @@ where
                     }
                 }
                 if !s.labels.is_empty() {
-                    c.draw_series(s.points.iter().zip(&s.labels).map(|(p, t)| {
-                        EmptyElement::at(*p)
-                            + Text::new(
-                                t.clone(),
-                                (6, -14),
-                                ("sans-serif", 11).into_font().color(&color),
-                            )
+                    let mut texts = Vec::new();
+                    for (p, t) in s.points.iter().zip(&s.labels) {
+                        let (px, py) = c.backend_coord(p);
+                        let offset = place_label(px, py, t, &mut placed);
+                        texts.push((*p, t.clone(), offset));
+                    }
+                    c.draw_series(texts.into_iter().map(|(p, t, offset)| {
+                        EmptyElement::at(p)
+                            + Text::new(t, offset, ("sans-serif", 11).into_font().color(&color))
                     }))
                     .map_err(err)?;
                 }

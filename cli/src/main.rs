@@ -101,7 +101,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Demo(a)) => run_demo(a, progress),
         Some(Command::Eval(a)) => run_eval(a),
         Some(Command::Integrate(a)) => run_integrate(a, progress),
-        Some(Command::Sfs(a)) => sfs::run(a),
+        Some(Command::Sfs(a)) => sfs::run(a, progress),
         Some(Command::Calibrate(a)) => calibrate::run(a, progress),
         Some(Command::Bench(args::BenchCommand::Diligent(a))) => {
             say!("{}", serde_json::to_string_pretty(&bench::run(&a)?)?);

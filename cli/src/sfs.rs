@@ -9,12 +9,12 @@ use photostereo::io::output::{OutputDir, depth_preview, normal_planes, normal_pr
 use photostereo::nalgebra::Vector3;
 use photostereo::sfs::estimate::{estimate_albedo, estimate_light};
 use photostereo::sfs::reflectance_map::ReflectanceMap;
-use photostereo::sfs::{SfsOptions, object_mask, shape_from_shading};
+use photostereo::sfs::{SfsOptions, object_mask, shape_from_shading_with_progress};
 
 /// Contour levels of the reflectance-map drawing.
 const CONTOUR_LEVELS: [f64; 9] = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9];
 
-pub fn run(a: SfsArgs) -> Result<()> {
+pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result<()> {
     if !a.force {
         photostereo::io::output::ensure_fresh_dir(&a.output)?;
     }
@@ -84,7 +84,7 @@ pub fn run(a: SfsArgs) -> Result<()> {
         smoothness: a.smoothness,
         shadow_level: a.shadow_level,
     };
-    let r = shape_from_shading(&image, &mask, &rmap, albedo, &options)?;
+    let r = shape_from_shading_with_progress(&image, &mask, &rmap, albedo, &options, progress)?;
     let (w, h) = (image.width(), image.height());
     let method = options.method.name();
     let attrs = [

@@ -234,7 +234,73 @@ fn error_cases(root: &Path, out: &Path) -> Vec<Case> {
     add(
         "an unsupported image format",
         main_args(&imgs, &d.join("lights.json"), &[], out),
-        &["img_007.gif", "unsupported"],
+        &["img_007.gif", "unsupported", "PNG", "JPEG", "EXR"],
+    );
+    // A mistyped folder is named as missing, not taken for a list of images without lights.
+    add(
+        "a mistyped folder",
+        vec![
+            root.join("catPNGG").into_os_string(),
+            "-q".into(),
+            "-o".into(),
+            out.as_os_str().to_owned(),
+        ],
+        &["catPNGG", "no such file or folder"],
+    );
+    // One image missing among several is named before any count of lights is compared.
+    let (d, mut imgs) = dataset(root, "missing");
+    imgs[9] = d.join("img_009_typo.exr");
+    add(
+        "a missing image among several",
+        main_args(&imgs, &d.join("lights.json"), &[], out),
+        &["img_009_typo.exr", "1 of the 10 inputs"],
+    );
+    // Numbered images as a shell sorts them (frame.1, frame.10, frame.2, …) with a plain list
+    // of lights: refused, with the numeric order and the way out.
+    let (d, imgs) = dataset(root, "numbered");
+    let mut renamed: Vec<PathBuf> = imgs
+        .iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let to = d.join(format!("frame.{}.exr", k + 1));
+            std::fs::rename(p, &to).unwrap();
+            to
+        })
+        .collect();
+    renamed.sort();
+    let text = d.join("lights.txt");
+    let lights = photostereo::capture::lights::Lights::fibonacci(10, 30.0).unwrap();
+    std::fs::write(
+        &text,
+        lights
+            .directions()
+            .iter()
+            .map(|v| format!("{} {} {}\n", v.x, v.y, v.z))
+            .collect::<String>(),
+    )
+    .unwrap();
+    add(
+        "numbered images in text order with a plain list of lights",
+        main_args(&renamed, &text, &[], out),
+        &[
+            "frame.10.exr before frame.2.exr",
+            "frame.1.exr frame.2.exr frame.3.exr",
+            "--image-order natural",
+        ],
+    );
+    // An output folder that cannot be written is found before any image is decoded (the
+    // corrupt image would fail later).
+    let (d, imgs) = dataset(root, "unwritable");
+    std::fs::write(&imgs[4], b"not an EXR").unwrap();
+    let file = d.join("a-file");
+    std::fs::write(&file, b"x").unwrap();
+    let mut args = main_args(&imgs, &d.join("lights.json"), &[], out);
+    let n = args.len();
+    args[n - 1] = file.join("out").into_os_string();
+    add(
+        "an output folder that cannot be created (checked before loading)",
+        args,
+        &["a-file", "output folder"],
     );
     cases
 }

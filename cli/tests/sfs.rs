@@ -411,3 +411,67 @@ fn sfs_command_end_to_end() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("three numbers"));
 }
+
+/// Counts what a run reports, for the progress test.
+#[derive(Default)]
+struct Counted {
+    total: std::sync::atomic::AtomicU64,
+    done: std::sync::atomic::AtomicU64,
+    ended: std::sync::atomic::AtomicU64,
+}
+
+impl photostereo::progress::Progress for Counted {
+    fn begin(&self, _stage: &str, total: u64) {
+        self.total
+            .fetch_add(total, std::sync::atomic::Ordering::Relaxed);
+    }
+    fn advance(&self, units: u64) {
+        self.done
+            .fetch_add(units, std::sync::atomic::Ordering::Relaxed);
+    }
+    fn end(&self) {
+        self.ended
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+/// Runs of a minute and more show progress: the iterative methods count their iterations
+/// against the limit, fast marching the pixels it fixes; each stage ends once.
+#[test]
+fn shape_from_shading_reports_progress() {
+    use photostereo::sfs::shape_from_shading_with_progress;
+    use std::sync::atomic::Ordering::Relaxed;
+    let l = light(30.0, 45.0);
+    let (image, truth) = rendered(SceneKind::Sphere, l, 0.0, 1);
+    let rmap = ReflectanceMap::lambertian(l).unwrap();
+    for method in [SfsMethod::Horn, SfsMethod::TsaiShah] {
+        let p = Counted::default();
+        let r =
+            shape_from_shading_with_progress(&image, &truth.mask, &rmap, ALBEDO, &with(method), &p)
+                .unwrap();
+        assert_eq!(p.total.load(Relaxed), with(method).max_iterations as u64);
+        assert_eq!(
+            p.done.load(Relaxed),
+            r.report.iterations as u64,
+            "{method:?}"
+        );
+        assert_eq!(p.ended.load(Relaxed), 1);
+    }
+    let frontal = light(0.0, 0.0);
+    let (image, truth) = rendered(SceneKind::Sphere, frontal, 0.0, 1);
+    let rmap = ReflectanceMap::lambertian(frontal).unwrap();
+    let p = Counted::default();
+    shape_from_shading_with_progress(
+        &image,
+        &truth.mask,
+        &rmap,
+        ALBEDO,
+        &with(SfsMethod::FastMarching),
+        &p,
+    )
+    .unwrap();
+    let n = truth.mask.count() as u64;
+    assert_eq!(p.total.load(Relaxed), n);
+    assert!(p.done.load(Relaxed) <= n && p.done.load(Relaxed) + 4096 > n);
+    assert_eq!(p.ended.load(Relaxed), 1);
+}

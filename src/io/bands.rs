@@ -100,7 +100,10 @@ impl BandReader {
         } else if extension_is(path, "png") {
             Self::open_png(path)
         } else {
-            Err(not_band_readable(path, "only PNG, TIFF and EXR files can"))
+            Err(not_band_readable(
+                path,
+                "only PNG, TIFF and EXR files can (JPEG and other formats are read whole)",
+            ))
         }
     }
 

@@ -1,4 +1,4 @@
-//! Decoding image files: EXR (half/float), PNG and TIFF (8/16 bit), grey or RGB, to samples
+//! Decoding image files: EXR (half/float), PNG and TIFF (8/16 bit), JPEG (8 bit), grey or RGB, to samples
 //! as stored (integers scaled to [0, 1], no transfer function), and the readers of masks,
 //! normal maps and single EXR channels. The sRGB transfer function is here too: it is how
 //! 8-bit files are encoded.
@@ -111,7 +111,7 @@ pub(crate) fn decode_raw(path: &Path, rows: Option<Range<usize>>) -> Result<RawD
         image::ImageError::IoError(io) => Error::io(path, io),
         image::ImageError::Unsupported(u) => Error::UnsupportedImage {
             path: path.to_path_buf(),
-            reason: format!("{u}; PNG and TIFF (8/16-bit, grey or RGB) and EXR are read"),
+            reason: format!("{u}; {READ_FORMATS} are read"),
         },
         other => Error::Decode {
             path: path.to_path_buf(),
@@ -148,12 +148,22 @@ pub(crate) fn decode_raw(path: &Path, rows: Option<Range<usize>>) -> Result<RawD
     })
 }
 
+/// The image formats this tool reads, for messages.
+pub const READ_FORMATS: &str =
+    "EXR (half/float), PNG and TIFF (8/16-bit, grey or RGB) and JPEG (8-bit sRGB)";
+
+/// Whether `path` names a JPEG file (by its extension): lossy 8-bit sRGB, read whole only.
+pub fn is_jpeg(path: &Path) -> bool {
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("jpg") || e.eq_ignore_ascii_case("jpeg"))
+}
+
 /// Most samples (pixels × channels) of one image file this tool decodes: 2²⁸, 1 GiB as f32,
 /// far above real captures (50 Mpx RGB is 1.5·10⁸), and a guard against headers that declare
 /// sizes no file holds.
 pub const MAX_IMAGE_SAMPLES: usize = 1 << 28;
 
-/// Decodes an image file (EXR, PNG or TIFF) to interleaved floats: integers scaled to [0, 1],
+/// Decodes an image file (EXR, PNG, TIFF or JPEG) to interleaved floats: integers scaled to [0, 1],
 /// no transfer function applied, alpha dropped.
 ///
 /// # Errors

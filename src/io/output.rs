@@ -186,7 +186,13 @@ fn temp_path(dest: &Path) -> PathBuf {
 pub fn ensure_fresh_dir(dir: &Path) -> Result<()> {
     match std::fs::metadata(dir) {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
-        Err(e) => Err(Error::io(dir, e)),
+        Err(e) => Err(Error::io(
+            dir,
+            std::io::Error::new(
+                e.kind(),
+                format!("cannot be used as the output folder: {e}"),
+            ),
+        )),
         Ok(m) if !m.is_dir() => Err(Error::io(
             dir,
             std::io::Error::other("exists and is not a folder; pass a folder for the outputs"),

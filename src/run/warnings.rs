@@ -21,6 +21,11 @@ pub enum Warning {
         /// Images decoded so.
         images: usize,
     },
+    /// JPEG images: lossy, 8-bit, sRGB-encoded.
+    Lossy {
+        /// JPEG images among the inputs.
+        images: usize,
+    },
     /// Samples at or above the saturation level.
     Saturated {
         /// Saturated samples over all images.
@@ -93,6 +98,10 @@ impl fmt::Display for Warning {
             Warning::SrgbDecoded { images } => write!(
                 f,
                 "{images} 8-bit image(s) were decoded as sRGB-encoded (gamma) data; if they hold linear radiance, declare them linear"
+            ),
+            Warning::Lossy { images } => write!(
+                f,
+                "{images} image(s) are JPEG: 8-bit, sRGB-encoded and lossily compressed; they were decoded and linearised, but their compression artefacts and coarse steps add error to the normals (RAW, 16-bit TIFF/PNG or EXR keep the measurement)"
             ),
             Warning::Saturated { samples, used } => write!(
                 f,
@@ -185,6 +194,14 @@ pub(crate) fn warnings(
     let linearised = facts.info.iter().filter(|i| i.linearised).count();
     if linearised > 0 {
         warnings.push(Warning::SrgbDecoded { images: linearised });
+    }
+    let lossy = facts
+        .info
+        .iter()
+        .filter(|i| crate::io::decode::is_jpeg(&i.path))
+        .count();
+    if lossy > 0 {
+        warnings.push(Warning::Lossy { images: lossy });
     }
     let saturated: usize = facts.info.iter().map(|i| i.saturated).sum();
     if saturated > 0 {

@@ -103,11 +103,18 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
             f64::INFINITY
         }
     };
+    s.progress
+        .begin("shape from shading (fast marching)", n as u64);
+    let mut fixed = 0u64;
     while let Some(Trial(tk, k)) = heap.pop() {
         if done[k] || tk > t[k] {
             continue;
         }
         done[k] = true;
+        fixed += 1;
+        if fixed % 4096 == 0 {
+            s.progress.advance(4096);
+        }
         for j in [u.left[k], u.right[k], u.up[k], u.down[k]] {
             if j == NONE || done[j as usize] {
                 continue;
@@ -147,6 +154,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         p[k] = -nk.x / nk.z;
         q[k] = -nk.y / nk.z;
     }
+    s.progress.end();
     Ok(Solved {
         p,
         q,

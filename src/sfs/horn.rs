@@ -219,8 +219,11 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
     let mut iterations = 0;
     let mut converged = false;
     let mut values = Vec::with_capacity(pattern.len());
+    s.progress
+        .begin("shape from shading (Horn)", max_iter as u64);
     while iterations < max_iter {
         iterations += 1;
+        s.progress.advance(1);
         let rows = data(&z);
         let e0 = energy(&z, lambda);
         values.clear();
@@ -299,6 +302,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         };
         (p[k], q[k]) = clamp_gradient(a, b);
     }
+    s.progress.end();
     Ok(Solved {
         p,
         q,

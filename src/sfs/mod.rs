@@ -215,6 +215,8 @@ pub(crate) struct Shading<'a> {
     pub shadow: Vec<bool>,
     pub rmap: &'a ReflectanceMap,
     pub options: &'a SfsOptions,
+    /// Told of each iteration (iterative methods) or of each pixel fixed (fast marching).
+    pub progress: &'a dyn crate::progress::Progress,
 }
 
 /// What a solver returns, per unknown.
@@ -263,6 +265,23 @@ pub fn shape_from_shading(
     rmap: &ReflectanceMap,
     albedo: f64,
     options: &SfsOptions,
+) -> Result<SfsResult> {
+    shape_from_shading_with_progress(image, mask, rmap, albedo, options, &crate::progress::Silent)
+}
+
+/// [`shape_from_shading`], telling `progress` of each iteration (iterative methods, up to
+/// the iteration limit) or of each pixel fixed (fast marching): runs on large images take
+/// minutes.
+///
+/// # Errors
+/// As [`shape_from_shading`].
+pub fn shape_from_shading_with_progress(
+    image: &ScalarMap,
+    mask: &Mask,
+    rmap: &ReflectanceMap,
+    albedo: f64,
+    options: &SfsOptions,
+    progress: &dyn crate::progress::Progress,
 ) -> Result<SfsResult> {
     let start = Instant::now();
     image.check_same_size(mask, "mask")?;
@@ -334,6 +353,7 @@ pub fn shape_from_shading(
         shadow,
         rmap,
         options,
+        progress,
     };
     let solved = match options.method {
         SfsMethod::Horn => horn::solve(&shading)?,

@@ -210,7 +210,8 @@ impl ReflectanceMap {
             return Err(Error::param("levels", format!("{l} is not finite")));
         }
         const SIZE: f64 = 480.0;
-        const MARGIN: f64 = 40.0;
+        // Room for the two-line title above, the tick labels left and below.
+        const MARGIN: f64 = 64.0;
         let n = resolution;
         let step = 2.0 * extent / (n - 1) as f64;
         let values: Vec<f64> = (0..n * n)
@@ -274,30 +275,44 @@ impl ReflectanceMap {
             );
         }
         let s = self.light;
+        let levels_text = levels
+            .iter()
+            .map(|l| format!("{l}"))
+            .collect::<Vec<_>>()
+            .join(", ");
         let _ = writeln!(
             svg,
-            r#"<text x="{MARGIN}" y="{:.0}">R(p, q), light ({:.3}, {:.3}, {:.3}); contours at {}; red: shadow edge R = 0</text>"#,
-            MARGIN - 14.0,
-            s.x,
-            s.y,
-            s.z,
-            levels
-                .iter()
-                .map(|l| format!("{l}"))
-                .collect::<Vec<_>>()
-                .join(", ")
+            r#"<text x="{MARGIN}" y="22" font-size="14">R(p, q) under the light ({:.3}, {:.3}, {:.3})</text>"#,
+            s.x, s.y, s.z
         );
         let _ = writeln!(
             svg,
-            r#"<text x="{:.0}" y="{:.0}" text-anchor="middle">p (from {} to {})</text>"#,
+            r#"<text x="{MARGIN}" y="42">contours at {levels_text}; red: the shadow edge R = 0</text>"#
+        );
+        // Ticks and their values on both axes.
+        for k in 0..=4 {
+            let v = -extent + extent * k as f64 / 2.0;
+            let (x, _) = to_svg(v, 0.0);
+            let (_, y) = to_svg(0.0, v);
+            let label = format!("{}", (v * 100.0).round() / 100.0);
+            let _ = writeln!(
+                svg,
+                r##"<path d="M {x:.2} {:.2} v 5 M {MARGIN} {y:.2} h -5" stroke="black"/><text x="{x:.2}" y="{:.2}" text-anchor="middle">{label}</text><text x="{:.2}" y="{:.2}" text-anchor="end">{label}</text>"##,
+                MARGIN + SIZE,
+                MARGIN + SIZE + 18.0,
+                MARGIN - 8.0,
+                y + 4.0
+            );
+        }
+        let _ = writeln!(
+            svg,
+            r#"<text x="{:.0}" y="{:.0}" text-anchor="middle">p = ∂z/∂x</text>"#,
             MARGIN + SIZE / 2.0,
-            MARGIN + SIZE + 26.0,
-            -extent,
-            extent
+            MARGIN + SIZE + 40.0
         );
         let _ = writeln!(
             svg,
-            r#"<text x="14" y="{:.0}" transform="rotate(-90 14 {:.0})" text-anchor="middle">q</text>"#,
+            r#"<text x="18" y="{:.0}" transform="rotate(-90 18 {:.0})" text-anchor="middle">q = ∂z/∂y</text>"#,
             MARGIN + SIZE / 2.0,
             MARGIN + SIZE / 2.0
         );
@@ -498,6 +513,39 @@ mod tests {
         assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
         assert_eq!(svg.matches("<title>R = ").count(), 4);
         assert!(svg.contains("<circle"));
+        // Both axes carry their range, and no text runs past the drawing (about 7 px a
+        // character at 12 px, 8 at 14 px).
+        assert_eq!(svg.matches(r#"text-anchor="end">"#).count(), 5);
+        assert!(
+            svg.contains(&format!(">{extent}</text>"))
+                && svg.contains(&format!(">-{extent}</text>"))
+        );
+        let width: f64 = svg
+            .split("width=\"")
+            .nth(1)
+            .and_then(|t| t.split('"').next())
+            .and_then(|t| t.parse().ok())
+            .unwrap();
+        for line in svg.lines().filter(|l| l.starts_with("<text")) {
+            let x: f64 = line
+                .split("x=\"")
+                .nth(1)
+                .and_then(|t| t.split('"').next())
+                .and_then(|t| t.parse().ok())
+                .unwrap();
+            let text = line.split('>').nth(1).unwrap().trim_end_matches("</text");
+            let px = if line.contains("font-size=\"14\"") {
+                8.0
+            } else {
+                7.0
+            };
+            if !line.contains("text-anchor") {
+                assert!(
+                    x + px * text.chars().count() as f64 <= width,
+                    "clipped: {line}"
+                );
+            }
+        }
     }
 
     #[test]

@@ -45,8 +45,11 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
     };
     let mut iterations = 0;
     let mut converged = false;
+    s.progress
+        .begin("shape from shading (Tsai-Shah)", max_iter as u64);
     while iterations < max_iter {
         iterations += 1;
+        s.progress.advance(1);
         let change = next
             .par_iter_mut()
             .zip(gain.par_iter_mut())
@@ -74,6 +77,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         let (a, b) = grad(&z, k);
         (p[k], q[k]) = clamp_gradient(a, b);
     }
+    s.progress.end();
     Ok(Solved {
         p,
         q,
