@@ -309,7 +309,7 @@ fn bad_input_fails_cleanly() {
             .concat(),
             "matches no image",
         ),
-        // A missing image.
+        // A missing image: named as missing before lights are matched.
         (
             [
                 img_args[..9].to_vec(),
@@ -322,7 +322,7 @@ fn bad_input_fails_cleanly() {
                 ],
             ]
             .concat(),
-            "has no light",
+            "missing.exr: no such file",
         ),
         // An invalid parameter.
         (

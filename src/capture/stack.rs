@@ -78,6 +78,8 @@ pub struct ImageInfo {
     pub saturated: usize,
     /// Pixels of the stored window with a NaN or infinite value (excluded from solves).
     pub non_finite: usize,
+    /// How a camera RAW file was developed (`None` for other formats).
+    pub raw: Option<crate::io::raw::RawDevelopment>,
 }
 
 /// A stack of equally sized single- or three-channel images in linear radiance, each divided by
@@ -314,6 +316,7 @@ pub(crate) fn convert_into(
         linearised: linearise,
         saturated: c.saturated,
         non_finite: c.non_finite,
+        raw: raw.raw.clone(),
     };
     ((c.saturated > 0).then_some(c.bits), info)
 }
@@ -545,6 +548,7 @@ impl ImageStack {
                 linearised: false,
                 saturated: 0,
                 non_finite: img.iter().filter(|v| !v.is_finite()).count(),
+                raw: None,
             });
         }
         Ok(ImageStack {

@@ -191,6 +191,7 @@ impl BandReader {
             stride: self.stride,
             format: self.format,
             samples,
+            raw: None,
         })
     }
 }

@@ -88,6 +88,8 @@ pub(crate) struct RawDecoded {
     pub(crate) stride: usize,
     pub(crate) format: SampleFormat,
     pub(crate) samples: Samples,
+    /// How a camera RAW file was developed (`None` for other formats).
+    pub(crate) raw: Option<crate::io::raw::RawDevelopment>,
 }
 
 pub(crate) fn decode_raw(path: &Path, rows: Option<Range<usize>>) -> Result<RawDecoded> {
@@ -102,6 +104,11 @@ pub(crate) fn decode_raw(path: &Path, rows: Option<Range<usize>>) -> Result<RawD
         .is_some_and(|e| e.eq_ignore_ascii_case("png"));
     if is_png {
         return decode_png(path, rows);
+    }
+    if crate::io::raw::is_raw(path) {
+        let (mut decoded, development) = crate::io::raw::decode(path)?;
+        decoded.raw = Some(development);
+        return Ok(decoded);
     }
     let reader = image::ImageReader::open(path)
         .map_err(|e| Error::io(path, e))?
@@ -145,12 +152,12 @@ pub(crate) fn decode_raw(path: &Path, rows: Option<Range<usize>>) -> Result<RawD
         stride,
         format,
         samples,
+        raw: None,
     })
 }
 
 /// The image formats this tool reads, for messages.
-pub const READ_FORMATS: &str =
-    "EXR (half/float), PNG and TIFF (8/16-bit, grey or RGB) and JPEG (8-bit sRGB)";
+pub const READ_FORMATS: &str = "EXR (half/float), PNG and TIFF (8/16-bit, grey or RGB), JPEG (8-bit sRGB) and camera RAW (DNG, CR2, CR3, NEF, ARW, RAF, ORF, RW2, PEF, …)";
 
 /// Whether `path` names a JPEG file (by its extension): lossy 8-bit sRGB, read whole only.
 pub fn is_jpeg(path: &Path) -> bool {
@@ -271,6 +278,11 @@ pub fn image_size(path: &Path) -> Result<(usize, usize)> {
             reason: "no layer in file".into(),
         })?;
         return Ok((header.layer_size.width(), header.layer_size.height()));
+    }
+    if crate::io::raw::is_raw(path) {
+        // The developed size (2x2 quads of the active area) is known only after decoding.
+        let (d, _) = crate::io::raw::decode(path)?;
+        return Ok((d.width, d.height));
     }
     let (w, h) = image::ImageReader::open(path)
         .map_err(|e| Error::io(path, e))?

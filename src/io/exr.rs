@@ -116,6 +116,7 @@ pub(crate) fn decode_exr(path: &Path) -> Result<RawDecoded> {
         stride: channels,
         format,
         samples: Samples::F32(data),
+        raw: None,
     })
 }
 

@@ -10,6 +10,7 @@
 //!   normal maps and the sRGB transfer function.
 //! - `bands` (private): the row-band reader over the three formats; `encode` (private): the
 //!   writer threads that feed the band encoders.
+//! - [`raw`]: camera RAW (with the `raw` feature), developed linearly, every choice recorded.
 //! - [`mesh`]: depth map → triangle mesh → PLY.
 
 pub(crate) mod bands;
@@ -19,6 +20,7 @@ pub(crate) mod exr;
 pub mod mesh;
 pub mod output;
 pub(crate) mod png;
+pub mod raw;
 pub(crate) mod tiff;
 
 pub use output::OutputDir;

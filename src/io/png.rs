@@ -88,6 +88,7 @@ pub(crate) fn decode_png(path: &Path, rows: Option<Range<usize>>) -> Result<RawD
         stride,
         format,
         samples,
+        raw: None,
     })
 }
 

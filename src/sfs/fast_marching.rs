@@ -112,7 +112,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         }
         done[k] = true;
         fixed += 1;
-        if fixed % 4096 == 0 {
+        if fixed.is_multiple_of(4096) {
             s.progress.advance(4096);
         }
         for j in [u.left[k], u.right[k], u.up[k], u.down[k]] {

@@ -662,6 +662,7 @@ mod tests {
                 linearised: false,
                 saturated: if k < 2 { 3 + k } else { 0 },
                 non_finite: 0,
+                raw: None,
             })
             .collect();
         let facts = InputFacts {

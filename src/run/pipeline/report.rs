@@ -57,6 +57,10 @@ pub struct InputSummary {
     pub saturated_samples: usize,
     /// Grey mix or per-channel.
     pub color: ColorMode,
+    /// How camera RAW inputs were developed (black and white levels, white balance, binning;
+    /// those of the first image), when they are RAW.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub raw: Option<crate::io::raw::RawDevelopment>,
 }
 
 impl InputSummary {
@@ -101,6 +105,7 @@ impl InputSummary {
             linearised_images: info.iter().filter(|i| i.linearised).count(),
             saturated_samples: info.iter().map(|i| i.saturated).sum(),
             color: ColorMode::Grey,
+            raw: info.first().and_then(|i| i.raw.clone()),
         }
     }
 }
