@@ -295,6 +295,7 @@ fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
             plan.resident_bytes >> 20,
             plan.in_memory_stack_bytes >> 20
         );
+        photostereo::run::html::write_report_html(&rc.output, &report)?;
         print_summary(&report, &rc.output);
         return Ok(());
     }
@@ -306,6 +307,7 @@ fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
         reconstruct_and_write(&capture, &rc.config, &rc.output, load_s, progress, |_| {
             Ok(None)
         })?;
+    photostereo::run::html::write_report_html(&rc.output, &report)?;
     print_summary(&report, &rc.output);
     Ok(())
 }
@@ -351,6 +353,7 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
         &a.output.join("scene"),
         photostereo::synth::write::ImageFormat::Exr,
     )?;
+    photostereo::run::html::write_report_html(&a.output, &report)?;
     print_summary(&report, &a.output);
     say!("error against ground truth:");
     let n = &eval.normals;
@@ -739,7 +742,16 @@ fn print_summary(report: &Report, dir: &Path) {
         t.integrate,
         t.write
     );
-    say!("  wrote {} ({})", dir.display(), report.outputs.join(", "));
+    say!(
+        "  wrote {} ({}{})",
+        dir.display(),
+        report.outputs.join(", "),
+        if dir.join("report.html").is_file() {
+            ", report.html"
+        } else {
+            ""
+        }
+    );
     for w in &report.warnings {
         eprintln!("warning: {w}{}", flag_hint(w));
     }

@@ -365,7 +365,7 @@ fn existing_or_unwritable_output_is_refused() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let files = listing(&out);
     assert!(files.contains(&"notes.txt".to_string()) && files.contains(&"depth.exr".to_string()));
-    assert_eq!(files.len(), 11, "{files:?}");
+    assert_eq!(files.len(), 12, "{files:?}"); // the outputs, report.html and notes.txt
     // An empty existing folder is fine.
     let empty = tmp.path().join("empty");
     std::fs::create_dir(&empty).unwrap();

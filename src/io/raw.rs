@@ -196,14 +196,14 @@ mod imp {
                         let mut sum = [0.0f32; 3];
                         let mut count = [0u32; 3];
                         let mut saturated = false;
-                        for k in 0..4 {
+                        for (k, &white) in whites4.iter().enumerate() {
                             let (row, col) = (ay + 2 * qy + k / 2, ax + 2 * qx + k % 2);
                             let colour = c.color_at(row, col);
                             if colour > 2 {
                                 continue;
                             }
                             let raw_v = data[row * w + col];
-                            let (black, white) = (black_at(row, col, 0), whites4[k]);
+                            let black = black_at(row, col, 0);
                             saturated |= raw_v >= white;
                             let range = (white - black).max(1.0);
                             sum[colour] += ((raw_v - black) / range).max(0.0);

@@ -9,9 +9,11 @@
 //! - `bands` (private): the band loop both kinds of run go through — a source of bands (the
 //!   whole stack, or bands decoded from the files), the solve under one image model, a sink.
 //! - [`warnings`]: what the user should know about a finished run, as data.
+//! - [`html`]: `report.html`, the run's outputs and figures on one self-contained page.
 
 pub(crate) mod band_output;
 pub(crate) mod bands;
+pub mod html;
 pub mod pipeline;
 pub mod stream;
 pub mod warnings;
