@@ -2,10 +2,11 @@
 //!
 //! Lights given as a plain list (one direction per line, or JSON entries that name no file)
 //! are paired with the images by position. A shell expands `cat.*.png` in text order, so
-//! `cat.10.png` comes before `cat.2.png`; with a plain list written in capture order, every
-//! image from the tenth on gets another image's light. Nothing in the numbers shows it: the
-//! solve still fits, only less well (31.6° off on DiLiGenT cat renamed `cat.1.png` …
-//! `cat.96.png`), so the mistake must be caught from the names.
+//! `cat.10.png` comes before `cat.2.png`; with a plain list written in capture order, most
+//! images get another image's light. Nothing in the numbers shows it: the solve still fits,
+//! only less well (DiLiGenT cat renamed `cat.1.png` … `cat.96.png` with its plain
+//! `light_directions.txt`: normals 25.4° off those of the right pairing), so the mistake must
+//! be caught from the names.
 //!
 //! [`text_sorted_numbering`] finds it: the images are in exactly the order a text sort gives,
 //! and that order differs from the natural one (digit runs compared as numbers). An order

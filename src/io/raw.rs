@@ -22,7 +22,7 @@
 //! white and balance steps. Other CFA layouts (X-Trans, 4-colour) are refused by name.
 
 use crate::error::{Error, Result};
-use crate::io::decode::{RawDecoded, SampleFormat, Samples};
+use crate::io::decode::RawDecoded;
 use serde::Serialize;
 use std::path::Path;
 
@@ -86,6 +86,7 @@ mod imp {
 #[cfg(feature = "raw")]
 mod imp {
     use super::*;
+    use crate::io::decode::{SampleFormat, Samples};
     use rawler::rawimage::{RawImageData, RawPhotometricInterpretation};
 
     pub(super) fn decode(path: &Path) -> Result<(RawDecoded, RawDevelopment)> {
