@@ -72,7 +72,7 @@ pub enum Command {
 /// Reconstruction of user images.
 #[derive(Debug, Args)]
 pub struct RunArgs {
-    /// Image files (EXR, PNG, TIFF, JPEG), one per light; or one folder in the DiLiGenT layout; or
+    /// Image files (EXR, PNG, TIFF, JPEG, camera RAW), one per light; or one folder in the DiLiGenT layout; or
     /// one image list (`<name>.txt`: the count, the image paths, optionally the mask).
     #[arg(value_name = "INPUTS")]
     pub inputs: Vec<PathBuf>,
@@ -1008,7 +1008,7 @@ pub struct CalibrateArgs {
 /// `sfs` options.
 #[derive(Debug, Args)]
 pub struct SfsArgs {
-    /// The image (EXR, PNG, TIFF or JPEG; RGB is mixed to grey; 8-bit is decoded as sRGB).
+    /// The image (EXR, PNG, TIFF, JPEG or camera RAW; RGB is mixed to grey; 8-bit is decoded as sRGB).
     #[arg(value_name = "IMAGE")]
     pub image: PathBuf,
     /// Light direction x,y,z (towards the light; x right, y up, z to the camera); estimated from
