@@ -2,6 +2,8 @@
 //! files written to a temporary folder, loaded with `read_image`, `load_stack`, `read_mask` and
 //! `image_size`, and checked against the exact values the documentation promises.
 
+mod common;
+
 use exr::prelude::{
     AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, SmallVec,
     WritableImage, f16,
@@ -1565,24 +1567,11 @@ fn window_stores_only_those_pixels() {
 #[test]
 fn jpeg_is_read_linearised_and_reported_lossy() {
     use photostereo::capture::dataset::CaptureFiles;
-    use photostereo::eval::demo::synthesize;
     use photostereo::eval::metrics::angular_errors;
     use photostereo::run::{Config, Warning, reconstruct};
-    use photostereo::synth::render::RenderOptions;
-    use photostereo::synth::scene::{Albedo, Scene};
     use photostereo::synth::write::{ImageFormat, write_synthetic};
     let dir = tempfile::tempdir().unwrap();
-    let scene = Scene::sphere(
-        96,
-        40.0,
-        Albedo::Smooth {
-            mean: 0.6,
-            amplitude: 0.2,
-            period: 23.0,
-        },
-    );
-    let lights = Lights::fibonacci(10, 30.0).unwrap();
-    let synth = synthesize(scene, lights.clone(), &RenderOptions::default()).unwrap();
+    let (synth, lights) = common::sphere_synth();
     write_synthetic(
         &synth.rendering,
         &lights,
@@ -1591,13 +1580,8 @@ fn jpeg_is_read_linearised_and_reported_lossy() {
     )
     .unwrap();
     // A plain list of directions, so the JPEG files pair by position.
-    let text: String = lights
-        .directions()
-        .iter()
-        .map(|d| format!("{} {} {}\n", d.x, d.y, d.z))
-        .collect();
     let list = dir.path().join("lights.txt");
-    std::fs::write(&list, text).unwrap();
+    common::write_plain_lights(&list, &lights);
     let png: Vec<PathBuf> = (0..10)
         .map(|k| dir.path().join(format!("img_{k:03}.png")))
         .collect();

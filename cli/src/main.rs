@@ -198,7 +198,9 @@ fn available_memory() -> Option<u64> {
 
 /// Bytes an in-memory run of `files` needs: the stack (the mask's window of every image, f32
 /// per channel) and the maps, integration included.
-fn in_memory_bytes(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<u64>> {
+/// With `window_only` false the mask is not read and the whole frame is counted: an upper
+/// bound, enough when it already fits.
+fn in_memory_bytes(rc: &RunConfig, files: &CaptureFiles, window_only: bool) -> Result<Option<u64>> {
     let Some(first) = files.images.first() else {
         return Ok(None);
     };
@@ -210,14 +212,14 @@ fn in_memory_bytes(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<u64>> 
     };
     // Only the window the mask spans is stored; the mask is small to read.
     let (window, masked) = match &files.mask_source {
-        Some(m) => {
+        Some(m) if window_only => {
             let mask = photostereo::io::decode::read_mask(m)?;
             let window = mask
                 .bounding_box()
                 .map_or(w * h, |b| b.width() * b.height());
             (window, mask.count())
         }
-        None => (w * h, w * h),
+        _ => (w * h, w * h),
     };
     let stack = files.images.len() as u64 * channels * window as u64 * 4;
     let resident =
@@ -233,7 +235,7 @@ fn in_memory_bytes(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<u64>> 
 fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOptions>> {
     if let Some(options) = rc.stream {
         if rc.band_rows.is_none()
-            && let Some(need) = in_memory_bytes(rc, files)?
+            && let Some(need) = in_memory_bytes(rc, files, true)?
             && need <= options.max_memory
         {
             say!(
@@ -263,10 +265,16 @@ fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOption
     let Some(available) = available else {
         return Ok(None);
     };
-    let Some(need) = in_memory_bytes(rc, files)? else {
+    let limit = 0.8 * available as f64;
+    // Most runs fit by the whole-frame bound, without reading the mask an extra time.
+    let fits = |need: Option<u64>| need.is_none_or(|n| n as f64 <= limit);
+    if fits(in_memory_bytes(rc, files, false)?) {
+        return Ok(None);
+    }
+    let Some(need) = in_memory_bytes(rc, files, true)? else {
         return Ok(None);
     };
-    if need as f64 > 0.8 * available as f64 {
+    if need as f64 > limit {
         say!(
             "the run needs about {} MiB in memory and {} MiB are available: streaming the images in row bands within {} MiB (set the budget with --max-memory)",
             need.div_ceil(1 << 20),
@@ -613,11 +621,7 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
         channels.push(("wu", wu.data()));
         channels.push(("wv", wv.data()));
     }
-    let units = match &options.camera {
-        None => "Z: height towards the camera in pixel units (orthographic), larger is nearer"
-            .to_string(),
-        Some(_) => "Z: depth along the optical axis, up to scale, larger is farther".to_string(),
-    };
+    let units = photostereo::run::pipeline::exr_units("depth.exr", options.camera.as_ref());
     // `auto` names its choice.
     let used = match &r.auto {
         Some(d) => format!("auto ({})", d.chosen.name()),

@@ -95,13 +95,11 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         ),
         (
             "photostereo:units",
-            "Z: height towards the camera in pixel units (orthographic), larger is nearer"
-                .to_string(),
+            photostereo::run::pipeline::exr_units("depth.exr", None),
         ),
     ];
     let mut normal_attrs = attrs.clone();
-    normal_attrs[2].1 =
-        "R, G, B: unit surface normal n_x, n_y, n_z (dimensionless), NaN where unsolved".into();
+    normal_attrs[2].1 = photostereo::run::pipeline::exr_units("normal.exr", None);
     let mut out = OutputDir::create(&a.output)?;
     out.stage_exr(
         "depth.exr",

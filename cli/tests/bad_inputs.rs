@@ -257,28 +257,8 @@ fn error_cases(root: &Path, out: &Path) -> Vec<Case> {
     );
     // Numbered images as a shell sorts them (frame.1, frame.10, frame.2, …) with a plain list
     // of lights: refused, with the numeric order and the way out.
-    let (d, imgs) = dataset(root, "numbered");
-    let mut renamed: Vec<PathBuf> = imgs
-        .iter()
-        .enumerate()
-        .map(|(k, p)| {
-            let to = d.join(format!("frame.{}.exr", k + 1));
-            std::fs::rename(p, &to).unwrap();
-            to
-        })
-        .collect();
+    let (_, mut renamed, text) = common::numbered_dataset(root);
     renamed.sort();
-    let text = d.join("lights.txt");
-    let lights = photostereo::capture::lights::Lights::fibonacci(10, 30.0).unwrap();
-    std::fs::write(
-        &text,
-        lights
-            .directions()
-            .iter()
-            .map(|v| format!("{} {} {}\n", v.x, v.y, v.z))
-            .collect::<String>(),
-    )
-    .unwrap();
     add(
         "numbered images in text order with a plain list of lights",
         main_args(&renamed, &text, &[], out),

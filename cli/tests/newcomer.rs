@@ -6,8 +6,7 @@
 #[path = "../../tests/common/mod.rs"]
 mod common;
 
-use common::{listing, run, sphere_dataset};
-use photostereo::capture::lights::Lights;
+use common::{listing, numbered_dataset, run, sphere_dataset};
 use photostereo::synth::write::ImageFormat;
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
@@ -25,33 +24,6 @@ fn ok(args: &[OsString]) -> (String, String) {
 
 fn args(parts: &[&dyn AsRef<std::ffi::OsStr>]) -> Vec<OsString> {
     parts.iter().map(|p| p.as_ref().to_owned()).collect()
-}
-
-/// The sphere set renamed `frame.1.exr … frame.10.exr` with a plain list of lights; returns
-/// the folder, the images in numeric order and the lights file.
-fn numbered(root: &Path) -> (PathBuf, Vec<PathBuf>, PathBuf) {
-    let dir = root.join("numbered");
-    let images: Vec<PathBuf> = sphere_dataset(&dir, ImageFormat::Exr)
-        .into_iter()
-        .enumerate()
-        .map(|(k, p)| {
-            let to = dir.join(format!("frame.{}.exr", k + 1));
-            std::fs::rename(p, &to).unwrap();
-            to
-        })
-        .collect();
-    let lights = Lights::fibonacci(10, 30.0).unwrap();
-    let text = dir.join("lights.txt");
-    std::fs::write(
-        &text,
-        lights
-            .directions()
-            .iter()
-            .map(|v| format!("{} {} {}\n", v.x, v.y, v.z))
-            .collect::<String>(),
-    )
-    .unwrap();
-    (dir, images, text)
 }
 
 fn mean_deg(normals: &Path, gt: &Path, mask: &Path) -> f64 {
@@ -74,7 +46,7 @@ fn mean_deg(normals: &Path, gt: &Path, mask: &Path) -> f64 {
 #[test]
 fn numbered_images_sorted_as_text_are_put_right_or_refused() {
     let tmp = tempfile::tempdir().unwrap();
-    let (dir, images, lights) = numbered(tmp.path());
+    let (dir, images, lights) = numbered_dataset(tmp.path());
     let mut shell = images.clone();
     shell.sort();
     assert_ne!(shell, images);

@@ -126,13 +126,8 @@ fn dng_captures_reconstruct_linearly_with_the_development_reported() {
         .fold(0.0f32, f32::max);
     assert!(worst < 2e-4, "developed samples are off by up to {worst}");
 
-    let text: String = lights
-        .directions()
-        .iter()
-        .map(|d| format!("{} {} {}\n", d.x, d.y, d.z))
-        .collect();
     let lights_txt = tmp.path().join("lights.txt");
-    std::fs::write(&lights_txt, text).unwrap();
+    common::write_plain_lights(&lights_txt, &lights);
     let mask = tmp.path().join("mask.png");
     let m: Vec<u8> = synth
         .truth

@@ -530,39 +530,50 @@ pub fn normal_preview(normals: &NormalMap) -> Vec<u8> {
     out
 }
 
+/// The factor that turns `depth` into a height towards the camera in pixel units: 1 for an
+/// orthographic map (already one); under a pinhole `camera`, where depth is along the optical
+/// axis up to scale (larger is farther), −f/Z̄ with f the mean focal length in pixels and Z̄ the
+/// median finite depth, since a pixel spans Z̄/f at the object's distance.
+pub fn height_scale(depth: &ScalarMap, camera: Option<&crate::camera::Intrinsics>) -> f32 {
+    let Some(k) = camera else {
+        return 1.0;
+    };
+    let mut finite: Vec<f32> = depth
+        .data()
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .collect();
+    let median = if finite.is_empty() {
+        1.0
+    } else {
+        let mid = finite.len() / 2;
+        *finite.select_nth_unstable_by(mid, f32::total_cmp).1
+    };
+    let f = 0.5 * (k.fx + k.fy) as f32;
+    if median.abs() > f32::MIN_POSITIVE && f.is_finite() {
+        -f / median
+    } else {
+        -1.0
+    }
+}
+
 /// A depth map shown as a shaded relief (normals of the depth map lit from the upper left),
 /// black where undefined.
 ///
 /// Without `camera` the map is an orthographic height in pixel units (larger is nearer). With
 /// one, it is depth along the optical axis up to scale (larger is farther), whose changes from
 /// pixel to pixel are a tiny fraction of its value; it is first turned into a height in pixel
-/// units at the object's median distance Z̄, h = −Z·f/Z̄ with f the mean focal length in
-/// pixels, so that the relief shows the object's slopes (a pixel spans Z̄/f there).
+/// units at the object's median distance ([`height_scale`]), so that the relief shows the
+/// object's slopes.
 pub fn depth_preview(depth: &ScalarMap, camera: Option<&crate::camera::Intrinsics>) -> Vec<u8> {
     let (w, h) = (depth.width(), depth.height());
     let l = nalgebra::Vector3::new(-1.0f32, 1.0, 1.0).normalize();
     let scaled: Vec<f32>;
     let d = match camera {
         None => depth.data(),
-        Some(k) => {
-            let mut finite: Vec<f32> = depth
-                .data()
-                .iter()
-                .copied()
-                .filter(|v| v.is_finite())
-                .collect();
-            let median = if finite.is_empty() {
-                1.0
-            } else {
-                let mid = finite.len() / 2;
-                *finite.select_nth_unstable_by(mid, f32::total_cmp).1
-            };
-            let f = 0.5 * (k.fx + k.fy) as f32;
-            let s = if median.abs() > f32::MIN_POSITIVE && f.is_finite() {
-                -f / median
-            } else {
-                -1.0
-            };
+        Some(_) => {
+            let s = height_scale(depth, camera);
             scaled = depth.data().iter().map(|v| v * s).collect();
             &scaled
         }

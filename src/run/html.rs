@@ -276,25 +276,7 @@ fn mesh_json(z: &crate::grid::ScalarMap, camera: Option<&crate::camera::Intrinsi
     let (w, h) = (z.width(), z.height());
     let step = w.max(h).div_ceil(MESH_SIDE).max(1);
     let (mw, mh) = (w.div_ceil(step), h.div_ceil(step));
-    let finite: Vec<f32> = z.data().iter().copied().filter(|v| v.is_finite()).collect();
-    let scale = match camera {
-        None => 1.0,
-        Some(k) => {
-            let mut f = finite.clone();
-            let median = if f.is_empty() {
-                1.0
-            } else {
-                let mid = f.len() / 2;
-                *f.select_nth_unstable_by(mid, f32::total_cmp).1
-            };
-            let focal = 0.5 * (k.fx + k.fy) as f32;
-            if median.abs() > f32::MIN_POSITIVE {
-                -focal / median
-            } else {
-                -1.0
-            }
-        }
-    };
+    let scale = crate::io::output::height_scale(z, camera);
     let mut out = format!("{{\"w\":{mw},\"h\":{mh},\"step\":{step},\"z\":[");
     for my in 0..mh {
         for mx in 0..mw {

@@ -2,7 +2,7 @@
 #![allow(dead_code)]
 
 use photostereo::capture::lights::Lights;
-use photostereo::eval::demo::synthesize;
+use photostereo::eval::demo::{SyntheticCapture, synthesize};
 use photostereo::synth::render::RenderOptions;
 use photostereo::synth::scene::{Albedo, Scene};
 use photostereo::synth::write::{ImageFormat, write_synthetic};
@@ -65,9 +65,9 @@ pub fn os<S: AsRef<std::ffi::OsStr> + ?Sized>(s: &S) -> &std::ffi::OsStr {
     s.as_ref()
 }
 
-/// A noise-free sphere data set written as EXR files with `lights.json`; returns the image
-/// paths in file order.
-pub fn sphere_dataset(dir: &Path, format: ImageFormat) -> Vec<PathBuf> {
+/// The noise-free sphere the data sets below are rendered from: a 96² sphere with a smooth
+/// albedo under 10 Fibonacci lights; returns the rendering and its lights.
+pub fn sphere_synth() -> (SyntheticCapture, Lights) {
     let scene = Scene::sphere(
         96,
         40.0,
@@ -79,10 +79,46 @@ pub fn sphere_dataset(dir: &Path, format: ImageFormat) -> Vec<PathBuf> {
     );
     let lights = Lights::fibonacci(10, 30.0).unwrap();
     let synth = synthesize(scene, lights.clone(), &RenderOptions::default()).unwrap();
+    (synth, lights)
+}
+
+/// A noise-free sphere data set ([`sphere_synth`]) written in `format` with `lights.json`;
+/// returns the image paths in file order.
+pub fn sphere_dataset(dir: &Path, format: ImageFormat) -> Vec<PathBuf> {
+    let (synth, lights) = sphere_synth();
     write_synthetic(&synth.rendering, &lights, dir, format).unwrap();
     (0..10)
         .map(|k| dir.join(format!("img_{k:03}.{}", format.extension())))
         .collect()
+}
+
+/// Writes `lights` as a plain list, one `x y z` line per light, which pairs with the images
+/// by position.
+pub fn write_plain_lights(path: &Path, lights: &Lights) {
+    let text: String = lights
+        .directions()
+        .iter()
+        .map(|d| format!("{} {} {}\n", d.x, d.y, d.z))
+        .collect();
+    std::fs::write(path, text).unwrap();
+}
+
+/// The sphere set in `root/numbered`, renamed `frame.1.exr … frame.10.exr`, with a plain list
+/// of lights; returns the folder, the images in numeric order and the lights file.
+pub fn numbered_dataset(root: &Path) -> (PathBuf, Vec<PathBuf>, PathBuf) {
+    let dir = root.join("numbered");
+    let images: Vec<PathBuf> = sphere_dataset(&dir, ImageFormat::Exr)
+        .into_iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let to = dir.join(format!("frame.{}.exr", k + 1));
+            std::fs::rename(p, &to).unwrap();
+            to
+        })
+        .collect();
+    let text = dir.join("lights.txt");
+    write_plain_lights(&text, &Lights::fibonacci(10, 30.0).unwrap());
+    (dir, images, text)
 }
 
 /// Files in a folder (names), sorted.

@@ -22,11 +22,20 @@ pub const OUTPUT_FILES: [&str; 10] = [
 pub(super) const ORTHOGRAPHIC_UNITS: &str =
     "Z: height towards the camera in pixel units (orthographic), larger is nearer";
 
-/// What the values of the EXR output `file` are, for its `photostereo:units` attribute: each
-/// file says what its own channels hold (depth and curl under a camera differ from the
-/// orthographic ones). ASCII only: EXR text attributes are Latin-1, and others are dropped.
+/// What the values of the EXR output `file` of a run under `config` are ([`exr_units`]).
 pub(crate) fn units_of(file: &str, config: &Config) -> String {
-    let camera = config.integration.as_ref().and_then(|o| o.camera.as_ref());
+    exr_units(
+        file,
+        config.integration.as_ref().and_then(|o| o.camera.as_ref()),
+    )
+}
+
+/// What the values of the EXR output `file` (`normal.exr`, `albedo.exr`, `residual.exr`,
+/// `curl.exr`, or a depth map for any other name) are, for its `photostereo:units` attribute:
+/// each file says what its own channels hold; depth and curl under a pinhole `camera` differ
+/// from the orthographic ones. ASCII only: EXR text attributes are Latin-1, and others are
+/// dropped.
+pub fn exr_units(file: &str, camera: Option<&crate::camera::Intrinsics>) -> String {
     match (file, camera) {
         ("normal.exr", _) => {
             "R, G, B: unit surface normal n_x, n_y, n_z (dimensionless), NaN where unsolved".into()
