@@ -209,6 +209,18 @@ fn a_budget_too_small_is_refused_naming_max_memory() {
     .unwrap_err();
     let text = err.to_string();
     assert!(text.contains("max-memory"), "{text}");
+    // A run that integrates nothing is not told to integrate with less, or not at all.
+    let none = Config {
+        integration: None,
+        ..Config::default()
+    };
+    let text = reconstruct_streamed(&files, &LoadOptions::default(), &none, &options, &Silent)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        text.ends_with("raise it") && !text.contains("integrat"),
+        "{text}"
+    );
 }
 
 #[test]
