@@ -65,7 +65,7 @@ impl Intrinsics {
     /// [`Error::Io`] when unreadable; [`Error::InvalidParameter`] naming the file when it does not
     /// hold a valid K.
     pub fn from_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = crate::io::input::read_text(path)?;
         let values: Vec<f64> = text
             .split(|c: char| c.is_whitespace() || c == ',' || c == ';' || c == '[' || c == ']')
             .filter(|t| !t.is_empty())

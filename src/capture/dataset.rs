@@ -286,7 +286,7 @@ impl CaptureFiles {
                 });
             }
         }
-        let text = std::fs::read_to_string(&list).map_err(|e| Error::io(&list, e))?;
+        let text = crate::io::input::read_text(&list)?;
         let images: Vec<PathBuf> = text
             .lines()
             .map(str::trim)
@@ -378,7 +378,7 @@ pub struct ImageList {
 pub fn is_image_list(path: &Path) -> bool {
     path.extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("txt"))
-        && std::fs::read_to_string(path).is_ok_and(|t| {
+        && crate::io::input::read_text(path).is_ok_and(|t| {
             let mut lines = t.lines().map(str::trim).filter(|l| !l.is_empty());
             lines.next().is_some_and(|l| l.parse::<usize>().is_ok())
                 && lines
@@ -395,7 +395,7 @@ pub fn is_image_list(path: &Path) -> bool {
 /// [`Error::Io`] when unreadable; [`Error::Dataset`] naming the line when the count is missing,
 /// the lines do not match it, or an image cannot be found.
 pub fn read_image_list(path: &Path) -> Result<ImageList> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let text = crate::io::input::read_text(path)?;
     let bad = |reason: String| Error::Dataset {
         path: path.to_path_buf(),
         reason,

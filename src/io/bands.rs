@@ -42,6 +42,8 @@ pub(crate) enum Kind {
         /// Next row the stream will give.
         next: usize,
         sixteen: bool,
+        /// The stream was read to its end (every chunk's checksum verified).
+        done: bool,
     },
     Tiff {
         decoder: Box<tiff::decoder::Decoder<BufReader<File>>>,
@@ -107,6 +109,26 @@ impl BandReader {
         }
     }
 
+    /// Reads the rest of the file after the last band (a band run can stop above the last
+    /// row), so that the checksum of the chunk that held the last row read is verified (PNG;
+    /// the other formats check each block as they read it).
+    ///
+    /// # Errors
+    /// [`Error::Decode`] naming the file for a checksum that does not match.
+    pub(crate) fn verify_rest(&mut self) -> Result<()> {
+        if let Kind::Png { reader, done, .. } = &mut self.kind
+            && !*done
+        {
+            let path = &self.path;
+            reader.finish().map_err(|e| match e {
+                png::DecodingError::IoError(io) => Error::io(path, io),
+                other => decode_error(path, other),
+            })?;
+            *done = true;
+        }
+        Ok(())
+    }
+
     /// Image width and height.
     pub(crate) fn size(&self) -> (usize, usize) {
         (self.width, self.height)
@@ -146,6 +168,7 @@ impl BandReader {
                 line,
                 next,
                 sixteen,
+                done,
             } => {
                 let path = &self.path;
                 let bad = |e: png::DecodingError| match e {
@@ -161,6 +184,11 @@ impl BandReader {
                 for row in buf.chunks_exact_mut((*line).max(1)) {
                     reader.read_row(row).map_err(bad)?;
                     *next += 1;
+                }
+                if *next == self.height && !*done {
+                    // Read to the end, so that the checksums of the last chunks are verified.
+                    reader.finish().map_err(bad)?;
+                    *done = true;
                 }
                 if *sixteen {
                     Samples::U16Be(buf)

@@ -6,6 +6,7 @@
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap};
 use crate::io::exr::decode_exr;
+use crate::io::input::{check_declared_size, open_input};
 use crate::io::png::decode_png;
 use nalgebra::Vector3;
 use serde::Serialize;
@@ -92,6 +93,44 @@ pub(crate) struct RawDecoded {
     pub(crate) raw: Option<crate::io::raw::RawDevelopment>,
 }
 
+/// The `image` crate's error for `path` as this crate's.
+fn image_error(path: &Path, e: image::ImageError) -> Error {
+    match e {
+        image::ImageError::IoError(io) => Error::io(path, io),
+        image::ImageError::Unsupported(u) => Error::UnsupportedImage {
+            path: path.to_path_buf(),
+            reason: format!("{u}; {READ_FORMATS} are read"),
+        },
+        other => Error::Decode {
+            path: path.to_path_buf(),
+            reason: other.to_string(),
+        },
+    }
+}
+
+/// A decoder of the `image` crate (TIFF, JPEG and the other formats it reads) over the regular
+/// file `path`, its header read and the size it declares checked ([`check_declared_size`])
+/// (at most `max_samples`) before any pixel is decoded.
+fn generic_decoder(path: &Path, max_samples: usize) -> Result<impl image::ImageDecoder> {
+    use image::ImageDecoder as _;
+    let (file, file_len) = open_input(path)?;
+    let decoder = image::ImageReader::new(std::io::BufReader::new(file))
+        .with_guessed_format()
+        .map_err(|e| Error::io(path, e))?
+        .into_decoder()
+        .map_err(|e| image_error(path, e))?;
+    let (w, h) = decoder.dimensions();
+    check_declared_size(
+        path,
+        (w as usize, h as usize),
+        usize::from(decoder.color_type().channel_count()),
+        decoder.total_bytes(),
+        file_len,
+        max_samples,
+    )?;
+    Ok(decoder)
+}
+
 pub(crate) fn decode_raw(path: &Path, rows: Option<Range<usize>>) -> Result<RawDecoded> {
     let is_exr = path
         .extension()
@@ -110,21 +149,8 @@ pub(crate) fn decode_raw(path: &Path, rows: Option<Range<usize>>) -> Result<RawD
         decoded.raw = Some(development);
         return Ok(decoded);
     }
-    let reader = image::ImageReader::open(path)
-        .map_err(|e| Error::io(path, e))?
-        .with_guessed_format()
-        .map_err(|e| Error::io(path, e))?;
-    let img = reader.decode().map_err(|e| match e {
-        image::ImageError::IoError(io) => Error::io(path, io),
-        image::ImageError::Unsupported(u) => Error::UnsupportedImage {
-            path: path.to_path_buf(),
-            reason: format!("{u}; {READ_FORMATS} are read"),
-        },
-        other => Error::Decode {
-            path: path.to_path_buf(),
-            reason: other.to_string(),
-        },
-    })?;
+    let decoder = generic_decoder(path, MAX_IMAGE_SAMPLES)?;
+    let img = image::DynamicImage::from_decoder(decoder).map_err(|e| image_error(path, e))?;
     let (width, height) = (img.width() as usize, img.height() as usize);
     use image::DynamicImage as D;
     let (channels, stride, format, samples) = match img {
@@ -266,13 +292,7 @@ pub fn image_size(path: &Path) -> Result<(usize, usize)> {
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("exr"));
     if is_exr {
-        let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| match e {
-            exr::error::Error::Io(io) => Error::io(path, io),
-            other => Error::Decode {
-                path: path.to_path_buf(),
-                reason: other.to_string(),
-            },
-        })?;
+        let (meta, _) = crate::io::exr::read_exr_meta(path, crate::io::input::MAX_STREAM_SAMPLES)?;
         let header = meta.headers.first().ok_or_else(|| Error::Decode {
             path: path.to_path_buf(),
             reason: "no layer in file".into(),
@@ -284,15 +304,8 @@ pub fn image_size(path: &Path) -> Result<(usize, usize)> {
         let (d, _) = crate::io::raw::decode(path)?;
         return Ok((d.width, d.height));
     }
-    let (w, h) = image::ImageReader::open(path)
-        .map_err(|e| Error::io(path, e))?
-        .with_guessed_format()
-        .map_err(|e| Error::io(path, e))?
-        .into_dimensions()
-        .map_err(|e| Error::Decode {
-            path: path.to_path_buf(),
-            reason: e.to_string(),
-        })?;
+    use image::ImageDecoder as _;
+    let (w, h) = generic_decoder(path, crate::io::input::MAX_STREAM_SAMPLES)?.dimensions();
     Ok((w as usize, h as usize))
 }
 

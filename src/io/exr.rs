@@ -7,6 +7,7 @@ use crate::grid::Grid;
 use crate::io::bands::{BandReader, Kind, decode_error, unsupported};
 use crate::io::decode::{MAX_IMAGE_SAMPLES, RawDecoded, SampleFormat, Samples};
 use crate::io::encode::Pipe;
+use crate::io::input::{MAX_STREAM_SAMPLES, check_declared_size, open_input};
 use crate::io::output::{ExrChannel, PendingFile};
 use exr::block::UncompressedBlock;
 use exr::block::writer::ChunksWriter;
@@ -17,44 +18,57 @@ use std::ops::Range;
 use std::path::Path;
 use std::sync::mpsc;
 
+/// Opens the EXR file `path` (a regular file only) and reads its headers, each checked
+/// ([`check_declared_size`]) against `max_samples` and the file's length; returns them and the
+/// file, rewound, for the decoder.
+///
+/// # Errors
+/// [`Error::Io`], [`Error::Decode`] or [`Error::UnsupportedImage`] naming the file.
+pub(crate) fn read_exr_meta(
+    path: &Path,
+    max_samples: usize,
+) -> Result<(exr::meta::MetaData, File)> {
+    use std::io::Seek;
+    let (mut file, file_len) = open_input(path)?;
+    let meta =
+        exr::meta::MetaData::read_from_buffered(BufReader::new(&mut file), false).map_err(|e| {
+            match e {
+                exr::error::Error::Io(io) => Error::io(path, io),
+                other => decode_error(path, other),
+            }
+        })?;
+    for header in &meta.headers {
+        let size = (header.layer_size.width(), header.layer_size.height());
+        let decoded = (header.layer_size.area() as u64)
+            .saturating_mul(header.channels.bytes_per_pixel as u64);
+        check_declared_size(
+            path,
+            size,
+            header.channels.list.len(),
+            decoded,
+            file_len,
+            max_samples,
+        )?;
+    }
+    file.rewind().map_err(|e| Error::io(path, e))?;
+    Ok((meta, file))
+}
+
 /// The first valid layer of an EXR file with all its channels.
 pub(crate) fn read_exr_layer(
     path: &Path,
 ) -> Result<exr::image::Image<exr::image::Layer<exr::image::AnyChannels<exr::image::FlatSamples>>>>
 {
     use exr::prelude::*;
-    // The header is checked before the decoder allocates what it declares.
-    let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| match e {
-        exr::error::Error::Io(io) => crate::Error::io(path, io),
-        other => crate::Error::Decode {
-            path: path.to_path_buf(),
-            reason: other.to_string(),
-        },
-    })?;
-    for header in &meta.headers {
-        let samples = header
-            .layer_size
-            .area()
-            .saturating_mul(header.channels.list.len());
-        if samples > MAX_IMAGE_SAMPLES {
-            return Err(crate::Error::UnsupportedImage {
-                path: path.to_path_buf(),
-                reason: format!(
-                    "the header declares {}x{} pixels × {} channels, more than the {MAX_IMAGE_SAMPLES} samples this tool reads",
-                    header.layer_size.width(),
-                    header.layer_size.height(),
-                    header.channels.list.len()
-                ),
-            });
-        }
-    }
+    // The headers are checked before the decoder allocates what they declare.
+    let (_, file) = read_exr_meta(path, MAX_IMAGE_SAMPLES)?;
     read()
         .no_deep_data()
         .largest_resolution_level()
         .all_channels()
         .first_valid_layer()
         .all_attributes()
-        .from_file(path)
+        .from_buffered(BufReader::new(file))
         .map_err(|e| match e {
             exr::error::Error::Io(io) => crate::Error::io(path, io),
             other => crate::Error::Decode {
@@ -160,10 +174,7 @@ pub fn read_exr_text(path: &Path, name: &str) -> Result<Option<String>> {
     {
         return Ok(None);
     }
-    let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| match e {
-        exr::error::Error::Io(io) => Error::io(path, io),
-        other => decode_error(path, other),
-    })?;
+    let (meta, _) = read_exr_meta(path, MAX_STREAM_SAMPLES)?;
     let Some(header) = meta.headers.first() else {
         return Ok(None);
     };
@@ -184,10 +195,7 @@ pub fn read_exr_text(path: &Path, name: &str) -> Result<Option<String>> {
 impl BandReader {
     pub(crate) fn open_exr(path: &Path) -> Result<Self> {
         use exr::meta::attribute::SampleType;
-        let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| match e {
-            exr::error::Error::Io(io) => Error::io(path, io),
-            other => decode_error(path, other),
-        })?;
+        let (meta, _) = read_exr_meta(path, MAX_STREAM_SAMPLES)?;
         let header = meta
             .headers
             .first()
@@ -254,7 +262,7 @@ pub(crate) fn read_exr_rows(
     };
     let channels = chosen.len();
     let mut out = vec![0f32; rows.len() * width * channels];
-    let file = File::open(path).map_err(|e| Error::io(path, e))?;
+    let (_, file) = read_exr_meta(path, MAX_STREAM_SAMPLES)?;
     let reader = exr::block::read(BufReader::new(file), false).map_err(bad)?;
     let chunks = reader
         .filter_chunks(false, |_, _, block| {

@@ -6,6 +6,7 @@ use crate::error::{Error, Result};
 use crate::io::bands::{BandReader, Kind, decode_error, not_band_readable, unsupported};
 use crate::io::decode::{MAX_IMAGE_SAMPLES, RawDecoded, SampleFormat, Samples};
 use crate::io::encode::Pipe;
+use crate::io::input::{check_declared_size, open_input};
 use crate::io::output::PendingFile;
 use std::fs::File;
 use std::io::{BufReader, BufWriter, Write};
@@ -17,7 +18,7 @@ use std::sync::mpsc;
 /// With `rows`, a non-interlaced image is decoded only up to the end of the range (the rows
 /// below stay zero, and the rest of the stream is not read).
 pub(crate) fn decode_png(path: &Path, rows: Option<Range<usize>>) -> Result<RawDecoded> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let (file, file_len) = open_input(path)?;
     let bad = |e: png::DecodingError| match e {
         png::DecodingError::IoError(io) => Error::io(path, io),
         other => Error::Decode {
@@ -30,10 +31,11 @@ pub(crate) fn decode_png(path: &Path, rows: Option<Range<usize>>) -> Result<RawD
     let limits = png::Limits {
         bytes: 4 * MAX_IMAGE_SAMPLES,
     };
-    let mut decoder = png::Decoder::new_with_limits(std::io::Cursor::new(bytes), limits);
+    let mut decoder = png::Decoder::new_with_limits(BufReader::new(file), limits);
     // Palette → RGB, grey below 8 bits → 8 bits, transparency chunk → alpha.
     decoder.set_transformations(png::Transformations::EXPAND);
     let mut reader = decoder.read_info().map_err(bad)?;
+    check_png_header(path, reader.info(), file_len)?;
     let size = reader
         .output_buffer_size()
         .ok_or_else(|| Error::UnsupportedImage {
@@ -63,10 +65,14 @@ pub(crate) fn decode_png(path: &Path, rows: Option<Range<usize>>) -> Result<RawD
             for row in buf.chunks_exact_mut(line.max(1)).take(rows.end) {
                 reader.read_row(row).map_err(bad)?;
             }
+            // Read to the end (the rows below are not decoded), so that the checksum of the
+            // chunk that held the last row read is verified.
+            reader.finish().map_err(bad)?;
             reader.output_color_type()
         }
         _ => {
             let info = reader.next_frame(&mut buf).map_err(bad)?;
+            reader.finish().map_err(bad)?;
             buf.truncate(info.buffer_size());
             (info.color_type, info.bit_depth)
         }
@@ -92,9 +98,25 @@ pub(crate) fn decode_png(path: &Path, rows: Option<Range<usize>>) -> Result<RawD
     })
 }
 
+/// The declared size of a PNG against the limits and the file's length
+/// ([`check_declared_size`]), before anything sized by it is allocated.
+fn check_png_header(path: &Path, info: &png::Info, file_len: u64) -> Result<()> {
+    let (width, height) = (info.width as usize, info.height as usize);
+    // The zlib stream holds each row's filter byte and its packed samples.
+    let stream = (info.raw_row_length() as u64).saturating_mul(height as u64);
+    check_declared_size(
+        path,
+        (width, height),
+        info.color_type.samples(),
+        stream,
+        file_len,
+        crate::io::input::MAX_STREAM_SAMPLES,
+    )
+}
+
 impl BandReader {
     pub(crate) fn open_png(path: &Path) -> Result<Self> {
-        let file = File::open(path).map_err(|e| Error::io(path, e))?;
+        let (file, file_len) = open_input(path)?;
         let bad = |e: png::DecodingError| match e {
             png::DecodingError::IoError(io) => Error::io(path, io),
             other => decode_error(path, other),
@@ -105,6 +127,7 @@ impl BandReader {
         let mut decoder = png::Decoder::new_with_limits(BufReader::new(file), limits);
         decoder.set_transformations(png::Transformations::EXPAND);
         let reader = decoder.read_info().map_err(bad)?;
+        check_png_header(path, reader.info(), file_len)?;
         let (width, height) = (reader.info().width, reader.info().height);
         if reader.info().interlaced {
             return Err(not_band_readable(
@@ -139,6 +162,7 @@ impl BandReader {
                 line,
                 next: 0,
                 sixteen,
+                done: false,
             },
         })
     }

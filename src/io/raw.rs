@@ -71,6 +71,11 @@ pub(crate) fn decode(path: &Path) -> Result<(RawDecoded, RawDevelopment)> {
     imp::decode(path)
 }
 
+/// Longest camera RAW file read (the decoder reads a file whole): 2 GiB, several times the
+/// largest RAW files of medium-format backs.
+#[cfg_attr(not(feature = "raw"), allow(dead_code))]
+const MAX_RAW_BYTES: u64 = 2 << 30;
+
 #[cfg(not(feature = "raw"))]
 mod imp {
     use super::*;
@@ -94,7 +99,14 @@ mod imp {
             path: path.to_path_buf(),
             reason,
         };
-        std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
+        // A regular file of a plausible size: the decoder reads it whole.
+        let (_, len) = crate::io::input::open_input(path)?;
+        if len > MAX_RAW_BYTES {
+            return Err(decode_error(format!(
+                "{len} bytes, more than the {} MiB of the largest camera RAW files; not read",
+                MAX_RAW_BYTES >> 20
+            )));
+        }
         // A decoder that fails on a malformed file by panicking must not take the caller down.
         let raw = std::panic::catch_unwind(|| rawler::decode_file(path))
             .map_err(|_| decode_error("the RAW decoder failed on this file".into()))?

@@ -14,7 +14,7 @@ use std::path::Path;
 impl BandReader {
     pub(crate) fn open_tiff(path: &Path) -> Result<Self> {
         use tiff::ColorType as C;
-        let file = File::open(path).map_err(|e| Error::io(path, e))?;
+        let (file, file_len) = crate::io::input::open_input(path)?;
         let bad = |e: tiff::TiffError| match e {
             tiff::TiffError::IoError(io) => Error::io(path, io),
             other => decode_error(path, other),
@@ -48,6 +48,14 @@ impl BandReader {
                 ));
             }
         };
+        crate::io::input::check_declared_size(
+            path,
+            (width, height),
+            stride,
+            (width as u64 * height as u64).saturating_mul(stride as u64 * u64::from(bits) / 8),
+            file_len,
+            crate::io::input::MAX_STREAM_SAMPLES,
+        )?;
         let (cw, ch) = decoder.chunk_dimensions();
         let chunk = (cw as usize, ch as usize);
         if chunk.0 == 0 || chunk.1 == 0 {

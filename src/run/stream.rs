@@ -195,7 +195,11 @@ struct Opened {
     window: Window,
 }
 
-fn open_all(files: &CaptureFiles, load: &LoadOptions) -> Result<Opened> {
+fn open_all(
+    files: &CaptureFiles,
+    load: &LoadOptions,
+    floor: &dyn Fn(usize, usize, usize) -> Result<()>,
+) -> Result<Opened> {
     if files.images.len() != files.lights.len() {
         return Err(Error::LightsMismatch {
             reason: format!(
@@ -253,6 +257,9 @@ fn open_all(files: &CaptureFiles, load: &LoadOptions) -> Result<Opened> {
             3
         }
     };
+    // The budget is checked on the declared size before the mask (a byte a pixel) is
+    // allocated.
+    floor(width, height, channels)?;
     let mask = match &files.mask_source {
         Some(path) => {
             let m = read_mask(path)?;
@@ -284,6 +291,68 @@ fn open_all(files: &CaptureFiles, load: &LoadOptions) -> Result<Opened> {
     })
 }
 
+/// The error of a budget that cannot hold the resident maps of a `size` image (`resident`
+/// bytes) plus, where known, a band of [`MIN_BAND_ROWS`] rows of `count` images (`row_bytes` a
+/// row).
+fn over_budget(
+    options: &StreamOptions,
+    config: &Config,
+    (width, height): (usize, usize),
+    resident: u64,
+    band: Option<(u64, usize)>,
+) -> Error {
+    Error::param(
+        "max-memory",
+        format!(
+            "{} MiB cannot hold the outputs{} of a {width}x{height} image ({} MiB){}; {}",
+            options.max_memory >> 20,
+            if config.integration.is_some() {
+                " and integration"
+            } else {
+                ""
+            },
+            resident >> 20,
+            match band {
+                Some((row_bytes, count)) => format!(
+                    " plus a band of {MIN_BAND_ROWS} rows of {count} images ({} MiB)",
+                    (row_bytes * MIN_BAND_ROWS as u64) >> 20
+                ),
+                None => String::new(),
+            },
+            match config.integration.as_ref().map(|i| i.method) {
+                None => "raise it",
+                Some(crate::integrate::Integrator::Poisson) => "raise it, or leave out integration",
+                Some(_) => {
+                    "raise it, or integrate with a method that needs less memory (Poisson), or leave out integration"
+                }
+            }
+        ),
+    )
+}
+
+/// The check [`open_all`] makes on the declared size before allocating the mask: the
+/// resident maps with no pixel masked, the least a run of that size can need, within the
+/// budget.
+fn budget_floor<'a>(
+    config: &'a Config,
+    options: &'a StreamOptions,
+    keep: Keep,
+) -> impl Fn(usize, usize, usize) -> Result<()> + 'a {
+    move |width, height, channels| {
+        let resident = resident_for(keep, width, height, channels, 0, config);
+        if resident > options.max_memory {
+            return Err(over_budget(
+                options,
+                config,
+                (width, height),
+                resident,
+                None,
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// Plans a streamed run of `files` that writes its outputs band by band
 /// ([`reconstruct_and_write_streamed`]): band height and memory use.
 ///
@@ -297,7 +366,7 @@ pub fn plan(
     config: &Config,
     options: &StreamOptions,
 ) -> Result<StreamPlan> {
-    let opened = open_all(files, load)?;
+    let opened = open_all(files, load, &budget_floor(config, options, Keep::Written))?;
     plan_for(&opened, files.images.len(), config, options, Keep::Written)
 }
 
@@ -330,30 +399,12 @@ fn plan_for(
     let available = options.max_memory.saturating_sub(resident);
     let fit = (available / row_bytes.max(1)) as usize;
     if fit < MIN_BAND_ROWS {
-        return Err(Error::param(
-            "max-memory",
-            format!(
-                "{} MiB cannot hold the outputs{} of a {}x{} image ({} MiB) plus a band of {MIN_BAND_ROWS} rows of {count} images ({} MiB); {}",
-                options.max_memory >> 20,
-                if config.integration.is_some() {
-                    " and integration"
-                } else {
-                    ""
-                },
-                o.width,
-                o.height,
-                resident >> 20,
-                (row_bytes * MIN_BAND_ROWS as u64) >> 20,
-                match config.integration.as_ref().map(|i| i.method) {
-                    None => "raise it",
-                    Some(crate::integrate::Integrator::Poisson) => {
-                        "raise it, or leave out integration"
-                    }
-                    Some(_) => {
-                        "raise it, or integrate with a method that needs less memory (Poisson), or leave out integration"
-                    }
-                }
-            ),
+        return Err(over_budget(
+            options,
+            config,
+            (o.width, o.height),
+            resident,
+            Some((row_bytes, count)),
         ));
     }
     let rows = win.height().max(1);
@@ -601,7 +652,7 @@ impl<'a> FileBands<'a> {
     ) -> Result<Self> {
         files.lights.check_usable(MAX_LIGHT_CONDITION)?;
         config.solve.validate()?;
-        let opened = open_all(files, load)?;
+        let opened = open_all(files, load, &budget_floor(config, options, keep))?;
         let plan = plan_for(&opened, files.images.len(), config, options, keep)?;
         let next = opened.window.y0;
         Ok(FileBands {
@@ -704,6 +755,9 @@ impl BandSource for FileBands<'_> {
         let win = self.opened.window;
         let y = self.next;
         if y >= win.y1 {
+            for r in &mut self.opened.readers {
+                r.verify_rest()?;
+            }
             return Ok(None);
         }
         let e = (y + self.plan.band_rows).min(win.y1);
@@ -760,6 +814,7 @@ impl BandRun {
             info: &self.info,
             count: self.info.len(),
             unmasked_files: files.mask_source.is_none(),
+            behind: files.lights.behind(),
         }
     }
 }
