@@ -87,6 +87,36 @@ pub enum Error {
         /// What is there.
         what: String,
     },
+    /// Another process holds the output folder's lock: a run is writing there. Nothing was
+    /// written.
+    #[error(
+        "{path}: another run (process {holder}) is writing to this output folder; wait for it or choose another"
+    )]
+    OutputBusy {
+        /// The output folder.
+        path: PathBuf,
+        /// The process that holds the lock, as it recorded itself (its id), or `unknown`.
+        holder: String,
+    },
+    /// An output folder holds entries that are not a previous output set of this tool, so it
+    /// is not replaced as a whole. Nothing was written.
+    #[error(
+        "{path}: holds {entry}, which is not an output of a previous run; the folder is not replaced: remove what is not an output, or choose another folder"
+    )]
+    OutputForeign {
+        /// The output folder.
+        path: PathBuf,
+        /// The first entry found that no previous output set lists.
+        entry: String,
+    },
+    /// An output would replace or sit over an input of the run. Nothing was written.
+    #[error("{path}: it holds (or is) the input {input}; write the results apart from the inputs")]
+    OutputHoldsInput {
+        /// The output folder or file.
+        path: PathBuf,
+        /// The input it would replace.
+        input: PathBuf,
+    },
     /// A lights file is malformed.
     #[error("{path}{}: {reason}", line.map(|l| format!(" line {l}")).unwrap_or_default())]
     LightsFile {

@@ -17,7 +17,7 @@ use photostereo::ps::solve::{
     SolveOptions,
 };
 use photostereo::run::pipeline::Config;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Photometric stereo: images of an object under known distant lights → albedo, normals, depth.
 ///
@@ -43,7 +43,7 @@ pub struct Cli {
     /// No progress bars.
     #[arg(long, short, global = true)]
     pub quiet: bool,
-    /// Worker threads (default: all cores).
+    /// Worker threads (default: all cores; at most 4 a core).
     #[arg(long, global = true, value_name = "N")]
     pub threads: Option<usize>,
 }
@@ -867,6 +867,9 @@ pub struct RunConfig {
     pub stream: Option<photostereo::run::stream::StreamOptions>,
     /// `--band-rows`, for a run that streams without `--max-memory`.
     pub band_rows: Option<usize>,
+    /// The output folder's lock, held for the run (released when the configuration is
+    /// dropped).
+    pub _lock: photostereo::io::output::OutputLock,
 }
 
 impl RunArgs {
@@ -896,10 +899,14 @@ impl RunArgs {
         let output = self
             .output
             .context("no output folder: pass -o DIR (see --help)")?;
-        if !self.force {
-            photostereo::io::output::ensure_fresh_dir(&output)?;
+        {
+            let mut inputs: Vec<&Path> = self.inputs.iter().map(PathBuf::as_path).collect();
+            inputs.extend(self.lights.as_deref());
+            inputs.extend(self.mask.as_deref());
+            inputs.extend(self.method.integration.camera.as_deref());
+            photostereo::io::output::ensure_apart(&output, &inputs)?;
         }
-        photostereo::io::output::ensure_writable_dir(&output)?;
+        let lock = crate::lock_output(&output, self.force)?;
         let mut list_mask = None;
         let source = if self.inputs.len() == 1 && self.inputs[0].is_dir() {
             let dir = self.inputs[0].clone();
@@ -950,6 +957,7 @@ impl RunArgs {
                 band_rows: self.band_rows,
             });
         Ok(RunConfig {
+            _lock: lock,
             stream,
             band_rows: self.band_rows,
             source,

@@ -44,6 +44,15 @@ fn mask_hint(e: photostereo::Error, flag: &str) -> anyhow::Error {
 }
 
 pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
+    let mut inputs: Vec<&std::path::Path> = a.images.iter().map(|p| p.as_path()).collect();
+    inputs.extend(a.matte.iter().map(|p| p.as_path()));
+    inputs.extend(
+        [&a.mask, &a.matte_mask, &a.card_mask]
+            .into_iter()
+            .flatten()
+            .map(|p| p.as_path()),
+    );
+    photostereo::io::output::ensure_apart(&a.output, &inputs)?;
     if !a.force {
         ensure_fresh_file(&a.output)?;
     }
@@ -80,7 +89,7 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
         cal.sphere.outliers
     );
     for w in &cal.warnings {
-        eprintln!("warning: {w}");
+        eprintln!("warning: {}", crate::printable(&w.to_string()));
     }
     for o in &cal.lights {
         match &o.result {
@@ -117,7 +126,7 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
     let (lights, intensity) =
         measure_intensities(&a, &stack, lights, &directions, transfer, progress)?;
     let json = lights_file_json(&lights, &cal, intensity.as_ref());
-    crate::write_file_atomic(&a.output, json.as_bytes())?;
+    photostereo::io::output::write_bytes(&a.output, crate::overwrite(a.force), json.as_bytes())?;
     say!("wrote {} ({} lights)", a.output.display(), lights.len());
     Ok(())
 }

@@ -35,7 +35,7 @@ use photostereo::grid::Mask;
 use photostereo::integrate::{SolveMethod, integrate_normals};
 use photostereo::io::decode::read_normal_map;
 use photostereo::io::mesh::Mesh;
-use photostereo::io::output::OutputDir;
+use photostereo::io::output::{OutputLock, Overwrite};
 use photostereo::progress::{Progress, Silent};
 use photostereo::run::pipeline::{Config, Report, reconstruct, reconstruct_and_write};
 use photostereo::run::stream::{StreamOptions, reconstruct_and_write_streamed};
@@ -45,9 +45,31 @@ use std::time::Instant;
 fn main() {
     let cli = Cli::parse();
     if let Err(e) = run(cli) {
-        eprintln!("error: {e:#}{}", hint(&e));
+        eprintln!("error: {}{}", printable(&format!("{e:#}")), hint(&e));
         std::process::exit(1);
     }
+}
+
+/// `text` with its control characters (other than line breaks and tabs) shown as escapes:
+/// messages quote file names and file contents, and an escape sequence in a lights file must
+/// not reach the terminal.
+pub fn printable(text: &str) -> std::borrow::Cow<'_, str> {
+    if !text
+        .chars()
+        .any(|c| c.is_control() && c != '\n' && c != '\t')
+    {
+        return text.into();
+    }
+    text.chars()
+        .map(|c| {
+            if c.is_control() && c != '\n' && c != '\t' {
+                c.escape_default().to_string()
+            } else {
+                c.to_string()
+            }
+        })
+        .collect::<String>()
+        .into()
 }
 
 /// The flag that avoids the library error behind `e`, for the errors the command line has one
@@ -58,7 +80,7 @@ fn hint(e: &anyhow::Error) -> &'static str {
         .find_map(|c| c.downcast_ref::<photostereo::Error>())
     {
         Some(photostereo::Error::OutputExists { .. }) => {
-            "; choose another output or pass --force to overwrite the files this tool writes"
+            "; choose another output, or pass --force to replace a previous output set"
         }
         Some(photostereo::Error::NotBandReadable { .. }) => {
             " (to load the images whole instead, run without --max-memory)"
@@ -66,6 +88,10 @@ fn hint(e: &anyhow::Error) -> &'static str {
         _ => "",
     }
 }
+
+/// Most worker threads per core `--threads` starts (more only contend; a few per core can
+/// hide waits on files).
+const MAX_THREADS_PER_CORE: usize = 4;
 
 /// Exit status of a run stopped by Ctrl-C (128 + SIGINT), as shells report it.
 const INTERRUPTED_EXIT: i32 = 130;
@@ -75,6 +101,7 @@ const INTERRUPTED_EXIT: i32 = 130;
 fn stop_cleanly_on_interrupt() {
     let handler = || {
         let _held = photostereo::io::output::hold_commits();
+        photostereo::io::output::discard_uncommitted();
         eprintln!(
             "interrupted: stopped; outputs are written all at once at the end, so none from this run is left half-written"
         );
@@ -89,7 +116,17 @@ fn stop_cleanly_on_interrupt() {
 
 fn run(cli: Cli) -> Result<()> {
     stop_cleanly_on_interrupt();
-    if let Some(n) = cli.threads {
+    if let Some(asked) = cli.threads {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let cap = MAX_THREADS_PER_CORE * cores;
+        let n = if asked > cap {
+            eprintln!(
+                "note: --threads {asked} capped at {cap} ({MAX_THREADS_PER_CORE} × the {cores} cores): more threads than that only contend for the cores and memory"
+            );
+            cap
+        } else {
+            asked
+        };
         rayon::ThreadPoolBuilder::new()
             .num_threads(n)
             .build_global()
@@ -144,30 +181,38 @@ fn run(cli: Cli) -> Result<()> {
     }
 }
 
-/// Writes the one file `path` atomically: `stage` stages it under the name it is given in an
-/// output folder beside it, which is then committed (a temporary, renamed into place).
-pub fn write_staged(
-    path: &Path,
-    stage: impl FnOnce(&mut OutputDir, &str) -> photostereo::Result<()>,
-) -> Result<()> {
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => std::path::PathBuf::from("."),
-    };
-    let name = path
-        .file_name()
-        .with_context(|| format!("{}: not a file name", path.display()))?
-        .to_string_lossy()
-        .into_owned();
-    let mut out = OutputDir::create(&dir)?;
-    stage(&mut out, &name)?;
-    out.commit()?;
-    Ok(())
+/// Writes `bytes` to the file `path` atomically, replacing it if it exists.
+pub fn write_file_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    Ok(photostereo::io::output::write_bytes(
+        path,
+        Overwrite::PreviousSet,
+        bytes,
+    )?)
 }
 
-/// Writes `bytes` to the file `path` atomically ([`write_staged`]).
-pub fn write_file_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    write_staged(path, |out, name| out.stage_bytes(name, bytes))
+/// The commit policy of `--force`.
+pub fn overwrite(force: bool) -> Overwrite {
+    if force {
+        Overwrite::PreviousSet
+    } else {
+        Overwrite::Never
+    }
+}
+
+/// Locks the output folder `dir` for the run (a second run into it is refused at once), after
+/// checking, before any work, that it can take the outputs: without `force` it must be new or
+/// empty; with it, it may hold only a previous output set; and a folder can be created beside
+/// it.
+pub fn lock_output(dir: &Path, force: bool) -> Result<OutputLock> {
+    // The checks are made under the lock, where no other run touches the folder.
+    let lock = OutputLock::acquire(dir, overwrite(force))?;
+    if force {
+        photostereo::io::output::ensure_replaceable(dir)?;
+    } else {
+        photostereo::io::output::ensure_fresh_dir(dir)?;
+    }
+    photostereo::io::output::ensure_writable_dir(dir)?;
+    Ok(lock)
 }
 
 /// The capture's files, resolved without decoding.
@@ -211,8 +256,12 @@ fn in_memory_bytes(rc: &RunConfig, files: &CaptureFiles, window_only: bool) -> R
         1
     };
     // Only the window the mask spans is stored; the mask is small to read.
+    // Under a budget that cannot hold even the maps of a run with no masked pixel, the mask
+    // is not read: the run is refused on the declared size when it is planned.
+    let floor = photostereo::run::stream::resident_bytes(w, h, channels as usize, 0, &rc.config);
+    let hopeless = rc.stream.is_some_and(|o| floor > o.max_memory);
     let (window, masked) = match &files.mask_source {
-        Some(m) if window_only => {
+        Some(m) if window_only && !hopeless => {
             let mask = photostereo::io::decode::read_mask(m)?;
             let window = mask
                 .bounding_box()
@@ -303,7 +352,6 @@ fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
             plan.resident_bytes >> 20,
             plan.in_memory_stack_bytes >> 20
         );
-        photostereo::run::html::write_report_html(&rc.output, &report)?;
         print_summary(&report, &rc.output);
         return Ok(());
     }
@@ -315,16 +363,13 @@ fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
         reconstruct_and_write(&capture, &rc.config, &rc.output, load_s, progress, |_| {
             Ok(None)
         })?;
-    photostereo::run::html::write_report_html(&rc.output, &report)?;
     print_summary(&report, &rc.output);
     Ok(())
 }
 
 fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
     let config = a.method.config()?;
-    if !a.force {
-        photostereo::io::output::ensure_fresh_dir(&a.output)?;
-    }
+    let _lock = lock_output(&a.output, a.force)?;
     let t = Instant::now();
     let synth = demo::default_capture(a.noise, a.seed)?;
     let render_s = t.elapsed().as_secs_f64();
@@ -361,7 +406,6 @@ fn run_demo(a: DemoArgs, progress: &dyn Progress) -> Result<()> {
         &a.output.join("scene"),
         photostereo::synth::write::ImageFormat::Exr,
     )?;
-    photostereo::run::html::write_report_html(&a.output, &report)?;
     print_summary(&report, &a.output);
     say!("error against ground truth:");
     let n = &eval.normals;
@@ -441,7 +485,7 @@ fn run_eval(a: EvalArgs) -> Result<()> {
     }
     say!("{}", serde_json::to_string_pretty(&out)?);
     for w in &warnings {
-        eprintln!("warning: {w}");
+        eprintln!("warning: {}", printable(&w.to_string()));
     }
     Ok(())
 }
@@ -572,6 +616,13 @@ fn read_depth(path: &Path) -> Result<photostereo::grid::ScalarMap> {
 }
 
 fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
+    let inputs: Vec<&Path> = std::iter::once(a.normals.as_path())
+        .chain(a.mask.as_deref())
+        .chain(a.integration.camera.as_deref())
+        .collect();
+    for out in std::iter::once(&a.output).chain(a.ply.as_ref()) {
+        photostereo::io::output::ensure_apart(out, &inputs)?;
+    }
     if !a.force {
         photostereo::io::output::ensure_fresh_file(&a.output)?;
         if let Some(ply) = &a.ply {
@@ -631,12 +682,16 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
         ("photostereo:integration", used.clone()),
         ("photostereo:units", units),
     ];
-    write_staged(&a.output, |out, name| {
-        out.stage_exr(name, w, h, &channels, &attrs)
-    })?;
+    photostereo::io::output::write_exr_file(
+        &a.output,
+        overwrite(a.force),
+        (w, h),
+        &channels,
+        &attrs,
+    )?;
     if let Some(ply) = &a.ply {
         let mesh = Mesh::from_depth(&r.depth, &normals, options.camera.as_ref())?;
-        write_file_atomic(ply, &mesh.to_ply())?;
+        photostereo::io::output::write_bytes(ply, overwrite(a.force), &mesh.to_ply())?;
     }
     let mean_res = photostereo::stats::summarize(&r.residual).mean;
     say!(
@@ -746,18 +801,9 @@ fn print_summary(report: &Report, dir: &Path) {
         t.integrate,
         t.write
     );
-    say!(
-        "  wrote {} ({}{})",
-        dir.display(),
-        report.outputs.join(", "),
-        if dir.join("report.html").is_file() {
-            ", report.html"
-        } else {
-            ""
-        }
-    );
+    say!("  wrote {} ({})", dir.display(), report.outputs.join(", "));
     for w in &report.warnings {
-        eprintln!("warning: {w}{}", flag_hint(w));
+        eprintln!("warning: {}{}", printable(&w.to_string()), flag_hint(w));
     }
 }
 

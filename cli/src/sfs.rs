@@ -15,9 +15,11 @@ use photostereo::sfs::{SfsOptions, object_mask, shape_from_shading_with_progress
 const CONTOUR_LEVELS: [f64; 9] = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9];
 
 pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result<()> {
-    if !a.force {
-        photostereo::io::output::ensure_fresh_dir(&a.output)?;
-    }
+    let inputs: Vec<&std::path::Path> = std::iter::once(a.image.as_path())
+        .chain(a.mask.as_deref())
+        .collect();
+    photostereo::io::output::ensure_apart(&a.output, &inputs)?;
+    let _lock = crate::lock_output(&a.output, a.force)?;
     let img = read_image(&a.image)?;
     let eight_bit = matches!(img.format, photostereo::io::decode::SampleFormat::U8);
     let grey: Vec<f32> = img
@@ -174,7 +176,7 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         say!("  assumed: {s}");
     }
     for s in &rep.warnings {
-        eprintln!("warning: {s}");
+        eprintln!("warning: {}", crate::printable(&s.to_string()));
     }
     say!("  wrote {}", a.output.display());
     Ok(())

@@ -338,14 +338,29 @@ fn existing_or_unwritable_output_is_refused() {
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("--force"));
     assert_eq!(listing(&out), vec!["notes.txt"]);
-    // With --force the run writes its files and keeps the others.
+    // --force replaces a previous output set only: a folder holding anything else is refused
+    // and left as it is.
     let args = main_args(&imgs, &d.join("lights.json"), &["--force"], &out);
     let a: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
     let o = run(&a);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("notes.txt") && err.contains("not an output"),
+        "{err}"
+    );
+    assert_eq!(listing(&out), vec!["notes.txt"]);
+    std::fs::remove_file(out.join("notes.txt")).unwrap();
+    for force in [false, true] {
+        let extra: &[&str] = if force { &["--force"] } else { &[] };
+        let args = main_args(&imgs, &d.join("lights.json"), extra, &out);
+        let a: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
+        let o = run(&a);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
     let files = listing(&out);
-    assert!(files.contains(&"notes.txt".to_string()) && files.contains(&"depth.exr".to_string()));
-    assert_eq!(files.len(), 12, "{files:?}"); // the outputs, report.html and notes.txt
+    assert!(files.contains(&"depth.exr".to_string()));
+    assert_eq!(files.len(), 12, "{files:?}"); // the outputs, report.html and the set's list
     // An empty existing folder is fine.
     let empty = tmp.path().join("empty");
     std::fs::create_dir(&empty).unwrap();
@@ -531,7 +546,9 @@ fn interrupted_runs_leave_no_partial_file() {
             for dir in [out.clone(), out.join("scene"), out.join("scene/gt")] {
                 let names = listing(&dir);
                 assert!(
-                    names.iter().all(|f| !f.starts_with('.')),
+                    names
+                        .iter()
+                        .all(|f| !f.starts_with('.') || f == photostereo::io::output::MANIFEST),
                     "{signal} at {delay_ms} ms left temporaries in {dir:?}: {names:?}"
                 );
             }

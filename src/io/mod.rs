@@ -1,8 +1,9 @@
 //! Files in and out: decoding and encoding EXR, PNG and TIFF (whole images and row bands), the
 //! atomic output folder, previews, and the PLY mesh.
 //!
-//! - [`output`]: [`output::OutputDir`] stages every output as an unnamed temporary and moves
-//!   them into place together, so a run leaves all its files or none; PNG previews.
+//! - [`output`]: [`output::OutputDir`] writes a run's files into a private staging folder and
+//!   puts it in place as a whole, so the output folder holds the old set or the new one, never
+//!   a mix; [`output::OutputLock`] keeps a second run out; PNG previews.
 //! - One file per format, each reading and writing it whole and by rows: `exr.rs`, `png.rs`,
 //!   `tiff.rs` (private; one encoder for whole images and for rows written as a streamed run
 //!   solves them, so both give identical files).
@@ -11,12 +12,15 @@
 //! - `bands` (private): the row-band reader over the three formats; `encode` (private): the
 //!   writer threads that feed the band encoders.
 //! - [`raw`]: camera RAW (with the `raw` feature), developed linearly, every choice recorded.
+//! - [`input`]: opening inputs: regular files only, text capped, declared image sizes checked
+//!   against the limits and the file's length before anything is allocated.
 //! - [`mesh`]: depth map → triangle mesh → PLY.
 
 pub(crate) mod bands;
 pub mod decode;
 pub(crate) mod encode;
 pub(crate) mod exr;
+pub mod input;
 pub mod mesh;
 pub mod output;
 pub(crate) mod png;

@@ -6,7 +6,7 @@
 //! no network and no WebGL.
 //!
 //! It is made from the files the run wrote (the PNG previews, `depth.exr`, the light directions
-//! in the EXR headers) and its [`Report`], and written atomically on its own after them.
+//! in the EXR headers) and its [`Report`], and is part of the run's output set.
 
 use crate::error::{Error, Result};
 use crate::io::output::OutputDir;
@@ -19,22 +19,20 @@ use std::path::Path;
 /// this many vertices a side (a few ten thousand triangles stay interactive on a 2-D canvas).
 pub const MESH_SIDE: usize = 128;
 
-/// Writes `report.html` into `dir`, from the outputs there and `report`.
+/// Stages `report.html` in the set `out`, made from the files staged there and `report`.
 ///
 /// # Errors
 /// [`Error::Io`] or [`Error::Decode`] when an output of the run cannot be read back, and the
 /// errors of writing.
-pub fn write_report_html(dir: &Path, report: &Report) -> Result<()> {
-    let html = report_html(dir, report)?;
-    let mut out = OutputDir::create(dir)?;
-    out.stage_bytes("report.html", html.as_bytes())?;
-    out.commit().map(|_| ())
+pub fn stage_report_html(out: &mut OutputDir, report: &Report) -> Result<()> {
+    let html = report_html(out.staging_path(), report)?;
+    out.stage_bytes("report.html", html.as_bytes())
 }
 
 /// The page's text (see the module documentation).
 ///
 /// # Errors
-/// As [`write_report_html`].
+/// As [`stage_report_html`].
 pub fn report_html(dir: &Path, report: &Report) -> Result<String> {
     let image = |name: &str| -> Result<Option<String>> {
         let path = dir.join(name);

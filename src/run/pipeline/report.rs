@@ -269,6 +269,7 @@ pub(crate) fn commit_with_report(
     if config.mesh && integration.is_some() {
         outputs.push("mesh.ply".into());
     }
+    outputs.push("report.html".into());
     let integration = integration.zip(config.integration.as_ref()).map(|(i, o)| {
         let r = crate::stats::summarize(&i.residual);
         IntegrationSummary {
@@ -313,6 +314,8 @@ pub(crate) fn commit_with_report(
     }
     let json = serde_json::to_vec_pretty(&value).map_err(encode_error)?;
     out.stage_bytes("report.json", &json)?;
+    // The page is made from the staged files and is part of the set.
+    crate::run::html::stage_report_html(&mut out, &report)?;
     out.commit()?;
     Ok(report)
 }
