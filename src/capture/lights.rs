@@ -100,12 +100,32 @@ impl Light {
     }
 }
 
+/// Smallest light intensity accepted: images are divided by intensities in 32-bit floats,
+/// whose range (about 1e-38 to 3e38) must hold a pixel's value over it with room to spare.
+pub const MIN_INTENSITY: f64 = 1e-30;
+/// Largest light intensity accepted (see [`MIN_INTENSITY`]).
+pub const MAX_INTENSITY: f64 = 1e30;
+
+/// "0, 3 and 5": light indices for messages, the first 8.
+pub(crate) fn index_list(indices: &[usize]) -> String {
+    let shown: Vec<String> = indices.iter().take(8).map(|i| i.to_string()).collect();
+    let mut text = match shown.len() {
+        0 => String::new(),
+        1 => shown[0].clone(),
+        n => format!("{} and {}", shown[..n - 1].join(", "), shown[n - 1]),
+    };
+    if indices.len() > 8 {
+        text = format!("{}, … ({} in all)", shown.join(", "), indices.len());
+    }
+    text
+}
+
 impl Lights {
     /// Validates and normalises a light set.
     ///
     /// # Errors
-    /// [`Error::InvalidLight`] for a zero or non-finite direction or a non-positive or
-    /// non-finite intensity.
+    /// [`Error::InvalidLight`] for a zero or non-finite direction or a non-positive,
+    /// non-finite or out-of-range ([`MIN_INTENSITY`], [`MAX_INTENSITY`]) intensity.
     pub fn new(mut lights: Vec<Light>) -> Result<Self> {
         for (index, light) in lights.iter_mut().enumerate() {
             let d = light.direction;
@@ -141,6 +161,18 @@ impl Lights {
                     reason: format!("intensity {bad} must be finite and positive"),
                 });
             }
+            if let Some(bad) = light
+                .intensity
+                .iter()
+                .find(|i| !(MIN_INTENSITY..=MAX_INTENSITY).contains(*i))
+            {
+                return Err(Error::InvalidLight {
+                    index,
+                    reason: format!(
+                        "intensity {bad:e} is outside {MIN_INTENSITY:e}..{MAX_INTENSITY:e}: images are divided by it in 32-bit floats, where it would underflow or overflow; give the intensities relative to each other (scaled so that the brightest is 1, say)"
+                    ),
+                });
+            }
         }
         Ok(Lights { lights })
     }
@@ -159,7 +191,7 @@ impl Lights {
     /// [`Error::Io`] when unreadable, [`Error::LightsFile`] when malformed, and the errors of
     /// [`Lights::new`].
     pub fn from_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = crate::io::input::read_text(path)?;
         if text.trim_start().starts_with('{') {
             Lights::from_json_str(&text, path)
         } else {
@@ -230,7 +262,7 @@ impl Lights {
     /// [`Error::LightsFile`] when malformed or when the number of lines differs from the
     /// number of lights; [`Error::InvalidLight`] for a non-positive intensity.
     pub fn with_intensities_file(mut self, path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = crate::io::input::read_text(path)?;
         let rows = strip_count_line(parse_number_rows(&text, path)?);
         if rows.len() != self.lights.len() {
             return Err(Error::LightsFile {
@@ -351,15 +383,33 @@ impl Lights {
         condition_from_gram(&gram)
     }
 
-    /// Checks that the set can determine g = ρN: at least 3 lights and a condition number
-    /// below `max_condition`.
+    /// Checks that the set can determine g = ρN: at least 3 lights, no more than half of them
+    /// behind the surface ([`Lights::behind`]: a sign convention other than this tool's), and
+    /// a condition number below `max_condition`.
     ///
     /// # Errors
-    /// [`Error::TooFewImages`] or [`Error::DegenerateLights`].
+    /// [`Error::TooFewImages`], [`Error::InvalidLight`] naming the first light behind, or
+    /// [`Error::DegenerateLights`].
     pub fn check_usable(&self, max_condition: f64) -> Result<()> {
         if self.lights.len() < 3 {
             return Err(Error::TooFewImages {
                 count: self.lights.len(),
+            });
+        }
+        let behind = self.behind();
+        if 2 * behind.len() > self.lights.len() {
+            let d = self.lights[behind[0]].direction;
+            return Err(Error::InvalidLight {
+                index: behind[0],
+                reason: format!(
+                    "direction ({:.3}, {:.3}, {:.3}) points behind the surface, as do {} of the {} lights ({}): in this tool's frame z points from the object towards the camera, and lights behind the object give normals facing away from it; if the lights file uses the opposite convention, flip the sign of z",
+                    d.x,
+                    d.y,
+                    d.z,
+                    behind.len(),
+                    self.lights.len(),
+                    index_list(&behind)
+                ),
             });
         }
         let condition = self.condition_number();
@@ -370,6 +420,18 @@ impl Lights {
             });
         }
         Ok(())
+    }
+
+    /// Indices of the lights behind the surface as the camera sees it (z < 0, z pointing from
+    /// the object towards the camera): they light only surfaces turned more than 90° from
+    /// the camera's view of their direction's horizon, which the camera barely sees.
+    pub fn behind(&self) -> Vec<usize> {
+        self.lights
+            .iter()
+            .enumerate()
+            .filter(|(_, l)| l.direction.z < 0.0)
+            .map(|(i, _)| i)
+            .collect()
     }
 
     /// Returns the lights reordered to follow `images`.

@@ -21,6 +21,13 @@ pub enum Warning {
         /// Images decoded so.
         images: usize,
     },
+    /// Lights behind the surface (z < 0; fewer than half of them, else the run is refused).
+    LightsBehind {
+        /// Their indices.
+        lights: Vec<usize>,
+        /// Lights in all.
+        count: usize,
+    },
     /// JPEG images: lossy, 8-bit, sRGB-encoded.
     Lossy {
         /// JPEG images among the inputs.
@@ -98,6 +105,11 @@ impl fmt::Display for Warning {
             Warning::SrgbDecoded { images } => write!(
                 f,
                 "{images} 8-bit image(s) were decoded as sRGB-encoded (gamma) data; if they hold linear radiance, declare them linear"
+            ),
+            Warning::LightsBehind { lights, count } => write!(
+                f,
+                "light(s) {} of {count} point behind the surface (z < 0; z points from the object towards the camera): they light only surfaces the camera sees at grazing angles; check their sign",
+                crate::capture::lights::index_list(lights)
             ),
             Warning::Lossy { images } => write!(
                 f,
@@ -194,6 +206,12 @@ pub(crate) fn warnings(
     let linearised = facts.info.iter().filter(|i| i.linearised).count();
     if linearised > 0 {
         warnings.push(Warning::SrgbDecoded { images: linearised });
+    }
+    if !facts.behind.is_empty() {
+        warnings.push(Warning::LightsBehind {
+            lights: facts.behind.clone(),
+            count: facts.count,
+        });
     }
     let lossy = facts
         .info

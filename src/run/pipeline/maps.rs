@@ -12,6 +12,8 @@ pub(crate) struct InputFacts<'a> {
     pub count: usize,
     /// Files were loaded without a mask (the background counts as object then).
     pub unmasked_files: bool,
+    /// Indices of the lights behind the surface (z < 0).
+    pub behind: Vec<usize>,
 }
 
 /// The per-pixel maps of a solve, over a whole image or a band of rows: what every pixel's

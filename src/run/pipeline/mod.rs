@@ -169,6 +169,7 @@ pub fn reconstruct_normals(
         info: capture.stack.info(),
         count: capture.stack.count(),
         unmasked_files,
+        behind: capture.lights.behind(),
     };
     let recon = solve_whole(
         &capture.stack,
@@ -669,6 +670,7 @@ mod tests {
             info: &info,
             count: COUNT,
             unmasked_files: false,
+            behind: vec![3],
         };
         let config = Config {
             albedo_normalised: true,
@@ -696,6 +698,10 @@ mod tests {
             no_mask: false
         }));
         assert!(r.warnings.contains(&Warning::AlbedoAboveOne { pixels: 2 }));
+        assert!(r.warnings.contains(&Warning::LightsBehind {
+            lights: vec![3],
+            count: COUNT
+        }));
         // Not declared normalised: no albedo warning.
         let r = assemble(
             channels(),
