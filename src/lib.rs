@@ -34,6 +34,9 @@ pub mod camera;
 pub mod capture;
 pub mod error;
 pub mod eval;
+#[cfg(feature = "fuzzing")]
+#[doc(hidden)]
+pub mod fuzzing;
 pub mod grid;
 pub mod integrate;
 pub mod io;

@@ -7,8 +7,8 @@
 use libfuzzer_sys::fuzz_target;
 use photostereo::capture::dataset::Capture;
 use photostereo::capture::stack::LoadOptions;
-use photostereo::run::pipeline::{Config, reconstruct};
 use photostereo::progress::Silent;
+use photostereo::run::pipeline::{Config, reconstruct};
 use std::path::PathBuf;
 
 /// This process's folder, with the three images written once.
@@ -18,8 +18,13 @@ fn folder() -> PathBuf {
         let _ = std::fs::create_dir_all(&dir);
         for k in 1..=3u16 {
             let values: Vec<u16> = (0..64u16).map(|i| 1000 + 700 * k + 97 * i).collect();
-            let _ =
-                photostereo::io::output::write_png16(&dir.join(format!("{k}.png")), 8, 8, 1, &values);
+            let _ = photostereo::io::output::write_png16(
+                &dir.join(format!("{k}.png")),
+                8,
+                8,
+                1,
+                &values,
+            );
         }
     }
     dir

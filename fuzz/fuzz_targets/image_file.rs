@@ -3,18 +3,14 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
+
+#[path = "scratch.rs"]
+mod scratch;
+use photostereo::capture::lights::Lights;
 use photostereo::capture::stack::{LoadOptions, load_stack};
 use photostereo::io::decode::{read_image, read_mask, read_normal_map};
-use photostereo::capture::lights::Lights;
 use photostereo::progress::Silent;
-use std::path::PathBuf;
-
-/// This process's scratch folder.
-fn scratch() -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("photostereo-fuzz-{}", std::process::id()));
-    let _ = std::fs::create_dir_all(&dir);
-    dir
-}
+use scratch::scratch;
 
 fuzz_target!(|data: &[u8]| {
     let Some((&kind, bytes)) = data.split_first() else {
