@@ -23,7 +23,11 @@ pub const MAX_PACKING: u64 = 4096;
 /// read: 2³², 16 GiB as f32. A streamed run holds a band of rows, not the image, and its
 /// memory budget is checked on the declared size before anything is allocated; this bound
 /// keeps the size arithmetic far from overflow.
-pub const MAX_STREAM_SAMPLES: usize = 1 << 32;
+pub const MAX_STREAM_SAMPLES: usize = if usize::BITS > 32 {
+    (1u64 << 32) as usize
+} else {
+    usize::MAX
+};
 
 /// Most bytes read from a text input (a lights file, a camera file, an image list): far above
 /// any real one (a lights file of 10,000 images is under 1 MiB).
@@ -61,7 +65,7 @@ fn kind_of(meta: &std::fs::Metadata) -> &'static str {
 /// [`Error::Io`] naming the file when it cannot be opened, or when it is a folder, a device,
 /// a pipe or a socket (nothing is read from those).
 pub fn open_input(path: &Path) -> Result<(File, u64)> {
-    let file = File::open(path).map_err(|e| Error::io(path, e))?;
+    let file = open_nonblocking(path).map_err(|e| Error::io(path, e))?;
     let meta = file.metadata().map_err(|e| Error::io(path, e))?;
     if !meta.is_file() {
         return Err(Error::io(
@@ -75,7 +79,48 @@ pub fn open_input(path: &Path) -> Result<(File, u64)> {
             ),
         ));
     }
+    blocking(&file).map_err(|e| Error::io(path, e))?;
     Ok((file, meta.len()))
+}
+
+/// Opens `path` for reading without waiting for a writer (a named pipe would block the open).
+#[cfg(target_os = "linux")]
+fn open_nonblocking(path: &Path) -> std::io::Result<File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)
+}
+
+#[cfg(not(target_os = "linux"))]
+fn open_nonblocking(path: &Path) -> std::io::Result<File> {
+    File::open(path)
+}
+
+/// Clears `O_NONBLOCK` on a regular file (reads of which never block anyway).
+#[cfg(target_os = "linux")]
+fn blocking(file: &File) -> std::io::Result<()> {
+    use std::os::fd::AsRawFd;
+    let fd = file.as_raw_fd();
+    // SAFETY: fcntl on a descriptor this function's caller owns; no memory is passed.
+    #[allow(unsafe_code)]
+    let flags = unsafe { libc::fcntl(fd, libc::F_GETFL) };
+    if flags < 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    // SAFETY: as above.
+    #[allow(unsafe_code)]
+    let r = unsafe { libc::fcntl(fd, libc::F_SETFL, flags & !libc::O_NONBLOCK) };
+    if r < 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    Ok(())
+}
+
+#[cfg(not(target_os = "linux"))]
+fn blocking(_: &File) -> std::io::Result<()> {
+    Ok(())
 }
 
 /// Reads the text file `path` whole (at most [`MAX_TEXT_BYTES`]), without a leading UTF-8
@@ -183,6 +228,16 @@ mod tests {
             assert!(e.contains("character device") && e.contains("x.png"), "{e}");
             let e = read_text(&link).unwrap_err().to_string();
             assert!(e.contains("character device"), "{e}");
+        }
+        #[cfg(target_os = "linux")]
+        {
+            // A named pipe with no writer: refused at once, not waited on.
+            let fifo = tmp.path().join("pipe.png");
+            let c = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+            // SAFETY: a valid NUL-terminated path.
+            assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o644) }, 0);
+            let e = open_input(&fifo).unwrap_err().to_string();
+            assert!(e.contains("a pipe"), "{e}");
         }
     }
 

@@ -57,12 +57,20 @@ pub enum Overwrite {
 #[derive(Debug)]
 pub struct OutputLock {
     key: PathBuf,
+    /// The folder that holds the output folder, and its name there, resolved once when the
+    /// lock was taken: the set is committed there, whatever the path comes to name later.
+    parent: PathBuf,
+    name: std::ffi::OsString,
 }
 
 /// A lock held by this process.
 #[derive(Debug)]
 struct Held {
     key: PathBuf,
+    /// The path the lock was asked for, as given.
+    given: PathBuf,
+    parent: PathBuf,
+    name: std::ffi::OsString,
     lock_path: PathBuf,
     /// The locked file (the lock goes with it).
     _file: Option<File>,
@@ -171,26 +179,50 @@ impl OutputLock {
     /// [`Error::OutputBusy`] when another process holds it; [`Error::Io`] as `locate` or
     /// when the lock file cannot be created.
     pub fn acquire(dir: &Path, overwrite: Overwrite) -> Result<Self> {
+        let mut locks = guard(&LOCKS);
+        // The same path as given is the same folder, even if it came to resolve elsewhere.
+        if let Some(h) = locks.iter_mut().find(|h| h.given == dir) {
+            h.guards += 1;
+            return Ok(OutputLock {
+                key: h.key.clone(),
+                parent: h.parent.clone(),
+                name: h.name.clone(),
+            });
+        }
         let (parent, name) = locate(dir)?;
         let key = parent.join(&name);
-        let mut locks = guard(&LOCKS);
         if let Some(h) = locks.iter_mut().find(|h| h.key == key) {
             h.guards += 1;
-            return Ok(OutputLock { key });
+            return Ok(OutputLock {
+                key,
+                parent: h.parent.clone(),
+                name: h.name.clone(),
+            });
         }
         let lock_path = sibling(&parent, &name, "lock");
         let file = lock_file(&lock_path, dir)?;
         // Under the lock, what a killed run left (its staging folder, the old set of an
-        // exchange) is no one's.
-        remove_leftovers(&parent, &name);
+        // exchange) is no one's. Without a lock across processes (other platforms than
+        // Linux), it could be another run's, and is left.
+        if file.is_some() {
+            remove_leftovers(&parent, &name);
+        }
         locks.push(Held {
             key: key.clone(),
+            given: dir.to_path_buf(),
+            parent: parent.clone(),
+            name: name.clone(),
             lock_path,
             _file: file,
             guards: 1,
             overwrite,
         });
-        Ok(OutputLock { key })
+        Ok(OutputLock { key, parent, name })
+    }
+
+    /// The output folder's path, as resolved when the lock was taken.
+    fn dest(&self) -> PathBuf {
+        self.parent.join(&self.name)
     }
 
     /// The folder's commit policy.
@@ -273,6 +305,19 @@ fn lock_file(path: &Path, dir: &Path) -> Result<Option<File>> {
         if !same {
             continue;
         }
+        // Never truncate a file that is not this tool's lock (a hard link planted there).
+        if file
+            .metadata()
+            .is_ok_and(|m| !m.is_file() || m.nlink() != 1)
+        {
+            return Err(Error::io(
+                dir,
+                std::io::Error::other(format!(
+                    "the output folder's lock file {} is not a plain file of its own; remove it",
+                    path.display()
+                )),
+            ));
+        }
         let _ = file.set_len(0);
         let _ = file.rewind();
         let _ = write!(file, "{}", std::process::id());
@@ -287,6 +332,19 @@ fn lock_file(path: &Path, dir: &Path) -> Result<Option<File>> {
 #[cfg(not(target_os = "linux"))]
 fn lock_file(_: &Path, _: &Path) -> Result<Option<File>> {
     Ok(None)
+}
+
+/// Whether `name` is one of the hidden names this tool gives its staging folders, lock files
+/// and temporaries (`.NAME.photostereo-` then `lock`, 16 hexadecimal digits, or those and
+/// `.tmp`).
+fn is_leftover(name: &str) -> bool {
+    let Some(at) = name.find(".photostereo-") else {
+        return false;
+    };
+    let suffix = &name[at + ".photostereo-".len()..];
+    let hex = |t: &str| t.len() == 16 && t.bytes().all(|c| c.is_ascii_hexdigit());
+    name.starts_with('.')
+        && (suffix == "lock" || hex(suffix) || suffix.strip_suffix(".tmp").is_some_and(hex))
 }
 
 /// Removes the staging folders a killed run into `parent/name` left (called under the lock).
@@ -313,7 +371,9 @@ fn remove_leftovers(parent: &Path, name: &std::ffi::OsStr) {
 /// process.
 pub fn discard_uncommitted() {
     for s in guard(&STAGING).drain(..) {
-        let _ = std::fs::remove_dir_all(s);
+        if std::fs::remove_dir_all(&s).is_err() {
+            let _ = std::fs::remove_file(&s);
+        }
     }
     for h in guard(&LOCKS).drain(..) {
         let _ = std::fs::remove_file(&h.lock_path);
@@ -468,7 +528,7 @@ fn writable(dir: &Path) -> std::io::Result<()> {
 /// [`Error::OutputForeign`] naming the first entry that is not; [`Error::Io`] when the folder
 /// cannot be listed.
 pub fn ensure_replaceable(dir: &Path) -> Result<()> {
-    match std::fs::symlink_metadata(dir) {
+    match std::fs::metadata(dir) {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
         Err(e) => return Err(Error::io(dir, e)),
         Ok(m) if !m.is_dir() => {
@@ -497,8 +557,16 @@ pub fn ensure_replaceable(dir: &Path) -> Result<()> {
 
 /// The first entry of the set folder `dir` its manifest does not account for.
 fn foreign_entry(dir: &Path) -> std::io::Result<Option<String>> {
-    let listed: Vec<String> = match std::fs::read_to_string(dir.join(MANIFEST)) {
-        Ok(t) => t.lines().map(str::to_string).collect(),
+    let manifest = dir.join(MANIFEST);
+    let listed: Vec<String> = match std::fs::symlink_metadata(&manifest) {
+        // A plain file of a sane size only: a link or a device planted there lists nothing.
+        Ok(m) if m.is_file() && m.len() <= crate::io::input::MAX_TEXT_BYTES => {
+            std::fs::read_to_string(&manifest)?
+                .lines()
+                .map(str::to_string)
+                .collect()
+        }
+        Ok(_) => Vec::new(),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
         Err(e) => return Err(e),
     };
@@ -523,6 +591,11 @@ fn foreign_entry(dir: &Path) -> std::io::Result<Option<String>> {
                 format!("{rel}/{name}")
             };
             if top && name == MANIFEST && !listed.is_empty() {
+                continue;
+            }
+            // What a killed run left (a nested set's staging folder, lock or temporary): this
+            // tool's own, deleted with the set.
+            if is_leftover(&name) {
                 continue;
             }
             let t = e.file_type()?;
@@ -619,7 +692,7 @@ impl OutputDir {
     /// [`Error::OutputBusy`], and [`Error::Io`] when the staging folder cannot be created.
     pub fn create(dir: &Path) -> Result<Self> {
         let lock = OutputLock::acquire(dir, Overwrite::PreviousSet)?;
-        let (parent, name) = locate(dir)?;
+        let (parent, name) = (lock.parent.clone(), lock.name.clone());
         let staging = sibling(&parent, &name, &unpredictable());
         // Created exclusively: it cannot be a folder or link planted beforehand.
         std::fs::create_dir(&staging).map_err(|e| {
@@ -783,11 +856,16 @@ impl OutputDir {
         list.push('\n');
         std::fs::write(&manifest, list).map_err(|e| Error::io(&self.dir, e))?;
         sync_dir(&self.staging);
-        let (parent, _) = locate(&self.dir)?;
-        let dest = {
-            let (p, n) = locate(&self.dir)?;
-            p.join(n)
-        };
+        let parent = self.lock.parent.clone();
+        let dest = self.lock.dest();
+        if std::fs::symlink_metadata(&dest).is_ok_and(|m| m.file_type().is_symlink()) {
+            return Err(Error::io(
+                &self.dir,
+                std::io::Error::other(
+                    "the output folder was replaced by a symbolic link while this run worked; nothing of this run was written",
+                ),
+            ));
+        }
         let fill = |e: std::io::Error| -> Error {
             if matches!(e.raw_os_error(), Some(code) if code == ENOTEMPTY || code == EEXIST) {
                 Error::OutputExists {
@@ -814,9 +892,17 @@ impl OutputDir {
             if let Ok(m) = std::fs::metadata(&dest) {
                 let _ = std::fs::set_permissions(&self.staging, m.permissions());
             }
-            exchange(&self.staging, &dest).map_err(|e| Error::io(&self.dir, e))?;
-            // The staging path now holds the previous set.
-            let _ = std::fs::remove_dir_all(&self.staging);
+            exchange(&self.staging, &dest, &parent, &self.lock.name)
+                .map_err(|e| Error::io(&self.dir, e))?;
+            // The staging path now holds the previous set. It is deleted only if it still
+            // holds nothing but that set: whatever was written into the folder between the
+            // check and the exchange is kept, in a visible folder beside it.
+            if matches!(foreign_entry(&self.staging), Ok(None)) {
+                let _ = std::fs::remove_dir_all(&self.staging);
+            } else {
+                let kept = sibling_visible(&parent, &self.lock.name, "previous");
+                let _ = std::fs::rename(&self.staging, kept);
+            }
         }
         sync_dir(&parent);
         guard(&STAGING).retain(|s| s != &self.staging);
@@ -868,10 +954,17 @@ fn sync_dir(dir: &Path) {
     }
 }
 
-/// Swaps the folders `a` and `b` atomically (Linux `renameat2` with `RENAME_EXCHANGE`); where
-/// the file system or platform cannot, `b` is moved aside and `a` renamed in its place (a
-/// moment without `b`, never a mix).
-fn exchange(a: &Path, b: &Path) -> std::io::Result<()> {
+/// `NAME.SUFFIX-XXXXXXXXXXXXXXXX` in `parent`: a folder left for the user to see.
+fn sibling_visible(parent: &Path, name: &std::ffi::OsStr, suffix: &str) -> PathBuf {
+    let mut n = name.to_os_string();
+    n.push(format!(".{suffix}-{}", unpredictable()));
+    parent.join(n)
+}
+
+/// Swaps the folders `a` and `b` (`b` is `name` in `parent`) atomically (Linux `renameat2`
+/// with `RENAME_EXCHANGE`); where the file system or platform cannot, `b` is moved aside and
+/// `a` renamed in its place (a moment without `b`, never a mix).
+fn exchange(a: &Path, b: &Path, parent: &Path, name: &std::ffi::OsStr) -> std::io::Result<()> {
     #[cfg(target_os = "linux")]
     {
         use std::ffi::CString;
@@ -899,17 +992,16 @@ fn exchange(a: &Path, b: &Path) -> std::io::Result<()> {
             return Err(e);
         }
     }
-    let aside = b.with_file_name(format!(
-        ".{}.photostereo-{}",
-        b.file_name().unwrap_or_default().to_string_lossy(),
-        unpredictable()
-    ));
+    let aside = sibling(parent, name, &unpredictable());
     std::fs::rename(b, &aside)?;
     if let Err(e) = std::fs::rename(a, b) {
         let _ = std::fs::rename(&aside, b);
         return Err(e);
     }
-    std::fs::rename(&aside, a)
+    // The new set is in place; the previous one is left aside, where the next run into the
+    // folder removes it, if it cannot take `a`'s name.
+    let _ = std::fs::rename(&aside, a);
+    Ok(())
 }
 
 impl Drop for OutputDir {
@@ -963,8 +1055,10 @@ pub fn write_file(
     impl Drop for Remove<'_> {
         fn drop(&mut self) {
             let _ = std::fs::remove_file(self.0);
+            guard(&STAGING).retain(|s| s != self.0);
         }
     }
+    guard(&STAGING).push(tmp.clone());
     let _remove = Remove(&tmp);
     write(&mut file, path)?;
     file.sync_all().map_err(|e| Error::io(path, e))?;
@@ -980,10 +1074,16 @@ pub fn write_file(
                 });
             }
             // A file system without hard links: checked, then renamed (not atomic).
-            Err(_) => {
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::Unsupported | std::io::ErrorKind::PermissionDenied
+                ) =>
+            {
                 ensure_fresh_file(path)?;
                 std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))?;
             }
+            Err(e) => return Err(Error::io(path, e)),
         },
         Overwrite::PreviousSet => std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))?,
     }
@@ -1339,6 +1439,37 @@ mod tests {
             assert_eq!(std::fs::read(&link).unwrap(), b"two");
         }
         assert_eq!(names(tmp.path()).len(), if cfg!(unix) { 3 } else { 1 });
+    }
+
+    /// What killed runs leave is recognised by name, and a set holding such leftovers (of a
+    /// nested set) is still replaceable; an output folder given as a symbolic link is replaced
+    /// where it points, the link kept.
+    #[test]
+    fn leftovers_and_linked_folders() {
+        assert!(is_leftover(".out.photostereo-lock"));
+        assert!(is_leftover(".out.photostereo-0123456789abcdef"));
+        assert!(is_leftover(".x.json.photostereo-0123456789abcdef.tmp"));
+        assert!(!is_leftover(".out.photostereo-notes"));
+        assert!(!is_leftover("out.photostereo-lock"));
+        let tmp = tempfile::tempdir().unwrap();
+        let real = tmp.path().join("real");
+        let mut out = OutputDir::create(&real).unwrap();
+        out.stage_bytes("a.txt", b"one").unwrap();
+        out.commit().unwrap();
+        std::fs::create_dir(real.join(".scene.photostereo-0123456789abcdef")).unwrap();
+        std::fs::write(real.join(".scene.photostereo-lock"), b"").unwrap();
+        ensure_replaceable(&real).unwrap();
+        #[cfg(unix)]
+        {
+            let link = tmp.path().join("link");
+            std::os::unix::fs::symlink(&real, &link).unwrap();
+            ensure_replaceable(&link).unwrap();
+            let mut out = OutputDir::create(&link).unwrap();
+            out.stage_bytes("b.txt", b"two").unwrap();
+            out.commit().unwrap();
+            assert!(link.is_symlink());
+            assert_eq!(names(&real), vec![MANIFEST, "b.txt"]);
+        }
     }
 
     /// Output names cannot leave the folder.

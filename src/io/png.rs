@@ -16,7 +16,8 @@ use std::sync::mpsc;
 
 /// PNG through the `png` crate directly: 16-bit samples stay in the decoder's big-endian buffer.
 /// With `rows`, a non-interlaced image is decoded only up to the end of the range (the rows
-/// below stay zero, and the rest of the stream is not read).
+/// below stay zero); the rest of the file is still read, so that every chunk's checksum is
+/// verified.
 pub(crate) fn decode_png(path: &Path, rows: Option<Range<usize>>) -> Result<RawDecoded> {
     let (file, file_len) = open_input(path)?;
     let bad = |e: png::DecodingError| match e {
