@@ -6,7 +6,7 @@
 #[path = "../../tests/common/mod.rs"]
 mod common;
 
-use common::{listing, os, run, sphere_dataset};
+use common::{listing, main_args, os, run, sphere_dataset};
 use photostereo::io::decode::read_image;
 use photostereo::io::output::write_exr;
 use photostereo::synth::write::ImageFormat;
@@ -32,15 +32,6 @@ fn rewrite(path: &Path, f: impl FnOnce(usize, usize, &mut Vec<f32>)) {
         w = v.len() / h;
     }
     write_exr(path, w, h, &[("Y", &v)], &[]).unwrap();
-}
-
-/// The main command's arguments for `images`, `lights` and extra flags, into `out`.
-fn main_args(images: &[PathBuf], lights: &Path, extra: &[&str], out: &Path) -> Vec<OsString> {
-    let mut a: Vec<OsString> = images.iter().map(|p| p.clone().into_os_string()).collect();
-    a.extend(["--lights".into(), lights.as_os_str().to_owned()]);
-    a.extend(extra.iter().map(OsString::from));
-    a.extend(["-q".into(), "-o".into(), out.as_os_str().to_owned()]);
-    a
 }
 
 /// One row of the table: the case, the arguments, and the words its message must hold.

@@ -11,7 +11,7 @@
 #[path = "../../tests/common/mod.rs"]
 mod common;
 
-use common::{bin, listing, os, sphere_dataset, sphere_synth, write_plain_lights};
+use common::{bin, listing, main_args, os, sphere_dataset, sphere_synth, write_plain_lights};
 use photostereo::synth::write::ImageFormat;
 use std::ffi::{OsStr, OsString};
 use std::path::{Path, PathBuf};
@@ -62,15 +62,6 @@ sys.exit(os.waitstatus_to_exitcode(status) % 256)\n";
 
 fn args_of(v: &[OsString]) -> Vec<&OsStr> {
     v.iter().map(|a| a.as_os_str()).collect()
-}
-
-/// The main command's arguments.
-fn main_args(images: &[PathBuf], lights: &Path, extra: &[&str], out: &Path) -> Vec<OsString> {
-    let mut a: Vec<OsString> = images.iter().map(|p| p.clone().into_os_string()).collect();
-    a.extend(["--lights".into(), lights.as_os_str().to_owned()]);
-    a.extend(extra.iter().map(OsString::from));
-    a.extend(["-q".into(), "-o".into(), out.as_os_str().to_owned()]);
-    a
 }
 
 /// CRC-32 (ISO 3309, as PNG uses), bit by bit.

@@ -262,7 +262,8 @@ pub(crate) fn read_exr_rows(
     };
     let channels = chosen.len();
     let mut out = vec![0f32; rows.len() * width * channels];
-    let (_, file) = read_exr_meta(path, MAX_STREAM_SAMPLES)?;
+    // The headers were checked when the band reader opened the file.
+    let (file, _) = open_input(path)?;
     let reader = exr::block::read(BufReader::new(file), false).map_err(bad)?;
     let chunks = reader
         .filter_chunks(false, |_, _, block| {

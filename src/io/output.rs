@@ -866,12 +866,15 @@ impl OutputDir {
                 ),
             ));
         }
+        let filled = || {
+            Error::OutputExists {
+            path: self.dir.clone(),
+            what: "the output folder was filled by another process while this run worked; nothing of this run was written".into(),
+        }
+        };
         let fill = |e: std::io::Error| -> Error {
             if matches!(e.raw_os_error(), Some(code) if code == ENOTEMPTY || code == EEXIST) {
-                Error::OutputExists {
-                    path: self.dir.clone(),
-                    what: "the output folder was filled by another process while this run worked; nothing of this run was written".into(),
-                }
+                filled()
             } else {
                 Error::io(&self.dir, e)
             }
@@ -883,16 +886,13 @@ impl OutputDir {
             std::fs::rename(&self.staging, &dest).map_err(fill)?;
         } else {
             if self.lock.overwrite() == Overwrite::Never {
-                return Err(Error::OutputExists {
-                    path: self.dir.clone(),
-                    what: "the output folder was filled by another process while this run worked; nothing of this run was written".into(),
-                });
+                return Err(filled());
             }
             ensure_replaceable(&dest)?;
             if let Ok(m) = std::fs::metadata(&dest) {
                 let _ = std::fs::set_permissions(&self.staging, m.permissions());
             }
-            exchange(&self.staging, &dest, &parent, &self.lock.name)
+            exchange(&self.staging, &parent, &self.lock.name)
                 .map_err(|e| Error::io(&self.dir, e))?;
             // The staging path now holds the previous set. It is deleted only if it still
             // holds nothing but that set: whatever was written into the folder between the
@@ -961,10 +961,11 @@ fn sibling_visible(parent: &Path, name: &std::ffi::OsStr, suffix: &str) -> PathB
     parent.join(n)
 }
 
-/// Swaps the folders `a` and `b` (`b` is `name` in `parent`) atomically (Linux `renameat2`
+/// Swaps the folder `a` and the folder `name` in `parent` (`b`) atomically (Linux `renameat2`
 /// with `RENAME_EXCHANGE`); where the file system or platform cannot, `b` is moved aside and
 /// `a` renamed in its place (a moment without `b`, never a mix).
-fn exchange(a: &Path, b: &Path, parent: &Path, name: &std::ffi::OsStr) -> std::io::Result<()> {
+fn exchange(a: &Path, parent: &Path, name: &std::ffi::OsStr) -> std::io::Result<()> {
+    let b = &parent.join(name);
     #[cfg(target_os = "linux")]
     {
         use std::ffi::CString;

@@ -121,6 +121,21 @@ pub fn numbered_dataset(root: &Path) -> (PathBuf, Vec<PathBuf>, PathBuf) {
     (dir, images, text)
 }
 
+/// The main command's arguments: `images`, `--lights lights`, the `extra` flags, `-q -o out`.
+pub fn main_args(
+    images: &[PathBuf],
+    lights: &Path,
+    extra: &[&str],
+    out: &Path,
+) -> Vec<std::ffi::OsString> {
+    let mut a: Vec<std::ffi::OsString> =
+        images.iter().map(|p| p.clone().into_os_string()).collect();
+    a.extend(["--lights".into(), lights.as_os_str().to_owned()]);
+    a.extend(extra.iter().map(std::ffi::OsString::from));
+    a.extend(["-q".into(), "-o".into(), out.as_os_str().to_owned()]);
+    a
+}
+
 /// Files in a folder (names), sorted.
 pub fn listing(dir: &Path) -> Vec<String> {
     let mut v: Vec<String> = std::fs::read_dir(dir)
