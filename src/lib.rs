@@ -57,5 +57,7 @@ pub use grid::{Grid, Mask, NormalMap, ScalarMap};
 pub use integrate::{Integration, IntegrationOptions, Integrator, integrate_normals};
 /// The linear-algebra crate of the public API (normals are `nalgebra::Vector3<f32>`).
 pub use nalgebra;
+/// The array crate of the array interop ([`capture::arrays`]): images in, maps out.
+pub use ndarray;
 pub use ps::{Method, SolveOptions};
 pub use run::{Config, Reconstruction, Report, reconstruct, reconstruct_and_write};

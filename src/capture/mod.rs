@@ -7,7 +7,10 @@
 //! Decoding of each file format lives in [`crate::io`]; this folder converts samples
 //! (transfer curve, saturation, light intensity, colour mix) and keeps the stack; [`order`]
 //! catches numbered images sorted as text before they are paired with a plain list of lights.
+//! [`arrays`] builds the same stacks, lights and masks from [`ndarray`] arrays, and hands maps
+//! back as arrays.
 
+pub mod arrays;
 pub mod dataset;
 pub mod lights;
 pub mod order;

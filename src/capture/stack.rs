@@ -125,10 +125,83 @@ impl<'a> Convert<'a> {
 }
 
 /// Tallies of one conversion.
-struct Converted {
-    bits: Vec<u64>,
-    saturated: usize,
-    non_finite: usize,
+pub(crate) struct Converted {
+    /// Saturation flags, one bit per whole-image pixel.
+    pub(crate) bits: Vec<u64>,
+    /// Pixels with a saturated colour sample.
+    pub(crate) saturated: usize,
+    /// Pixels with a non-finite colour sample.
+    pub(crate) non_finite: usize,
+}
+
+/// Coefficients of a conversion: 1/intensity per channel, times the grey weight for a grey
+/// output (`out_channels` 1); a grey source (`channels` 1) is divided by the grey-mixed
+/// intensity.
+pub(crate) fn coefficients(channels: usize, out_channels: usize, intensity: [f32; 3]) -> [f32; 3] {
+    if channels == 1 {
+        let grey: f32 = GREY_WEIGHTS
+            .iter()
+            .zip(&intensity)
+            .map(|(w, i)| w * i)
+            .sum();
+        [1.0 / grey; 3]
+    } else if out_channels == 1 {
+        [0, 1, 2].map(|c| GREY_WEIGHTS[c] / intensity[c])
+    } else {
+        intensity.map(|i| 1.0 / i)
+    }
+}
+
+/// Where one converted row goes: planes of `n` values, `out_channels` of them, the row
+/// starting at `offset` in each plane and at whole-image pixel `pixel`.
+pub(crate) struct RowPlace {
+    pub(crate) out_channels: usize,
+    pub(crate) n: usize,
+    pub(crate) offset: usize,
+    pub(crate) pixel: usize,
+}
+
+/// [`combine_row`] for a row of `stride` interleaved values per pixel (1 grey, 2 grey and
+/// alpha, 3 RGB, 4 RGBA); `scale` is the coefficients and the saturation level.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn combine_any(
+    stride: usize,
+    stored: &[f32],
+    linear: &[f32],
+    scale: ([f32; 3], f32),
+    out: &mut [f32],
+    row: &RowPlace,
+    row_max: f32,
+    check_finite: bool,
+    c: &mut Converted,
+) {
+    let (coef, level) = scale;
+    let (n, offset, pixel) = (row.n, row.offset, row.pixel);
+    macro_rules! go {
+        ($s:literal, $ci:literal, $co:literal) => {
+            combine_row::<$s, $ci, $co>(
+                stored,
+                linear,
+                coef,
+                level,
+                out,
+                n,
+                offset,
+                pixel,
+                row_max,
+                check_finite,
+                c,
+            )
+        };
+    }
+    match (stride, row.out_channels) {
+        (1, _) => go!(1, 1, 1),
+        (2, _) => go!(2, 1, 1),
+        (3, 1) => go!(3, 3, 1),
+        (3, _) => go!(3, 3, 3),
+        (_, 1) => go!(4, 3, 1),
+        _ => go!(4, 3, 3),
+    }
 }
 
 /// Combines one row: `stored` and `linear` hold `STRIDE` values per pixel of which the first
@@ -213,20 +286,7 @@ pub(crate) fn convert_into(
         .or(raw.format.is_integer().then_some(1.0))
         .unwrap_or(f32::INFINITY);
     let out_channels = out.len() / n.max(1);
-    // Coefficients: 1/intensity per channel, times the grey weight for a grey output; a grey
-    // file is divided by the grey-mixed intensity.
-    let coef: [f32; 3] = if raw.channels == 1 {
-        let grey: f32 = GREY_WEIGHTS
-            .iter()
-            .zip(&cv.intensity)
-            .map(|(w, i)| w * i)
-            .sum();
-        [1.0 / grey; 3]
-    } else if out_channels == 1 {
-        [0, 1, 2].map(|c| GREY_WEIGHTS[c] / cv.intensity[c])
-    } else {
-        cv.intensity.map(|i| 1.0 / i)
-    };
+    let coef = coefficients(raw.channels, out_channels, cv.intensity);
     let row_len = w * raw.stride;
     let mut stored = vec![0f32; ww * raw.stride];
     let mut linear = vec![0f32; if linearise { stored.len() } else { 0 }];
@@ -282,32 +342,23 @@ pub(crate) fn convert_into(
         // finiteness checked; integers are always finite.
         let check_finite = row_max.is_nan();
         let row_max = if check_finite { level } else { row_max };
-        let args = (coef, level, (y - window.y0) * ww, y * w + window.x0);
-        macro_rules! go {
-            ($s:literal, $ci:literal, $co:literal) => {
-                combine_row::<$s, $ci, $co>(
-                    &stored,
-                    lin,
-                    args.0,
-                    args.1,
-                    out,
-                    n,
-                    args.2,
-                    args.3,
-                    row_max,
-                    check_finite,
-                    &mut c,
-                )
-            };
-        }
-        match (raw.stride, raw.channels, out_channels) {
-            (1, _, _) => go!(1, 1, 1),
-            (2, _, _) => go!(2, 1, 1),
-            (3, _, 1) => go!(3, 3, 1),
-            (3, _, _) => go!(3, 3, 3),
-            (_, _, 1) => go!(4, 3, 1),
-            _ => go!(4, 3, 3),
-        }
+        let row = RowPlace {
+            out_channels,
+            n,
+            offset: (y - window.y0) * ww,
+            pixel: y * w + window.x0,
+        };
+        combine_any(
+            raw.stride,
+            &stored,
+            lin,
+            (coef, level),
+            out,
+            &row,
+            row_max,
+            check_finite,
+            &mut c,
+        );
     }
     let info = ImageInfo {
         path: path.to_path_buf(),
@@ -408,27 +459,7 @@ pub fn load_stack(
                     format!(" in the part the mask spans ({window})")
                 }
             };
-            // NaN compares false: an image of NaN counts as dark.
-            if !out.iter().any(|v| *v > 0.0) {
-                return Err(Error::BadImage {
-                    path: path.clone(),
-                    index,
-                    reason: format!(
-                        "the image is entirely dark{}: no sample above 0, so it says nothing about the shape; check the exposure, or remove it and its light",
-                        where_()
-                    ),
-                });
-            }
-            if r.1.saturated >= window.len() {
-                return Err(Error::BadImage {
-                    path: path.clone(),
-                    index,
-                    reason: format!(
-                        "every pixel is saturated{}; lower the exposure, or remove the image and its light",
-                        where_()
-                    ),
-                });
-            }
+            check_usable(out, r.1.saturated, window.len(), path, index, where_)?;
             Ok(r)
         })
         .collect();
@@ -469,6 +500,40 @@ pub fn load_stack(
         info,
         window,
     })
+}
+
+/// Refuses a converted image (`out`, its planes) that is entirely dark or whose every pixel of
+/// the `stored` stored ones is saturated; `where_` says which part of the image was stored.
+pub(crate) fn check_usable(
+    out: &[f32],
+    saturated: usize,
+    stored: usize,
+    path: &Path,
+    index: usize,
+    where_: impl Fn() -> String,
+) -> Result<()> {
+    // NaN compares false: an image of NaN counts as dark.
+    if !out.iter().any(|v| *v > 0.0) {
+        return Err(Error::BadImage {
+            path: path.to_path_buf(),
+            index,
+            reason: format!(
+                "the image is entirely dark{}: no sample above 0, so it says nothing about the shape; check the exposure, or remove it and its light",
+                where_()
+            ),
+        });
+    }
+    if saturated >= stored {
+        return Err(Error::BadImage {
+            path: path.to_path_buf(),
+            index,
+            reason: format!(
+                "every pixel is saturated{}; lower the exposure, or remove the image and its light",
+                where_()
+            ),
+        });
+    }
+    Ok(())
 }
 
 /// Linear value of each 8-bit sRGB code.

@@ -11,7 +11,7 @@ use crate::io::png::decode_png;
 use nalgebra::Vector3;
 use serde::Serialize;
 
-pub use crate::io::exr::{read_exr_channel, read_exr_text};
+pub use crate::io::exr::{ExrChannels, read_exr_channel, read_exr_channels, read_exr_text};
 use std::ops::Range;
 use std::path::Path;
 
@@ -129,6 +129,63 @@ fn generic_decoder(path: &Path, max_samples: usize) -> Result<impl image::ImageD
         max_samples,
     )?;
     Ok(decoder)
+}
+
+/// An image's stored samples as an `H×W×C` array of their own type (C = 1 grey, 3 RGB; alpha
+/// dropped), as [`read_array`] returns them.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ImageArray {
+    /// 8-bit samples.
+    U8(ndarray::Array3<u8>),
+    /// 16-bit samples.
+    U16(ndarray::Array3<u16>),
+    /// Float samples (EXR half or float, float TIFF).
+    F32(ndarray::Array3<f32>),
+}
+
+/// Reads an image's samples as stored (not scaled, not linearised): what
+/// [`crate::capture::Capture::from_arrays_channels`] then converts exactly as a load of the
+/// file does.
+///
+/// # Errors
+/// As [`read_image`].
+pub fn read_array(path: &Path) -> Result<ImageArray> {
+    let raw = decode_raw(path, None)?;
+    let (h, w, c, stride) = (raw.height, raw.width, raw.channels, raw.stride);
+    fn keep<T: Copy>(v: &[T], c: usize, stride: usize) -> Vec<T> {
+        if c == stride {
+            v.to_vec()
+        } else {
+            v.chunks_exact(stride)
+                .flat_map(|p| p[..c].to_vec())
+                .collect()
+        }
+    }
+    let shape = (h, w, c);
+    let bad = |e: ndarray::ShapeError| Error::Decode {
+        path: path.to_path_buf(),
+        reason: format!("the samples do not fill a {w}x{h}x{c} image: {e}"),
+    };
+    Ok(match &raw.samples {
+        Samples::U8(v) => {
+            ImageArray::U8(ndarray::Array3::from_shape_vec(shape, keep(v, c, stride)).map_err(bad)?)
+        }
+        Samples::U16(v) => ImageArray::U16(
+            ndarray::Array3::from_shape_vec(shape, keep(v, c, stride)).map_err(bad)?,
+        ),
+        Samples::U16Be(b) => {
+            let v: Vec<u16> = b
+                .chunks_exact(2)
+                .map(|p| u16::from_be_bytes([p[0], p[1]]))
+                .collect();
+            ImageArray::U16(
+                ndarray::Array3::from_shape_vec(shape, keep(&v, c, stride)).map_err(bad)?,
+            )
+        }
+        Samples::F32(v) => ImageArray::F32(
+            ndarray::Array3::from_shape_vec(shape, keep(v, c, stride)).map_err(bad)?,
+        ),
+    })
 }
 
 pub(crate) fn decode_raw(path: &Path, rows: Option<Range<usize>>) -> Result<RawDecoded> {

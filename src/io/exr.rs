@@ -162,6 +162,48 @@ pub fn read_exr_channel(path: &Path, name: &str) -> Result<crate::grid::ScalarMa
     Grid::from_vec(w, h, ch.sample_data.values_as_f32().take(w * h).collect())
 }
 
+/// The channels of an EXR image, as [`read_exr_channels`] returns them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExrChannels {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// `(name, row-major values)` per channel, in the file's order.
+    pub channels: Vec<(String, Vec<f32>)>,
+}
+
+/// Every channel of an EXR file's first layer (float or half, read as `f32`), in the file's
+/// order: the image's width and height and `(name, row-major values)` per channel.
+///
+/// # Errors
+/// [`Error::Io`] or [`Error::Decode`] naming the file; [`Error::UnsupportedImage`] for a
+/// subsampled channel.
+pub fn read_exr_channels(path: &Path) -> Result<ExrChannels> {
+    use exr::prelude::*;
+    let image = read_exr_layer(path)?;
+    let layer = &image.layer_data;
+    let (w, h) = (layer.size.width(), layer.size.height());
+    let mut out = Vec::with_capacity(layer.channel_data.list.len());
+    for ch in &layer.channel_data.list {
+        if ch.sampling != Vec2(1, 1) {
+            return Err(crate::Error::UnsupportedImage {
+                path: path.to_path_buf(),
+                reason: format!("channel {} is subsampled", ch.name),
+            });
+        }
+        out.push((
+            ch.name.to_string(),
+            ch.sample_data.values_as_f32().take(w * h).collect(),
+        ));
+    }
+    Ok(ExrChannels {
+        width: w,
+        height: h,
+        channels: out,
+    })
+}
+
 /// The text attribute `name` of an EXR file's first layer (such as the `photostereo:units`
 /// this tool writes), or `None` when the file has no such attribute or is not an EXR.
 ///

@@ -227,6 +227,8 @@ pub(crate) struct WholeStack<'a> {
     mask: &'a Mask,
     /// The grey mix, made for the shared-normal model and kept for its solve.
     grey: Option<ImageStack>,
+    /// The models given instead of estimated (a part of a capture solved under the whole's).
+    given: Option<&'a [ImageModel]>,
     done: bool,
 }
 
@@ -237,8 +239,45 @@ impl<'a> WholeStack<'a> {
             stack,
             mask,
             grey: None,
+            given: None,
             done: false,
         }
+    }
+
+    /// The source with its models given rather than estimated from `stack`.
+    pub(crate) fn with_models(mut self, models: Option<&'a [ImageModel]>) -> Self {
+        self.given = models;
+        self
+    }
+}
+
+/// The models a solve of `stack` under `config` uses (one per solved channel, one for the
+/// shared-normal colour solve), estimated over `mask`; the grey mix, when one was made, goes
+/// to `grey`.
+pub(crate) fn estimate_models(
+    stack: &ImageStack,
+    mask: &Mask,
+    lights: &Lights,
+    config: &Config,
+    grey: &mut Option<ImageStack>,
+) -> Result<Vec<ImageModel>> {
+    let options = &config.solve;
+    if shared_normal(stack.channels(), config) {
+        crate::ps::color::check_rgb_inputs(stack, lights, mask, options)?;
+        let grey = grey.insert(stack.grey_mix());
+        return Ok(vec![ImageModel::estimate(grey, 0, lights, mask, options)?]);
+    }
+    (0..stack.channels())
+        .map(|c| ImageModel::estimate(stack, c, lights, mask, options))
+        .collect()
+}
+
+/// How many models a solve of a `channels`-channel stack under `config` uses.
+pub(crate) fn model_count(channels: usize, config: &Config) -> usize {
+    if shared_normal(channels, config) {
+        1
+    } else {
+        channels
     }
 }
 
@@ -260,15 +299,24 @@ impl BandSource for WholeStack<'_> {
     }
 
     fn models(&mut self, lights: &Lights, config: &Config) -> Result<Vec<ImageModel>> {
-        let (stack, mask, options) = (self.stack, self.mask, &config.solve);
-        if shared_normal(stack.channels(), config) {
-            crate::ps::color::check_rgb_inputs(stack, lights, mask, options)?;
-            let grey = self.grey.insert(stack.grey_mix());
-            return Ok(vec![ImageModel::estimate(grey, 0, lights, mask, options)?]);
+        let Some(given) = self.given else {
+            return estimate_models(self.stack, self.mask, lights, config, &mut self.grey);
+        };
+        let want = model_count(self.stack.channels(), config);
+        if given.len() != want {
+            return Err(crate::Error::param(
+                "models",
+                format!(
+                    "{} model(s) given; this solve uses {want} (one per solved channel, one for the shared-normal colour solve)",
+                    given.len()
+                ),
+            ));
         }
-        (0..stack.channels())
-            .map(|c| ImageModel::estimate(stack, c, lights, mask, options))
-            .collect()
+        if shared_normal(self.stack.channels(), config) {
+            crate::ps::color::check_rgb_inputs(self.stack, lights, self.mask, &config.solve)?;
+            self.grey = Some(self.stack.grey_mix());
+        }
+        Ok(given.to_vec())
     }
 
     fn next_band(&mut self) -> Result<Option<Band<'_>>> {

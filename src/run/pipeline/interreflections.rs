@@ -128,7 +128,14 @@ pub(super) fn compensate_and_resolve(
             break;
         }
         let stack = compensate(&capture.stack, &capture.lights, &ff, &estimate, s)?;
-        recon = solve_whole(&stack, capture, solve_config, config, facts, progress)?;
+        recon = solve_whole(
+            (&stack, None),
+            capture,
+            solve_config,
+            config,
+            facts,
+            progress,
+        )?;
         applied = true;
     }
     let seconds = t.elapsed().as_secs_f64();

@@ -37,7 +37,7 @@ use crate::ps::interreflection::InterreflectionOptions;
 use crate::ps::normals::{
     IntegrabilitySummary, albedo_and_normals, combine_channels, integrability,
 };
-use crate::ps::solve::{PixelStatus, Solution, SolveOptions, StatusCounts};
+use crate::ps::solve::{ImageModel, PixelStatus, Solution, SolveOptions, StatusCounts};
 use crate::run::bands::{Assemble, WholeStack, solve_bands};
 use crate::run::warnings::{Warning, warnings};
 use serde::Serialize;
@@ -162,6 +162,47 @@ pub fn reconstruct_normals(
     config: &Config,
     progress: &dyn Progress,
 ) -> Result<Reconstruction> {
+    reconstruct_normals_with_models(capture, config, None, progress)
+}
+
+/// The capture-wide image models a solve of `capture` under `config` uses, estimated from the
+/// whole capture (one per solved channel; one for the shared-normal colour solve): what to
+/// hand to [`reconstruct_normals_with_models`] for every part of a capture solved in parts
+/// (tiles on a cluster, say), so that every part is fitted alike. Models that need no data
+/// ([`ImageModel::needed`]) come back as [`ImageModel::unit`].
+///
+/// # Errors
+/// As [`crate::ps::solve::solve`]: mismatched sizes or counts, invalid options.
+pub fn estimate_models(capture: &Capture, config: &Config) -> Result<Vec<ImageModel>> {
+    crate::run::bands::estimate_models(
+        &capture.stack,
+        &capture.mask,
+        &capture.lights,
+        config,
+        &mut None,
+    )
+}
+
+/// [`reconstruct_normals`] under the image models `models` (from [`estimate_models`] on the
+/// whole capture, or a sample of it) instead of models estimated from `capture`: the solve of
+/// one part of a larger capture. `None` estimates them, as [`reconstruct_normals`] does.
+///
+/// # Errors
+/// As [`reconstruct_normals`]; [`Error::InvalidParameter`] (`models`) when the number of
+/// models or their length does not fit the capture, or when interreflection compensation is
+/// asked for (it re-estimates the model from corrected images).
+pub fn reconstruct_normals_with_models(
+    capture: &Capture,
+    config: &Config,
+    models: Option<&[ImageModel]>,
+    progress: &dyn Progress,
+) -> Result<Reconstruction> {
+    if models.is_some() && config.interreflections.is_some() {
+        return Err(Error::param(
+            "models",
+            "interreflection compensation re-estimates the image model from the corrected images, so it cannot run under a given one",
+        ));
+    }
     capture.lights.check_usable(MAX_LIGHT_CONDITION)?;
     let unmasked_files = capture.mask_source.is_none() && !capture.images.is_empty();
     let solve_config = fill_only_inside_a_mask(config, unmasked_files);
@@ -172,7 +213,7 @@ pub fn reconstruct_normals(
         behind: capture.lights.behind(),
     };
     let recon = solve_whole(
-        &capture.stack,
+        (&capture.stack, models),
         capture,
         &solve_config,
         config,
@@ -195,14 +236,14 @@ pub fn reconstruct_normals(
 /// Solves `stack` (the capture's images, or a corrected copy of them) over the capture's mask
 /// with `solve_config`, and assembles the maps and summaries with `config`.
 fn solve_whole(
-    stack: &ImageStack,
+    (stack, models): (&ImageStack, Option<&[ImageModel]>),
     capture: &Capture,
     solve_config: &Config,
     config: &Config,
     facts: &InputFacts<'_>,
     progress: &dyn Progress,
 ) -> Result<Reconstruction> {
-    let mut source = WholeStack::new(stack, &capture.mask);
+    let mut source = WholeStack::new(stack, &capture.mask).with_models(models);
     let (sink, times) = solve_bands(
         &mut source,
         &capture.lights,

@@ -1,0 +1,91 @@
+#!/usr/bin/env python3
+"""photostereo.dask on a LocalCluster of worker processes on loopback, against the
+single-process solve of the same capture.
+
+    python python/benches/dask_tiles.py [--size 4096] [--chunk 512] [--workers 2]
+
+Renders a bumpy surface (size x size, 12 lights, noise 0.005), solves it in chunk x chunk tiles
+on the cluster and in one process under the same capture-wide model, and prints one JSON
+object: wall times, peak RSS of each worker and of this process, the largest normal difference
+and the mean angular error against the rendered truth.
+"""
+
+import argparse
+import json
+import resource
+import time
+
+import numpy as np
+
+import photostereo as ps
+import photostereo.dask as psd
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--size", type=int, default=4096)
+    ap.add_argument("--chunk", type=int, default=512)
+    ap.add_argument("--workers", type=int, default=2)
+    a = ap.parse_args()
+
+    import dask.array as da
+    from distributed import Client, LocalCluster
+
+    lights = ps.light_ring(12, 40.0)
+    t = time.perf_counter()
+    s = ps.render("bumps", a.size, lights, noise=0.005, seed=3)
+    render_s = time.perf_counter() - t
+    images, mask = s["images"], s["mask"]
+
+    with LocalCluster(
+        n_workers=a.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+        dashboard_address=None, memory_limit="8GiB",
+    ) as cluster, Client(cluster) as client:
+        client.run(lambda: None)
+        # The images go to the workers as the cluster's own data, chunked by tile.
+        t = time.perf_counter()
+        d = da.from_array(images, chunks=(images.shape[0], a.chunk, a.chunk))
+        d = client.persist(d)
+        from distributed import wait
+
+        wait(d)
+        scatter_s = time.perf_counter() - t
+        t = time.perf_counter()
+        maps = psd.solve(d, lights, mask=mask, chunks=a.chunk)
+        normals = maps["normals"].compute()
+        dask_s = time.perf_counter() - t
+        peaks = client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+
+    t = time.perf_counter()
+    single = ps.solve(images, lights, mask=mask, fill=False, models=maps["models"])
+    single_s = time.perf_counter() - t
+    both = ~np.isnan(single.normals[..., 0])
+    same_nan = bool(np.array_equal(both, ~np.isnan(normals[..., 0])))
+    diff = float(np.abs(normals[both] - single.normals[both]).max())
+    cos = np.clip(np.sum(normals[mask] * s["normals"][mask], -1), -1, 1)
+    print(
+        json.dumps(
+            {
+                "size": a.size,
+                "images": int(images.shape[0]),
+                "chunk": a.chunk,
+                "workers": a.workers,
+                "render_s": round(render_s, 2),
+                "to_workers_s": round(scatter_s, 2),
+                "dask_solve_s": round(dask_s, 2),
+                "single_process_solve_s": round(single_s, 2),
+                "peak_rss_per_worker_mib": [round(v / 1024) for v in peaks.values()],
+                "peak_rss_this_process_mib": round(
+                    resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+                ),
+                "same_unsolved_pixels": same_nan,
+                "max_normal_difference": diff,
+                "mean_angular_error_deg": float(np.degrees(np.arccos(cos)).mean()),
+            },
+            indent=2,
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,450 @@
+"""photostereo: photographs of an object under known lights -> albedo, normals and depth.
+
+The Python face of the photostereo Rust library: the same stages, on numpy arrays, with the
+GIL released while they work.
+
+    >>> import numpy as np, photostereo as ps
+    >>> lights = ps.light_ring(8, 45.0)
+    >>> scene = ps.render("sphere", 64, lights)
+    >>> result = ps.solve(scene["images"], lights, mask=scene["mask"])
+    >>> depth = ps.integrate(result.normals, result.solved)["depth"]
+
+Conventions (as the library's): camera frame x right, y up, z towards the camera; image row 0
+is the top; light directions point from the surface towards the light; normals point out of
+the surface.
+
+Images are N x H x W (grey) or N x H x W x C (C = 1, 3, or 4 with alpha ignored) arrays of
+uint8, uint16, float32 or float64, one image per light along the first axis, any strides.
+They are converted as image files of the same samples are: integers scaled to [0, 1] by their
+largest code (which marks a sample saturated; saturated samples are left out of the fit),
+uint8 decoded from sRGB unless ``transfer="linear"``, each image divided by its light's
+intensity, then mixed to grey (BT.601) or kept per channel (``color``).
+
+Errors are raised as :class:`Error` (a ``ValueError``) naming the parameter, image or file;
+``TypeError`` for arrays of the wrong type; ``OSError`` for files. Things worth knowing about
+a result that was still computed are issued as :class:`PhotostereoWarning` and listed in
+``result.warnings``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings as _warnings
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Sequence, Union
+
+import numpy as np
+
+from . import _native
+from ._native import Error
+
+__all__ = [
+    "Error",
+    "PhotostereoWarning",
+    "Capture",
+    "Solution",
+    "STATUS",
+    "METHODS",
+    "INTEGRATORS",
+    "load",
+    "solve",
+    "estimate_model",
+    "convert",
+    "integrate",
+    "render",
+    "light_ring",
+    "reflectance_map",
+    "calibrate",
+    "read_image",
+    "read_mask",
+    "read_exr",
+    "write_exr",
+    "__version__",
+]
+
+__version__: str = _native.version()
+
+#: Per-pixel outcome codes of ``Solution.status``.
+STATUS: Dict[int, str] = {
+    0: "outside the mask",
+    1: "solved",
+    2: "too few usable samples",
+    3: "ill-conditioned light set",
+    4: "dark in every image",
+    5: "filled from its neighbours",
+}
+
+#: The per-pixel estimators (``method`` of :func:`solve`).
+METHODS = ("auto", "ls", "threshold", "weighted", "trim", "huber", "tukey", "l1", "specular")
+
+#: The normal integrators (``method`` of :func:`integrate`).
+INTEGRATORS = ("auto", "masked-ls", "poisson", "path", "fc", "bilateral")
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+
+class PhotostereoWarning(UserWarning):
+    """Something the user should know about a result that was still computed."""
+
+
+def _f64_2d(value: Any, name: str, width: Optional[int] = None) -> np.ndarray:
+    """``value`` as a C-contiguous float64 matrix, or a ValueError naming ``name``."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{name}: cannot be read as numbers ({e})") from None
+    if a.ndim == 1 and width == 1:
+        a = a[:, None]
+    if a.ndim != 2:
+        raise ValueError(f"{name}: shape {a.shape}; a matrix (N x 3) expected")
+    return np.ascontiguousarray(a)
+
+
+def _intensities(value: Any) -> Optional[np.ndarray]:
+    if value is None:
+        return None
+    return _f64_2d(value, "intensities", width=1)
+
+
+def _check_array(value: Any, name: str) -> Any:
+    if not isinstance(value, np.ndarray):
+        raise TypeError(
+            f"{name}: got a {type(value).__name__}; a numpy array expected "
+            f"(np.asarray(...) it, or load it with photostereo.load)"
+        )
+    return value
+
+
+@dataclass
+class Capture:
+    """A capture read from files: the images as stored, their lights, intensities and mask.
+
+    ``images`` is N x H x W x C in the files' own type (uint8, uint16 or float32), exactly what
+    :func:`solve` converts as the command-line tool does.
+    """
+
+    images: np.ndarray
+    lights: np.ndarray
+    intensities: np.ndarray
+    mask: Optional[np.ndarray]
+    files: List[str]
+
+    def solve(self, **options: Any) -> "Solution":
+        """:func:`solve` on this capture (its intensities and mask)."""
+        return solve(
+            self.images, self.lights, mask=self.mask, intensities=self.intensities, **options
+        )
+
+
+@dataclass
+class Solution:
+    """What :func:`solve` returns: per-pixel maps (H x W numpy arrays) and summaries."""
+
+    #: Unit normals, H x W x 3 (n_x, n_y, n_z), NaN where none was found.
+    normals: np.ndarray
+    #: Albedo: H x W, or H x W x 3 for a colour solve; NaN where no normal.
+    albedo: np.ndarray
+    #: RMS residual of the fit over the samples used (image units).
+    residual: np.ndarray
+    #: Samples used per pixel (uint16).
+    samples: np.ndarray
+    #: Condition number of the lights the pixel used: its confidence (lower is better).
+    condition: np.ndarray
+    #: Outcome per pixel (uint8, see :data:`STATUS`).
+    status: np.ndarray
+    #: Pixels with a normal (bool).
+    solved: np.ndarray
+    #: Pixels fitted by a robust estimator (bool).
+    robust: np.ndarray
+    #: Curl of the gradient field (the integrability check; 0 for a true surface).
+    curl: np.ndarray
+    #: Pixel outcome counts.
+    counts: Dict[str, int]
+    #: Summary of |curl|.
+    integrability: Dict[str, Any]
+    #: How much model the data needed (robust pixels, intensity corrections, noise).
+    model_summary: Dict[str, Any]
+    #: The capture-wide models the solve used (pass to ``solve(..., models=...)``).
+    models: List[Dict[str, Any]]
+    #: Things the user should know about this result (also issued as PhotostereoWarning).
+    warnings: List[str] = field(default_factory=list)
+    #: Wall time of the solve and the normals, seconds.
+    solve_seconds: float = 0.0
+
+    def __getitem__(self, key: str) -> Any:
+        return getattr(self, key)
+
+
+def solve(
+    images: np.ndarray,
+    lights: Any,
+    mask: Optional[np.ndarray] = None,
+    *,
+    intensities: Any = None,
+    method: str = "auto",
+    color: str = "grey",
+    transfer: str = "auto",
+    saturation: Optional[float] = None,
+    fill: bool = True,
+    models: Optional[Sequence[Dict[str, Any]]] = None,
+) -> Solution:
+    """Per-pixel photometric stereo: g = rho N from every image, robustly.
+
+    Args:
+        images: N x H x W or N x H x W x C array (uint8, uint16, float32, float64).
+        lights: N x 3 light directions (camera frame, towards the light; normalised here).
+        mask: H x W bool array of object pixels (default: every pixel). Only its bounding box
+            is converted.
+        intensities: per light, N x 1 (or N) or N x 3 (R, G, B); images are divided by them.
+        method: the estimator, one of :data:`METHODS` (``"auto"``: least squares with shadow
+            rejection where Lambert's law fits, specular rejection where it does not).
+        color: ``"grey"`` (BT.601 mix), ``"shared"`` (one normal, RGB albedo) or
+            ``"per-channel"`` (three solves).
+        transfer: ``"auto"`` (sRGB for uint8, linear otherwise), ``"linear"`` or ``"srgb"``.
+        saturation: stored level (integers scaled to [0, 1]) at or above which a sample is
+            saturated; default the largest code for integers, none for floats.
+        fill: fill holes in the mask from neighbouring normals (reported as status 5).
+        models: the capture-wide models to solve under (from :func:`estimate_model` on the
+            whole capture) instead of estimating them from these images: for a capture
+            solved in parts (see :mod:`photostereo.dask`).
+
+    Returns:
+        A :class:`Solution`.
+    """
+    _check_array(images, "images")
+    lights = _f64_2d(lights, "lights")
+    r = _native.solve(
+        images,
+        lights,
+        mask,
+        _intensities(intensities),
+        method,
+        color,
+        transfer,
+        saturation,
+        fill,
+        list(models) if models is not None else None,
+    )
+    for w in r["warnings"]:
+        _warnings.warn(w, PhotostereoWarning, stacklevel=2)
+    for key in ("counts", "integrability", "model_summary"):
+        r[key] = json.loads(r[key])
+    return Solution(**r)
+
+
+def estimate_model(
+    images: np.ndarray,
+    lights: Any,
+    mask: Optional[np.ndarray] = None,
+    *,
+    intensities: Any = None,
+    method: str = "auto",
+    color: str = "grey",
+    transfer: str = "auto",
+    saturation: Optional[float] = None,
+) -> List[Dict[str, Any]]:
+    """The capture-wide models (noise sigma and intensity gains per image) a solve of these
+    images would estimate: estimate them once on the whole capture (or a sample of its rows)
+    and pass them to :func:`solve` for each part. Arguments as :func:`solve`."""
+    _check_array(images, "images")
+    return _native.estimate_model(
+        images,
+        _f64_2d(lights, "lights"),
+        mask,
+        _intensities(intensities),
+        method,
+        color,
+        transfer,
+        saturation,
+    )
+
+
+def convert(
+    images: np.ndarray,
+    lights: Any,
+    *,
+    intensities: Any = None,
+    color: str = "grey",
+    transfer: str = "auto",
+    saturation: Optional[float] = None,
+):
+    """The images as the solver sees them: float32 linear radiance divided by the intensities,
+    N x H x W (grey) or N x H x W x 3, and the N x H x W bool saturation flags."""
+    _check_array(images, "images")
+    return _native.convert(
+        images, _f64_2d(lights, "lights"), _intensities(intensities), color, transfer, saturation
+    )
+
+
+def integrate(
+    normals: np.ndarray,
+    mask: Optional[np.ndarray] = None,
+    method: str = "auto",
+    K: Any = None,
+) -> Dict[str, Any]:
+    """Normals (H x W x 3 float32) -> depth.
+
+    Args:
+        normals: unit normals, camera frame.
+        mask: H x W bool domain (default: the pixels with finite normals).
+        method: one of :data:`INTEGRATORS`; ``"auto"`` chooses masked least squares, or the
+            bilateral integrator when the normals show depth jumps (reported as ``method``).
+        K: 3 x 3 pinhole intrinsics (pixels) for perspective integration; None: orthographic.
+
+    Returns:
+        ``{"depth": H x W (orthographic: height towards the camera in pixel units; perspective:
+        depth up to scale), "residual": H x W, "method": str (the integrator that ran),
+        "iterations": int, "auto": dict or None (the figures behind auto's choice), "reason":
+        str or None (auto's choice in words)}``; NaN outside the mask.
+    """
+    _check_array(normals, "normals")
+    if normals.dtype != np.float32:
+        if normals.dtype == np.float64:
+            normals = normals.astype(np.float32)
+        else:
+            raise TypeError(f"normals: dtype {normals.dtype}; float32 or float64 expected")
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise ValueError(f"normals: shape {normals.shape}; H x W x 3 expected")
+    k = None if K is None else _f64_2d(K, "K")
+    r = _native.integrate(normals, mask, method, k)
+    if r["auto"] is not None:
+        r["auto"] = json.loads(r["auto"])
+    return r
+
+
+def render(
+    scene: str,
+    size: int,
+    lights: Any,
+    *,
+    material: str = "lambert",
+    material_params: Optional[Dict[str, float]] = None,
+    albedo: float = 0.8,
+    noise: float = 0.0,
+    seed: int = 0,
+    cast_shadows: bool = True,
+) -> Dict[str, np.ndarray]:
+    """Renders a named scene (``"sphere"``, ``"vase"``, ``"peaks"``, ``"torus"``, ``"bumps"``,
+    ``"groove"``, ``"bowl"``, ``"relief"``, ``"step"``, ``"ramp"``, ``"ellipsoid"``,
+    ``"demo"``) at size x size pixels under ``lights`` (N x 3), with a reflectance model
+    (``"lambert"``, ``"oren-nayar"``, ``"phong"``, ``"blinn-phong"``, ``"torrance-sparrow"``,
+    ``"ward"``, ``"mirror"``; parameters ``ks``, ``shininess``, ``roughness``, ``f0``,
+    ``alpha_x``, ``alpha_y``, ``sigma``), cast shadows and Gaussian noise.
+
+    Returns ``{"images": N x H x W float32, "lights", "normals": H x W x 3, "depth", "albedo",
+    "mask", "cast_shadows": N x H x W bool, "attached_shadows"}`` (truth NaN outside the mask).
+    """
+    return _native.render(
+        scene,
+        int(size),
+        _f64_2d(lights, "lights"),
+        material,
+        material_params,
+        float(albedo),
+        float(noise),
+        int(seed),
+        bool(cast_shadows),
+    )
+
+
+def light_ring(count: int, elevation_deg: float, azimuth0_deg: float = 0.0) -> np.ndarray:
+    """``count`` light directions (N x 3) evenly spaced in azimuth at ``elevation_deg`` above
+    the image plane."""
+    return _native.light_ring(int(count), float(elevation_deg), float(azimuth0_deg))
+
+
+def reflectance_map(
+    light: Sequence[float],
+    material: str = "lambert",
+    material_params: Optional[Dict[str, float]] = None,
+    extent: float = 2.0,
+    size: int = 256,
+) -> np.ndarray:
+    """R(p, q) under one distant light, sampled on a size x size grid over
+    [-extent, extent]^2 of the gradient (p, q) = (dz/dx, dz/dy); row 0 is q = +extent."""
+    light = [float(v) for v in light]
+    if len(light) != 3:
+        raise ValueError(f"light: {len(light)} values; x, y, z expected")
+    return _native.reflectance_map(light, material, material_params, float(extent), int(size))
+
+
+def calibrate(images: np.ndarray, mask: Optional[np.ndarray] = None) -> Dict[str, Any]:
+    """Light directions from images of a chrome sphere (N x H x W[ x C]), one per light.
+
+    Returns ``{"lights": N x 3 or None (when some image has no usable highlight),
+    "report": dict}``: the sphere fitted, and per image the highlight, its light and its
+    uncertainty, or why there is none.
+    """
+    _check_array(images, "images")
+    lights, report = _native.calibrate(images, mask)
+    return {"lights": lights, "report": json.loads(report)}
+
+
+def read_image(path: PathLike) -> np.ndarray:
+    """An image file's samples as stored: H x W x C (C = 1 or 3) uint8, uint16 or float32."""
+    return _native.read_image(os.fspath(path))
+
+
+def read_mask(path: PathLike) -> np.ndarray:
+    """A mask file as an H x W bool array (pixels > 0 set)."""
+    return _native.read_mask(os.fspath(path))
+
+
+def load(
+    inputs: Union[PathLike, Sequence[PathLike]],
+    lights: Optional[PathLike] = None,
+    mask: Optional[PathLike] = None,
+) -> Capture:
+    """Reads a capture as the command-line tool does: a DiLiGenT-layout folder, an image list
+    (``<name>.txt``) or image files with a lights file (JSON or ``x y z`` lines, matched to
+    the images by name when it names them), with an optional mask file."""
+    if isinstance(inputs, (str, os.PathLike)):
+        inputs = [inputs]
+    paths = [os.fspath(p) for p in inputs]
+    files, directions, intensities, mask_path = _native.resolve(
+        paths,
+        None if lights is None else os.fspath(lights),
+        None if mask is None else os.fspath(mask),
+    )
+    first = read_image(files[0])
+    stack = np.empty((len(files),) + first.shape, dtype=first.dtype)
+    stack[0] = first
+
+    def read_into(k: int) -> None:
+        img = read_image(files[k])
+        if img.shape != first.shape or img.dtype != first.dtype:
+            raise Error(
+                f"{files[k]}: image {k} is {img.shape} {img.dtype} but image 0 ({files[0]}) "
+                f"is {first.shape} {first.dtype}; all images must match"
+            )
+        stack[k] = img
+
+    # Decoding releases the GIL: the files are read in parallel.
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        list(pool.map(read_into, range(1, len(files))))
+    m = None if mask_path is None else read_mask(mask_path)
+    return Capture(stack, directions, intensities, m, [str(f) for f in files])
+
+
+def read_exr(path: PathLike) -> Dict[str, np.ndarray]:
+    """Every channel of an EXR file as ``{name: H x W float32}``, in the file's order."""
+    return dict(_native.read_exr(os.fspath(path)))
+
+
+def write_exr(
+    path: PathLike, channels: Dict[str, np.ndarray], overwrite: bool = False
+) -> None:
+    """Writes ``{name: H x W array}`` as a float32 EXR (ZIP), atomically: the file appears
+    whole or not at all. An existing file is replaced only with ``overwrite=True``."""
+    if not channels:
+        raise ValueError("channels: none given")
+    items = []
+    for name, a in channels.items():
+        a = np.asarray(a)
+        if a.dtype not in (np.float32, np.float64, np.float16):
+            raise TypeError(f"channels[{name!r}]: dtype {a.dtype}; a float array expected")
+        items.append((str(name), np.ascontiguousarray(a, dtype=np.float32)))
+    _native.write_exr(os.fspath(path), items, bool(overwrite))

@@ -1,0 +1,73 @@
+"""Type stubs of the compiled module ``photostereo._native`` (private: use the package's
+functions, which check and convert their arguments before calling these)."""
+
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+class Error(ValueError):
+    """An error of photostereo's: bad input, or a capture it cannot solve."""
+
+def version() -> str: ...
+def solve(
+    images: np.ndarray,
+    lights: np.ndarray,
+    mask: Optional[np.ndarray],
+    intensities: Optional[np.ndarray],
+    method: str,
+    color: str,
+    transfer: str,
+    saturation: Optional[float],
+    fill: bool,
+    models: Optional[List[Dict[str, Any]]],
+) -> Dict[str, Any]: ...
+def estimate_model(
+    images: np.ndarray,
+    lights: np.ndarray,
+    mask: Optional[np.ndarray],
+    intensities: Optional[np.ndarray],
+    method: str,
+    color: str,
+    transfer: str,
+    saturation: Optional[float],
+) -> List[Dict[str, Any]]: ...
+def convert(
+    images: np.ndarray,
+    lights: np.ndarray,
+    intensities: Optional[np.ndarray],
+    color: str,
+    transfer: str,
+    saturation: Optional[float],
+) -> Tuple[np.ndarray, np.ndarray]: ...
+def integrate(
+    normals: np.ndarray, mask: Optional[np.ndarray], method: str, k: Optional[np.ndarray]
+) -> Dict[str, Any]: ...
+def render(
+    scene: str,
+    size: int,
+    lights: np.ndarray,
+    material: str,
+    material_params: Optional[Dict[str, float]],
+    albedo: float,
+    noise: float,
+    seed: int,
+    cast_shadows: bool,
+) -> Dict[str, np.ndarray]: ...
+def light_ring(count: int, elevation_deg: float, azimuth0_deg: float) -> np.ndarray: ...
+def reflectance_map(
+    light: Sequence[float],
+    material: str,
+    material_params: Optional[Dict[str, float]],
+    extent: float,
+    size: int,
+) -> np.ndarray: ...
+def calibrate(
+    images: np.ndarray, mask: Optional[np.ndarray]
+) -> Tuple[Optional[np.ndarray], str]: ...
+def read_image(path: str) -> np.ndarray: ...
+def read_mask(path: str) -> np.ndarray: ...
+def resolve(
+    inputs: List[str], lights: Optional[str], mask: Optional[str]
+) -> Tuple[List[str], np.ndarray, np.ndarray, Optional[str]]: ...
+def read_exr(path: str) -> List[Tuple[str, np.ndarray]]: ...
+def write_exr(path: str, channels: List[Tuple[str, np.ndarray]], overwrite: bool) -> None: ...

@@ -1,0 +1,214 @@
+"""Photometric stereo over the tiles of a Dask array: captures larger than one machine.
+
+The per-pixel solve is independent per pixel once the capture-wide model (each image's noise
+sigma and intensity gain, what ``method="auto"`` estimates before fitting any pixel) is fixed.
+So :func:`solve` estimates that model once, from a sample of rows spread over the capture,
+then maps the library's solve over spatial tiles (all images of a tile in one chunk) under
+that model, and returns lazy Dask arrays. Dask schedules the tiles: the same code runs on a
+laptop's threads, a ``LocalCluster``, or a real cluster (dask-jobqueue, Dask Kubernetes)
+unchanged; only the ``Client`` differs.
+
+    >>> import dask.array as da, photostereo.dask as psd
+    >>> images = da.from_zarr("capture.zarr")          # N x H x W, any chunks
+    >>> maps = psd.solve(images, lights, mask=mask, chunks=512)
+    >>> normals = maps["normals"].compute()             # or .to_zarr(...)
+    >>> depth = psd.integrate(maps["normals"], mask)["depth"]
+
+What needs neighbours across tiles is not done per tile: hole filling (``fill``) and the curl
+(the integrability check) are left to the assembled maps (:func:`photostereo.integrate`
+integrates them with the library's solver); pixels a tile could not solve keep their status
+(``photostereo.STATUS``) and NaN normals.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Dict, List, Optional, Sequence
+
+import numpy as np
+
+import photostereo as _ps
+
+try:
+    import dask.array as da
+except ImportError as e:  # pragma: no cover - exercised only without dask
+    raise ImportError(
+        "photostereo.dask needs dask: pip install 'photostereo[dask]' (or dask[array])"
+    ) from e
+
+__all__ = ["solve", "estimate_model", "integrate", "SAMPLE_BLOCK_ROWS"]
+
+#: Rows per block of the sample the capture-wide model is estimated from.
+SAMPLE_BLOCK_ROWS = 64
+#: Most rows the model sample takes (in blocks spread evenly over the image).
+MAX_SAMPLE_ROWS = 1024
+
+# Planes of a solved tile, packed into one float32 array per tile.
+_SCALARS = ("residual", "samples", "condition", "status", "robust")
+
+
+def _as_dask(a: Any, name: str) -> "da.Array":
+    if isinstance(a, da.Array):
+        return a
+    if isinstance(a, np.ndarray):
+        return da.from_array(a, chunks=a.shape)
+    raise TypeError(f"{name}: got a {type(a).__name__}; a dask or numpy array expected")
+
+
+def _sample_rows(height: int, max_rows: int = MAX_SAMPLE_ROWS) -> np.ndarray:
+    """Row indices of the model sample: blocks of SAMPLE_BLOCK_ROWS spread over the image."""
+    if height <= max_rows:
+        return np.arange(height)
+    blocks = max(1, max_rows // SAMPLE_BLOCK_ROWS)
+    starts = np.linspace(0, height - SAMPLE_BLOCK_ROWS, blocks).round().astype(int)
+    return np.unique(np.concatenate([np.arange(s, s + SAMPLE_BLOCK_ROWS) for s in starts]))
+
+
+def estimate_model(
+    images: Any,
+    lights: Any,
+    mask: Any = None,
+    *,
+    max_rows: int = MAX_SAMPLE_ROWS,
+    **options: Any,
+) -> List[Dict[str, Any]]:
+    """The capture-wide models, estimated from at most ``max_rows`` rows of the capture (in
+    blocks of :data:`SAMPLE_BLOCK_ROWS` spread evenly over it; every row of a smaller one).
+    Only those rows are computed. ``options`` as :func:`photostereo.solve` (``method``,
+    ``color``, ``intensities``, ``transfer``, ``saturation``)."""
+    images = _as_dask(images, "images")
+    rows = _sample_rows(images.shape[1], max_rows)
+    sample = np.asarray(images[:, rows].compute())
+    m = None
+    if mask is not None:
+        m = np.asarray(_as_dask(mask, "mask")[rows].compute())
+        if not m.any():
+            # No object pixel in the sample: fall back to the whole mask's rows.
+            full = np.asarray(_as_dask(mask, "mask").compute())
+            rows = np.flatnonzero(full.any(axis=1))[:max_rows]
+            sample = np.asarray(images[:, rows].compute())
+            m = full[rows]
+    return _ps.estimate_model(sample, lights, m, **options)
+
+
+def _solve_tile(
+    block: np.ndarray,
+    mask_block: Optional[np.ndarray],
+    *,
+    lights: np.ndarray,
+    models: List[Dict[str, Any]],
+    albedo_channels: int,
+    options: Dict[str, Any],
+) -> np.ndarray:
+    """One tile: N x h x w[ x C] images (and an h x w mask) -> h x w x K float32 planes:
+    normals (3), albedo (1 or 3), then _SCALARS."""
+    h, w = block.shape[1], block.shape[2]
+    out = np.full((h, w, 3 + albedo_channels + len(_SCALARS)), np.nan, dtype=np.float32)
+    out[..., 3 + albedo_channels :] = 0.0
+    if mask_block is not None and not mask_block.any():
+        return out
+    import warnings
+
+    with warnings.catch_warnings():
+        # Tile-level warnings (counts of one tile) say nothing about the capture.
+        warnings.simplefilter("ignore", _ps.PhotostereoWarning)
+        r = _ps.solve(block, lights, mask_block, fill=False, models=models, **options)
+    out[..., 0:3] = r.normals
+    alb = r.albedo if r.albedo.ndim == 3 else r.albedo[..., None]
+    out[..., 3 : 3 + albedo_channels] = alb
+    for i, key in enumerate(_SCALARS):
+        out[..., 3 + albedo_channels + i] = getattr(r, key)
+    return out
+
+
+def solve(
+    images: Any,
+    lights: Any,
+    mask: Any = None,
+    *,
+    chunks: int = 512,
+    models: Optional[Sequence[Dict[str, Any]]] = None,
+    intensities: Any = None,
+    method: str = "auto",
+    color: str = "grey",
+    transfer: str = "auto",
+    saturation: Optional[float] = None,
+) -> Dict[str, "da.Array"]:
+    """Photometric stereo over ``chunks`` x ``chunks`` tiles of a Dask (or numpy) array.
+
+    Args:
+        images: N x H x W or N x H x W x C (as :func:`photostereo.solve`); rechunked so that
+            each tile holds all N images (and all channels).
+        lights: N x 3 directions. mask: H x W bool (numpy or dask), default every pixel.
+        chunks: tile side in pixels.
+        models: the capture-wide models; default :func:`estimate_model` on a sample of rows.
+        intensities, method, color, transfer, saturation: as :func:`photostereo.solve`.
+
+    Returns:
+        Lazy arrays: ``normals`` (H x W x 3), ``albedo`` (H x W, or H x W x 3 for a colour
+        solve), ``residual``, ``samples``, ``condition``, ``status`` (uint8), ``robust``
+        (bool), ``solved`` (bool); and ``models`` (the models used, a list of dicts).
+    """
+    images = _as_dask(images, "images")
+    if images.ndim not in (3, 4):
+        raise ValueError(
+            f"images: shape {images.shape}; N x H x W or N x H x W x C expected"
+        )
+    if not isinstance(chunks, int) or chunks < 8:
+        raise ValueError(f"chunks: {chunks!r}; a tile side of at least 8 pixels expected")
+    lights = np.ascontiguousarray(np.asarray(lights, dtype=np.float64))
+    n, h, w = images.shape[:3]
+    if lights.shape != (n, 3):
+        raise ValueError(f"lights: shape {lights.shape}; one row per image ({n} x 3) expected")
+    options = dict(
+        intensities=intensities, method=method, color=color, transfer=transfer,
+        saturation=saturation,
+    )
+    spatial = (chunks, chunks)
+    images = images.rechunk((n,) + spatial + ((images.shape[3],) if images.ndim == 4 else ()))
+    mask_d = None
+    if mask is not None:
+        mask_d = _as_dask(mask, "mask")
+        if mask_d.shape != (h, w):
+            raise ValueError(f"mask: shape {mask_d.shape} differs from the images' {(h, w)}")
+        mask_d = mask_d.astype(bool).rechunk(spatial)
+    if models is None:
+        models = estimate_model(images, lights, mask_d, **options)
+    models = list(models)
+    albedo_channels = 1 if color in ("grey", "gray") or images.ndim == 3 else 3
+    planes = 3 + albedo_channels + len(_SCALARS)
+    # Each output block is one tile's h x w x planes: the image (and channel) axes, one chunk
+    # each, are contracted into the tile function's input.
+    kwargs = dict(lights=lights, models=models, albedo_channels=albedo_channels, options=options)
+    mask_arg = (mask_d, "yx") if mask_d is not None else (None, None)
+    packed = da.blockwise(
+        _solve_tile, "yxp",
+        images, "nyxc" if images.ndim == 4 else "nyx",
+        *mask_arg,
+        new_axes={"p": planes}, concatenate=True, dtype=np.float32, **kwargs,
+    )
+    a0 = 3
+    out: Dict[str, Any] = {
+        "normals": packed[..., 0:3],
+        "albedo": packed[..., a0] if albedo_channels == 1 else packed[..., a0 : a0 + 3],
+    }
+    base = a0 + albedo_channels
+    for i, key in enumerate(_SCALARS):
+        out[key] = packed[..., base + i]
+    out["samples"] = out["samples"].astype(np.uint16)
+    out["status"] = out["status"].astype(np.uint8)
+    out["robust"] = out["robust"] > 0
+    out["solved"] = (out["status"] == 1) | (out["status"] == 5)
+    out["models"] = models
+    return out
+
+
+def integrate(
+    normals: Any, mask: Any = None, method: str = "auto", K: Any = None
+) -> Dict[str, Any]:
+    """Assembles ``normals`` (a Dask array from :func:`solve`) and integrates them with the
+    library's solver (:func:`photostereo.integrate`): depth needs the whole surface at once."""
+    n = np.asarray(normals.compute() if hasattr(normals, "compute") else normals, dtype=np.float32)
+    m = None
+    if mask is not None:
+        m = np.asarray(mask.compute() if hasattr(mask, "compute") else mask, dtype=bool)
+    return _ps.integrate(n, m, method=method, K=K)

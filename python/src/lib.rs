@@ -1,0 +1,1076 @@
+//! `photostereo._native`: the library's stages for Python, on numpy arrays.
+//!
+//! Every function checks its arguments and returns the library's errors as Python exceptions
+//! (`photostereo.Error`, a `ValueError`, or `OSError` for files; `TypeError` for an array of
+//! the wrong type); none of them can abort the interpreter. Work runs with the GIL released.
+//! The friendly signatures, docstrings and type stubs live in the Python package
+//! (`python/photostereo/__init__.py`, `_native.pyi`); this module takes its arguments as
+//! that package passes them.
+
+use ndarray::{Array2, ArrayView2, ArrayViewD, Ix2, Ix3, Ix4};
+use numpy::{
+    IntoPyArray, PyArray2, PyReadonlyArray2, PyReadonlyArray3, PyReadonlyArrayDyn,
+    PyUntypedArrayMethods,
+};
+use photostereo::calibrate::{ChromeOptions, calibrate_chrome};
+use photostereo::capture::arrays::{Sample, normals_from_array, normals_to_array};
+use photostereo::capture::stack::{ColorMode, LoadOptions, Transfer};
+use photostereo::capture::{Capture, CaptureFiles, ImageStack, Lights};
+use photostereo::grid::{Grid, Mask, ScalarMap};
+use photostereo::integrate::{IntegrationOptions, Integrator, integrate_normals};
+use photostereo::io::decode::{ImageArray, read_array, read_exr_channels};
+use photostereo::io::output::{Overwrite, write_exr_file};
+use photostereo::progress::Silent;
+use photostereo::ps::color::ColorSolve;
+use photostereo::ps::intensities::GainEstimate;
+use photostereo::ps::solve::{ImageModel, Method, PixelStatus};
+use photostereo::run::pipeline::{Config, estimate_models, reconstruct_normals_with_models};
+use photostereo::sfs::reflectance_map::ReflectanceMap;
+use photostereo::synth::reflectance::{
+    BlinnPhong, Diffuse, Material, Mirror, Phong, Specular, TorranceSparrow, Ward,
+};
+use photostereo::synth::render::{RenderOptions, render as render_scene};
+use photostereo::synth::scene::{Albedo, SceneKind};
+use photostereo::{Error as LibError, Intrinsics};
+use pyo3::create_exception;
+use pyo3::exceptions::{
+    PyFileExistsError, PyFileNotFoundError, PyOSError, PyTypeError, PyValueError,
+};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+use std::path::{Path, PathBuf};
+
+create_exception!(
+    _native,
+    Error,
+    PyValueError,
+    "An error of photostereo's: bad input, or a capture it cannot solve. The message names the parameter, image or file."
+);
+
+/// The library's error as a Python exception: files → `OSError` (`FileNotFoundError` when
+/// missing), everything else → [`Error`] (a `ValueError`).
+fn py_err(e: LibError) -> PyErr {
+    let msg = e.to_string();
+    match &e {
+        LibError::Io { cause, .. } if cause.kind() == std::io::ErrorKind::NotFound => {
+            PyFileNotFoundError::new_err(msg)
+        }
+        LibError::Io { .. } => PyOSError::new_err(msg),
+        LibError::OutputExists { .. } => PyFileExistsError::new_err(msg),
+        _ => Error::new_err(msg),
+    }
+}
+
+type PyRes<T> = PyResult<T>;
+
+fn lib<T>(r: photostereo::Result<T>) -> PyRes<T> {
+    r.map_err(py_err)
+}
+
+/// The dtype of `obj` as numpy prints it, or its Python type when it is not an array.
+fn describe(obj: &Bound<'_, PyAny>) -> String {
+    match obj.getattr("dtype") {
+        Ok(d) => format!(
+            "an array of dtype {}",
+            d.str().map_or("?".into(), |s| s.to_string())
+        ),
+        Err(_) => format!(
+            "a {}",
+            obj.get_type().name().map_or("?".into(), |s| s.to_string())
+        ),
+    }
+}
+
+/// Image samples of one of the accepted types.
+enum Samples<'py> {
+    U8(PyReadonlyArrayDyn<'py, u8>),
+    U16(PyReadonlyArrayDyn<'py, u16>),
+    F32(PyReadonlyArrayDyn<'py, f32>),
+    F64(PyReadonlyArrayDyn<'py, f64>),
+}
+
+impl<'py> Samples<'py> {
+    fn extract(obj: &Bound<'py, PyAny>, name: &str) -> PyRes<Self> {
+        if let Ok(a) = obj.extract::<PyReadonlyArrayDyn<'py, u16>>() {
+            return Ok(Samples::U16(a));
+        }
+        if let Ok(a) = obj.extract::<PyReadonlyArrayDyn<'py, f32>>() {
+            return Ok(Samples::F32(a));
+        }
+        if let Ok(a) = obj.extract::<PyReadonlyArrayDyn<'py, u8>>() {
+            return Ok(Samples::U8(a));
+        }
+        if let Ok(a) = obj.extract::<PyReadonlyArrayDyn<'py, f64>>() {
+            return Ok(Samples::F64(a));
+        }
+        Err(PyTypeError::new_err(format!(
+            "{name}: got {}; a numpy array of uint8, uint16, float32 or float64 expected",
+            describe(obj)
+        )))
+    }
+
+    fn ndim(&self) -> usize {
+        match self {
+            Samples::U8(a) => a.ndim(),
+            Samples::U16(a) => a.ndim(),
+            Samples::F32(a) => a.ndim(),
+            Samples::F64(a) => a.ndim(),
+        }
+    }
+
+    fn shape(&self) -> Vec<usize> {
+        match self {
+            Samples::U8(a) => a.shape().to_vec(),
+            Samples::U16(a) => a.shape().to_vec(),
+            Samples::F32(a) => a.shape().to_vec(),
+            Samples::F64(a) => a.shape().to_vec(),
+        }
+    }
+}
+
+/// Views of samples of one of the accepted types: what the work, without the GIL, reads.
+enum Views<'a> {
+    U8(ArrayViewD<'a, u8>),
+    U16(ArrayViewD<'a, u16>),
+    F32(ArrayViewD<'a, f32>),
+    F64(ArrayViewD<'a, f64>),
+}
+
+impl Samples<'_> {
+    fn views(&self) -> Views<'_> {
+        match self {
+            Samples::U8(a) => Views::U8(a.as_array()),
+            Samples::U16(a) => Views::U16(a.as_array()),
+            Samples::F32(a) => Views::F32(a.as_array()),
+            Samples::F64(a) => Views::F64(a.as_array()),
+        }
+    }
+}
+
+/// Runs `$body` with `$v` bound to the view, whatever its type.
+macro_rules! with_view {
+    ($s:expr, $v:ident => $body:expr) => {
+        match $s {
+            Views::U8($v) => $body,
+            Views::U16($v) => $body,
+            Views::F32($v) => $body,
+            Views::F64($v) => $body,
+        }
+    };
+}
+
+/// `images` as a stack: N×H×W or N×H×W×C.
+fn stack_of<S: Sample>(
+    images: ArrayViewD<'_, S>,
+    lights: &Lights,
+    options: &LoadOptions,
+) -> photostereo::Result<ImageStack> {
+    match images.ndim() {
+        3 => ImageStack::from_array(
+            shape_ok(images.into_dimensionality::<Ix3>())?,
+            lights,
+            options,
+        ),
+        _ => ImageStack::from_array_channels(
+            shape_ok(images.into_dimensionality::<Ix4>())?,
+            lights,
+            options,
+        ),
+    }
+}
+
+/// `images`, `lights` and `mask` as a capture (storing the part the mask spans).
+fn capture_of<S: Sample>(
+    images: ArrayViewD<'_, S>,
+    lights: Lights,
+    mask: Option<ArrayView2<'_, bool>>,
+    options: &LoadOptions,
+) -> photostereo::Result<Capture> {
+    match images.ndim() {
+        3 => Capture::from_arrays(
+            shape_ok(images.into_dimensionality::<Ix3>())?,
+            lights,
+            mask,
+            options,
+        ),
+        _ => Capture::from_arrays_channels(
+            shape_ok(images.into_dimensionality::<Ix4>())?,
+            lights,
+            mask,
+            options,
+        ),
+    }
+}
+
+fn shape_ok<T>(r: Result<T, ndarray::ShapeError>) -> photostereo::Result<T> {
+    r.map_err(|e| LibError::param("images", e.to_string()))
+}
+
+fn check_image_ndim(s: &Samples<'_>, name: &str) -> PyRes<()> {
+    let nd = s.ndim();
+    if nd == 3 || nd == 4 {
+        return Ok(());
+    }
+    Err(PyValueError::new_err(format!(
+        "{name}: shape {:?}; N×H×W (grey) or N×H×W×C (C = 1, 3 or 4) expected, one image per light along the first axis",
+        s.shape()
+    )))
+}
+
+/// A mask argument: bool, or numbers (non-zero is set), H×W.
+fn mask_arg(obj: Option<&Bound<'_, PyAny>>, name: &str) -> PyRes<Option<Array2<bool>>> {
+    let Some(obj) = obj else { return Ok(None) };
+    if obj.is_none() {
+        return Ok(None);
+    }
+    if let Ok(a) = obj.extract::<PyReadonlyArrayDyn<'_, bool>>() {
+        let v = a.as_array();
+        let v = v.into_dimensionality::<Ix2>().map_err(|_| {
+            PyValueError::new_err(format!("{name}: shape {:?}; H×W expected", a.shape()))
+        })?;
+        return Ok(Some(v.to_owned()));
+    }
+    let s = Samples::extract(obj, name).map_err(|_| {
+        PyTypeError::new_err(format!(
+            "{name}: got {}; a numpy array of bool (or of numbers, non-zero meaning set) expected",
+            describe(obj)
+        ))
+    })?;
+    if s.ndim() != 2 {
+        return Err(PyValueError::new_err(format!(
+            "{name}: shape {:?}; H×W expected",
+            s.shape()
+        )));
+    }
+    Ok(Some(
+        with_view!(s.views(), v => v.into_dimensionality::<Ix2>().map_err(|e| PyValueError::new_err(e.to_string()))?.map(|x| x.stored() > 0.0)),
+    ))
+}
+
+fn lights_arg(
+    directions: PyReadonlyArray2<'_, f64>,
+    intensities: Option<PyReadonlyArray2<'_, f64>>,
+) -> PyRes<Lights> {
+    lib(Lights::from_array(
+        directions.as_array(),
+        intensities.as_ref().map(|i| i.as_array()),
+    ))
+}
+
+fn load_options(
+    color: &str,
+    transfer: &str,
+    saturation: Option<f32>,
+) -> PyRes<(LoadOptions, ColorSolve)> {
+    let (color, solve) = match color {
+        "grey" | "gray" => (ColorMode::Grey, ColorSolve::default()),
+        "shared" => (ColorMode::PerChannel, ColorSolve::SharedNormal),
+        "per-channel" => (ColorMode::PerChannel, ColorSolve::PerChannel),
+        other => {
+            return Err(PyValueError::new_err(format!(
+                "color: {other:?}; one of \"grey\", \"shared\" (one normal, RGB albedo) or \"per-channel\" (three solves) expected"
+            )));
+        }
+    };
+    let transfer = match transfer {
+        "auto" => Transfer::Auto,
+        "linear" => Transfer::Linear,
+        "srgb" => Transfer::Srgb,
+        other => {
+            return Err(PyValueError::new_err(format!(
+                "transfer: {other:?}; \"auto\" (sRGB for uint8, linear otherwise), \"linear\" or \"srgb\" expected"
+            )));
+        }
+    };
+    if let Some(s) = saturation
+        && !(s.is_finite() && s > 0.0)
+    {
+        return Err(PyValueError::new_err(format!(
+            "saturation: {s}; a finite level > 0 (in stored units, integers scaled to [0, 1]) expected"
+        )));
+    }
+    Ok((
+        LoadOptions {
+            color,
+            transfer,
+            saturation,
+            window: None,
+        },
+        solve,
+    ))
+}
+
+fn method_arg(name: &str) -> PyRes<Method> {
+    Method::ALL
+        .iter()
+        .copied()
+        .find(|m| m.name() == name)
+        .ok_or_else(|| {
+            let names: Vec<&str> = Method::ALL.iter().map(|m| m.name()).collect();
+            PyValueError::new_err(format!("method: {name:?}; one of {names:?} expected"))
+        })
+}
+
+/// The per-pixel configuration of a solve from its keyword arguments.
+fn solve_config(method: &str, color: ColorSolve, fill: bool) -> PyRes<Config> {
+    let mut config = Config {
+        integration: None,
+        color,
+        ..Config::default()
+    };
+    config.solve.method = method_arg(method)?;
+    config.solve.fill = fill;
+    lib(config.solve.validate())?;
+    Ok(config)
+}
+
+/// A capture-wide model as a Python dict (picklable, for the tiles of a cluster run).
+fn model_to_py<'py>(py: Python<'py>, m: &ImageModel) -> PyRes<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("sigma", m.sigma.clone().into_pyarray(py))?;
+    let g = &m.gains;
+    d.set_item("gains", g.gains.clone().into_pyarray(py))?;
+    d.set_item("estimated_gains", g.estimated.clone().into_pyarray(py))?;
+    d.set_item("gains_applied", g.applied)?;
+    d.set_item("gain_rounds", g.rounds)?;
+    d.set_item("gain_refits", g.refits)?;
+    d.set_item("gains_converged", g.converged)?;
+    d.set_item("gain_pixels", g.pixels)?;
+    d.set_item("unit_misfit", g.unit_misfit)?;
+    d.set_item("misfit", g.misfit)?;
+    Ok(d)
+}
+
+fn model_from_py(d: &Bound<'_, PyAny>) -> PyRes<ImageModel> {
+    let get = |k: &str| {
+        d.get_item(k).map_err(|_| {
+            PyValueError::new_err(format!(
+                "model: no {k:?}; pass a model returned by estimate_model"
+            ))
+        })
+    };
+    let sigma: Vec<f32> = get("sigma")?
+        .extract::<PyReadonlyArrayDyn<'_, f32>>()?
+        .as_array()
+        .iter()
+        .copied()
+        .collect();
+    let gains: Vec<f32> = get("gains")?
+        .extract::<PyReadonlyArrayDyn<'_, f32>>()?
+        .as_array()
+        .iter()
+        .copied()
+        .collect();
+    let estimated: Vec<f32> = get("estimated_gains")?
+        .extract::<PyReadonlyArrayDyn<'_, f32>>()?
+        .as_array()
+        .iter()
+        .copied()
+        .collect();
+    if gains.len() != sigma.len() || estimated.len() != sigma.len() {
+        return Err(PyValueError::new_err(format!(
+            "model: {} sigmas, {} gains and {} estimated gains; one of each per image expected",
+            sigma.len(),
+            gains.len(),
+            estimated.len()
+        )));
+    }
+    let mut g = GainEstimate::unit(sigma.len());
+    g.gains = gains;
+    g.estimated = estimated;
+    g.applied = get("gains_applied")?.extract()?;
+    g.rounds = get("gain_rounds")?.extract()?;
+    g.refits = get("gain_refits")?.extract()?;
+    g.converged = get("gains_converged")?.extract()?;
+    g.pixels = get("gain_pixels")?.extract()?;
+    g.unit_misfit = get("unit_misfit")?.extract()?;
+    g.misfit = get("misfit")?.extract()?;
+    Ok(ImageModel { sigma, gains: g })
+}
+
+fn status_code(s: PixelStatus) -> u8 {
+    match s {
+        PixelStatus::Outside => 0,
+        PixelStatus::Solved => 1,
+        PixelStatus::TooFewSamples => 2,
+        PixelStatus::IllConditioned => 3,
+        PixelStatus::Dark => 4,
+        PixelStatus::Filled => 5,
+    }
+}
+
+fn json<T: serde::Serialize>(v: &T) -> PyRes<String> {
+    serde_json::to_string(v).map_err(|e| PyValueError::new_err(e.to_string()))
+}
+
+/// Solve: images, lights, mask → the per-pixel maps, summaries as JSON text.
+#[pyfunction]
+#[pyo3(signature = (images, lights, mask=None, intensities=None, method="auto", color="grey", transfer="auto", saturation=None, fill=true, models=None))]
+#[allow(clippy::too_many_arguments)]
+fn solve<'py>(
+    py: Python<'py>,
+    images: &Bound<'py, PyAny>,
+    lights: PyReadonlyArray2<'py, f64>,
+    mask: Option<&Bound<'py, PyAny>>,
+    intensities: Option<PyReadonlyArray2<'py, f64>>,
+    method: &str,
+    color: &str,
+    transfer: &str,
+    saturation: Option<f32>,
+    fill: bool,
+    models: Option<&Bound<'py, PyList>>,
+) -> PyRes<Bound<'py, PyDict>> {
+    let samples = Samples::extract(images, "images")?;
+    check_image_ndim(&samples, "images")?;
+    let lights = lights_arg(lights, intensities)?;
+    let mask = mask_arg(mask, "mask")?;
+    let (load, color_solve) = load_options(color, transfer, saturation)?;
+    let config = solve_config(method, color_solve, fill)?;
+    let models: Option<Vec<ImageModel>> = match models {
+        Some(list) => Some(
+            list.iter()
+                .map(|m| model_from_py(&m))
+                .collect::<PyRes<_>>()?,
+        ),
+        None => None,
+    };
+    let views = samples.views();
+    let recon = py.detach(|| {
+        let capture =
+            with_view!(views, v => capture_of(v, lights, mask.as_ref().map(|m| m.view()), &load))?;
+        let recon = reconstruct_normals_with_models(&capture, &config, models.as_deref(), &Silent)?;
+        let models = match models {
+            Some(m) => m,
+            None => estimate_models_if_needed(&capture, &config)?,
+        };
+        Ok::<_, LibError>((recon, models))
+    });
+    let (recon, models) = lib(recon)?;
+    let maps = recon.maps;
+    let out = PyDict::new(py);
+    out.set_item("normals", normals_to_array(&maps.normals).into_pyarray(py))?;
+    let albedo = if maps.albedo.len() == 1 {
+        maps.albedo
+            .into_iter()
+            .next()
+            .map(|a| a.into_array().into_dyn())
+    } else {
+        let (w, h) = (maps.normals.width(), maps.normals.height());
+        let planes: Vec<ScalarMap> = maps.albedo;
+        Some(
+            ndarray::Array3::from_shape_fn((h, w, planes.len()), |(y, x, c)| *planes[c].at(x, y))
+                .into_dyn(),
+        )
+    };
+    if let Some(a) = albedo {
+        out.set_item("albedo", a.into_pyarray(py))?;
+    }
+    out.set_item("residual", maps.residual.into_array().into_pyarray(py))?;
+    out.set_item("samples", maps.samples.into_array().into_pyarray(py))?;
+    out.set_item("condition", maps.condition.into_array().into_pyarray(py))?;
+    out.set_item(
+        "status",
+        maps.status
+            .map(|s| status_code(*s))
+            .into_array()
+            .into_pyarray(py),
+    )?;
+    out.set_item("solved", maps.solved.into_array().into_pyarray(py))?;
+    out.set_item("robust", maps.robust.into_array().into_pyarray(py))?;
+    out.set_item("curl", recon.curl.into_array().into_pyarray(py))?;
+    out.set_item("counts", json(&recon.counts)?)?;
+    out.set_item("integrability", json(&recon.integrability)?)?;
+    out.set_item("model_summary", json(&recon.model)?)?;
+    let warnings: Vec<String> = recon.warnings.iter().map(|w| w.to_string()).collect();
+    out.set_item("warnings", warnings)?;
+    let list = PyList::empty(py);
+    for m in &models {
+        list.append(model_to_py(py, m)?)?;
+    }
+    out.set_item("models", list)?;
+    out.set_item("solve_seconds", recon.timings.solve + recon.timings.normals)?;
+    Ok(out)
+}
+
+/// The models the solve used: estimated again only when the method needs one (cheap
+/// otherwise: unit models).
+fn estimate_models_if_needed(
+    capture: &Capture,
+    config: &Config,
+) -> photostereo::Result<Vec<ImageModel>> {
+    if ImageModel::needed(&config.solve, capture.stack.count()) {
+        estimate_models(capture, config)
+    } else {
+        let n = if capture.stack.channels() == 3 && config.color == ColorSolve::SharedNormal {
+            1
+        } else {
+            capture.stack.channels()
+        };
+        Ok(vec![ImageModel::unit(capture.stack.count()); n])
+    }
+}
+
+/// The capture-wide models a solve of these images would estimate.
+#[pyfunction]
+#[pyo3(signature = (images, lights, mask=None, intensities=None, method="auto", color="grey", transfer="auto", saturation=None))]
+#[allow(clippy::too_many_arguments)]
+fn estimate_model<'py>(
+    py: Python<'py>,
+    images: &Bound<'py, PyAny>,
+    lights: PyReadonlyArray2<'py, f64>,
+    mask: Option<&Bound<'py, PyAny>>,
+    intensities: Option<PyReadonlyArray2<'py, f64>>,
+    method: &str,
+    color: &str,
+    transfer: &str,
+    saturation: Option<f32>,
+) -> PyRes<Bound<'py, PyList>> {
+    let samples = Samples::extract(images, "images")?;
+    check_image_ndim(&samples, "images")?;
+    let lights = lights_arg(lights, intensities)?;
+    let mask = mask_arg(mask, "mask")?;
+    let (load, color_solve) = load_options(color, transfer, saturation)?;
+    let config = solve_config(method, color_solve, true)?;
+    let views = samples.views();
+    let models = py.detach(|| {
+        let capture =
+            with_view!(views, v => capture_of(v, lights, mask.as_ref().map(|m| m.view()), &load))?;
+        estimate_models_if_needed(&capture, &config)
+    });
+    let list = PyList::empty(py);
+    for m in &lib(models)? {
+        list.append(model_to_py(py, m)?)?;
+    }
+    Ok(list)
+}
+
+/// The images converted as a solve sees them (linear, divided by intensity, grey or RGB).
+#[pyfunction]
+#[pyo3(signature = (images, lights, intensities=None, color="grey", transfer="auto", saturation=None))]
+fn convert<'py>(
+    py: Python<'py>,
+    images: &Bound<'py, PyAny>,
+    lights: PyReadonlyArray2<'py, f64>,
+    intensities: Option<PyReadonlyArray2<'py, f64>>,
+    color: &str,
+    transfer: &str,
+    saturation: Option<f32>,
+) -> PyRes<(Bound<'py, PyAny>, Bound<'py, PyAny>)> {
+    let samples = Samples::extract(images, "images")?;
+    check_image_ndim(&samples, "images")?;
+    let lights = lights_arg(lights, intensities)?;
+    let (load, _) = load_options(color, transfer, saturation)?;
+    let views = samples.views();
+    let stack = lib(py.detach(|| with_view!(views, v => stack_of(v, &lights, &load))))?;
+    let (n, c, h, w) = (
+        stack.count(),
+        stack.channels(),
+        stack.height(),
+        stack.width(),
+    );
+    let data = ndarray::Array4::from_shape_vec((n, c, h, w), stack.data().to_vec())
+        .map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let saturated =
+        ndarray::Array3::from_shape_fn((n, h, w), |(k, y, x)| stack.is_saturated(k, y * w + x));
+    let data = if c == 1 {
+        data.index_axis_move(ndarray::Axis(1), 0).into_dyn()
+    } else {
+        data.permuted_axes([0, 2, 3, 1])
+            .as_standard_layout()
+            .to_owned()
+            .into_dyn()
+    };
+    Ok((
+        data.into_pyarray(py).into_any(),
+        saturated.into_pyarray(py).into_any(),
+    ))
+}
+
+fn integrator_arg(name: &str) -> PyRes<Integrator> {
+    let all = [
+        Integrator::Auto,
+        Integrator::MaskedLs,
+        Integrator::Poisson,
+        Integrator::Path,
+        Integrator::FrankotChellappa,
+        Integrator::Bilateral,
+    ];
+    all.iter()
+        .copied()
+        .find(|m| m.name() == name)
+        .ok_or_else(|| {
+            let names: Vec<&str> = all.iter().map(|m| m.name()).collect();
+            PyValueError::new_err(format!("method: {name:?}; one of {names:?} expected"))
+        })
+}
+
+/// Normals (H×W×3) and a mask → depth and its diagnostics.
+#[pyfunction]
+#[pyo3(signature = (normals, mask=None, method="auto", k=None))]
+fn integrate<'py>(
+    py: Python<'py>,
+    normals: PyReadonlyArray3<'py, f32>,
+    mask: Option<&Bound<'py, PyAny>>,
+    method: &str,
+    k: Option<PyReadonlyArray2<'py, f64>>,
+) -> PyRes<Bound<'py, PyDict>> {
+    let map = lib(normals_from_array(normals.as_array()))?;
+    let mask: Mask = match mask_arg(mask, "mask")? {
+        Some(m) => {
+            if m.dim() != (map.height(), map.width()) {
+                return Err(PyValueError::new_err(format!(
+                    "mask: shape {:?} differs from the normals' {}×{}",
+                    m.dim(),
+                    map.height(),
+                    map.width()
+                )));
+            }
+            Grid::from_array(m.view())
+        }
+        None => map.map(|n| n.iter().all(|v| v.is_finite())),
+    };
+    let camera = match k {
+        Some(k) => {
+            let k = k.as_array();
+            if k.dim() != (3, 3) {
+                return Err(PyValueError::new_err(format!(
+                    "K: shape {:?}; 3×3 expected",
+                    k.dim()
+                )));
+            }
+            let m = [0, 1, 2].map(|r| [0, 1, 2].map(|c| k[[r, c]]));
+            Some(lib(Intrinsics::from_matrix(m))?)
+        }
+        None => None,
+    };
+    let options = IntegrationOptions {
+        method: integrator_arg(method)?,
+        camera,
+        ..IntegrationOptions::default()
+    };
+    let result = lib(py.detach(|| integrate_normals(&map, &mask, &options, &Silent)))?;
+    let out = PyDict::new(py);
+    out.set_item(
+        "method",
+        result.auto.map_or(options.method, |a| a.chosen).name(),
+    )?;
+    out.set_item("auto", result.auto.as_ref().map(json).transpose()?)?;
+    out.set_item("reason", result.auto.as_ref().map(|a| a.reason()))?;
+    out.set_item("depth", result.depth.into_array().into_pyarray(py))?;
+    out.set_item("residual", result.residual.into_array().into_pyarray(py))?;
+    out.set_item("iterations", result.iterations)?;
+    Ok(out)
+}
+
+/// A material from its model name and parameters (missing ones take the renderer's defaults).
+fn material_arg(name: &str, params: Option<&Bound<'_, PyDict>>) -> PyRes<Material> {
+    let get = |k: &str, default: f64| -> PyRes<f64> {
+        match params.map(|p| p.get_item(k)).transpose()?.flatten() {
+            Some(v) => v.extract(),
+            None => Ok(default),
+        }
+    };
+    if let Some(p) = params {
+        let known = [
+            "ks",
+            "shininess",
+            "roughness",
+            "f0",
+            "alpha_x",
+            "alpha_y",
+            "sigma",
+        ];
+        for key in p.keys() {
+            let key: String = key.extract()?;
+            if !known.contains(&key.as_str()) {
+                return Err(PyValueError::new_err(format!(
+                    "material parameter {key:?}; known ones are {known:?}"
+                )));
+            }
+        }
+    }
+    let mut m = Material::lambertian();
+    match name {
+        "lambert" | "lambertian" => {}
+        "oren-nayar" => {
+            m.diffuse = Diffuse::OrenNayar {
+                sigma: get("sigma", 0.3)?,
+            }
+        }
+        "phong" => {
+            m.specular = Some(Specular::Phong(Phong {
+                ks: get("ks", 0.3)?,
+                exponent: get("shininess", 30.0)?,
+            }))
+        }
+        "blinn-phong" => {
+            m.specular = Some(Specular::BlinnPhong(BlinnPhong {
+                ks: get("ks", 0.3)?,
+                exponent: get("shininess", 30.0)?,
+            }))
+        }
+        "torrance-sparrow" => {
+            m.specular = Some(Specular::TorranceSparrow(TorranceSparrow {
+                ks: get("ks", 0.3)?,
+                roughness: get("roughness", 0.3)?,
+                f0: get("f0", 0.04)?,
+            }))
+        }
+        "ward" => {
+            let ax = get("alpha_x", 0.2)?;
+            m.specular = Some(Specular::Ward(Ward {
+                ks: get("ks", 0.3)?,
+                alpha_x: ax,
+                alpha_y: get("alpha_y", ax)?,
+            }))
+        }
+        "mirror" => {
+            m.diffuse = Diffuse::None;
+            m.specular = Some(Specular::Mirror(Mirror {
+                f0: get("f0", 0.9)?,
+            }));
+        }
+        other => {
+            return Err(PyValueError::new_err(format!(
+                "material: {other:?}; one of \"lambert\", \"oren-nayar\", \"phong\", \"blinn-phong\", \"torrance-sparrow\", \"ward\", \"mirror\" expected"
+            )));
+        }
+    }
+    lib(m.validate())?;
+    Ok(m)
+}
+
+/// Renders a named scene under `lights`: images and ground truth.
+#[pyfunction]
+#[pyo3(signature = (scene, size, lights, material="lambert", material_params=None, albedo=0.8, noise=0.0, seed=0, cast_shadows=true))]
+#[allow(clippy::too_many_arguments)]
+fn render<'py>(
+    py: Python<'py>,
+    scene: &str,
+    size: usize,
+    lights: PyReadonlyArray2<'py, f64>,
+    material: &str,
+    material_params: Option<&Bound<'py, PyDict>>,
+    albedo: f32,
+    noise: f32,
+    seed: u64,
+    cast_shadows: bool,
+) -> PyRes<Bound<'py, PyDict>> {
+    let kind = SceneKind::ALL
+        .iter()
+        .copied()
+        .find(|k| k.name() == scene)
+        .ok_or_else(|| {
+            let names: Vec<&str> = SceneKind::ALL.iter().map(|k| k.name()).collect();
+            PyValueError::new_err(format!("scene: {scene:?}; one of {names:?} expected"))
+        })?;
+    if !(8..=8192).contains(&size) {
+        return Err(PyValueError::new_err(format!(
+            "size: {size}; 8 to 8192 pixels expected"
+        )));
+    }
+    if !(albedo.is_finite() && albedo > 0.0) {
+        return Err(PyValueError::new_err(format!(
+            "albedo: {albedo}; a finite value > 0 expected"
+        )));
+    }
+    let lights = lights_arg(lights, None)?;
+    let material = material_arg(material, material_params)?;
+    let options = RenderOptions {
+        cast_shadows,
+        noise_sigma: noise,
+        seed,
+        ..RenderOptions::default()
+    };
+    lib(options.validate())?;
+    let built = kind.build(size, Albedo::Constant(albedo), material);
+    let r = lib(py.detach(|| render_scene(&built, &lights, &options)))?;
+    let (w, h) = (r.truth.mask.width(), r.truth.mask.height());
+    let images = ndarray::Array3::from_shape_fn((r.images.len(), h, w), |(k, y, x)| {
+        *r.images[k][0].at(x, y)
+    });
+    let out = PyDict::new(py);
+    out.set_item("images", images.into_pyarray(py))?;
+    out.set_item("lights", lights.directions_array().into_pyarray(py))?;
+    out.set_item(
+        "normals",
+        normals_to_array(&r.truth.normals).into_pyarray(py),
+    )?;
+    out.set_item("depth", r.truth.depth.clone().into_array().into_pyarray(py))?;
+    out.set_item(
+        "albedo",
+        r.truth.albedo.clone().into_array().into_pyarray(py),
+    )?;
+    out.set_item("mask", r.truth.mask.clone().into_array().into_pyarray(py))?;
+    let stack =
+        |m: &[Mask]| ndarray::Array3::from_shape_fn((m.len(), h, w), |(k, y, x)| *m[k].at(x, y));
+    out.set_item("cast_shadows", stack(&r.cast).into_pyarray(py))?;
+    out.set_item("attached_shadows", stack(&r.attached).into_pyarray(py))?;
+    Ok(out)
+}
+
+/// Lights on a ring: `count` directions at `elevation_deg` above the image plane.
+#[pyfunction]
+#[pyo3(signature = (count, elevation_deg, azimuth0_deg=0.0))]
+fn light_ring<'py>(
+    py: Python<'py>,
+    count: usize,
+    elevation_deg: f64,
+    azimuth0_deg: f64,
+) -> PyRes<Bound<'py, PyArray2<f64>>> {
+    Ok(lib(Lights::ring(count, elevation_deg, azimuth0_deg))?
+        .directions_array()
+        .into_pyarray(py))
+}
+
+/// R(p, q) of a material under one distant light, sampled on [-extent, extent]².
+#[pyfunction]
+#[pyo3(signature = (light, material="lambert", material_params=None, extent=2.0, size=256))]
+fn reflectance_map<'py>(
+    py: Python<'py>,
+    light: [f64; 3],
+    material: &str,
+    material_params: Option<&Bound<'py, PyDict>>,
+    extent: f64,
+    size: usize,
+) -> PyRes<Bound<'py, PyAny>> {
+    let material = material_arg(material, material_params)?;
+    let rm = lib(ReflectanceMap::new(nalgebra_vec(light), material))?;
+    Ok(lib(rm.sample(extent, size))?
+        .into_array()
+        .into_pyarray(py)
+        .into_any())
+}
+
+fn nalgebra_vec(v: [f64; 3]) -> photostereo::nalgebra::Vector3<f64> {
+    photostereo::nalgebra::Vector3::new(v[0], v[1], v[2])
+}
+
+/// Light directions from a chrome sphere's images: directions (N×3) and the report as JSON.
+#[pyfunction]
+#[pyo3(signature = (images, mask=None))]
+fn calibrate<'py>(
+    py: Python<'py>,
+    images: &Bound<'py, PyAny>,
+    mask: Option<&Bound<'py, PyAny>>,
+) -> PyRes<(Option<Bound<'py, PyArray2<f64>>>, String)> {
+    let samples = Samples::extract(images, "images")?;
+    check_image_ndim(&samples, "images")?;
+    let n = samples.shape()[0];
+    let mask = mask_arg(mask, "mask")?;
+    let views = samples.views();
+    let result = py.detach(|| {
+        let unit = Lights::from_directions(&vec![photostereo::nalgebra::Vector3::z(); n])?;
+        let stack = with_view!(views, v => stack_of(v, &unit, &LoadOptions::default()))?;
+        let grey_mask: Option<ScalarMap> = match &mask {
+            Some(m) => {
+                if m.dim() != (stack.height(), stack.width()) {
+                    return Err(LibError::param(
+                        "mask",
+                        format!(
+                            "shape {:?} differs from the images' {}×{}",
+                            m.dim(),
+                            stack.height(),
+                            stack.width()
+                        ),
+                    ));
+                }
+                Some(Grid::from_array(m.view()).map(|b| if *b { 1.0 } else { 0.0 }))
+            }
+            None => None,
+        };
+        let source = Path::new("<array mask>");
+        calibrate_chrome(
+            &stack,
+            grey_mask.as_ref().map(|m| (m, source)),
+            &ChromeOptions::default(),
+        )
+    });
+    let cal = lib(result)?;
+    let report = json(&cal)?;
+    let lights = cal
+        .lights()
+        .ok()
+        .map(|l| l.directions_array().into_pyarray(py));
+    Ok((lights, report))
+}
+
+/// An image file's samples as stored (H×W×C, uint8/uint16/float32).
+#[pyfunction]
+fn read_image<'py>(py: Python<'py>, path: PathBuf) -> PyRes<Bound<'py, PyAny>> {
+    let a = lib(py.detach(|| read_array(&path)))?;
+    Ok(match a {
+        ImageArray::U8(a) => a.into_pyarray(py).into_any(),
+        ImageArray::U16(a) => a.into_pyarray(py).into_any(),
+        ImageArray::F32(a) => a.into_pyarray(py).into_any(),
+    })
+}
+
+/// Image paths, light directions (N×3), intensities (N×3) and the mask's path.
+type Resolved<'py> = (
+    Vec<PathBuf>,
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray2<f64>>,
+    Option<PathBuf>,
+);
+
+/// A capture folder or image list resolved: image paths, lights (N×3), intensities (N×3),
+/// mask path.
+#[pyfunction]
+#[pyo3(signature = (inputs, lights=None, mask=None))]
+fn resolve<'py>(
+    py: Python<'py>,
+    inputs: Vec<PathBuf>,
+    lights: Option<PathBuf>,
+    mask: Option<PathBuf>,
+) -> PyRes<Resolved<'py>> {
+    let files = lib(resolve_files(&inputs, lights.as_deref(), mask.as_deref()))?;
+    Ok((
+        files.images.clone(),
+        files.lights.directions_array().into_pyarray(py),
+        files.lights.intensities_array().into_pyarray(py),
+        files.mask_source.clone(),
+    ))
+}
+
+fn resolve_files(
+    inputs: &[PathBuf],
+    lights: Option<&Path>,
+    mask: Option<&Path>,
+) -> photostereo::Result<CaptureFiles> {
+    if inputs.is_empty() {
+        return Err(LibError::TooFewImages { count: 0 });
+    }
+    for p in inputs
+        .iter()
+        .map(PathBuf::as_path)
+        .chain(lights)
+        .chain(mask)
+    {
+        if !p.exists() {
+            return Err(LibError::Io {
+                path: p.to_path_buf(),
+                cause: std::io::Error::from(std::io::ErrorKind::NotFound),
+            });
+        }
+    }
+    if let [one] = inputs
+        && photostereo::capture::dataset::is_diligent_dir(one)
+    {
+        if lights.is_some() {
+            return Err(LibError::param(
+                "lights",
+                "a DiLiGenT folder brings its own lights (light_directions.txt); give images and a lights file instead",
+            ));
+        }
+        return CaptureFiles::from_diligent(one, mask);
+    }
+    if let [one] = inputs
+        && photostereo::capture::dataset::is_image_list(one)
+    {
+        let list = photostereo::capture::dataset::read_image_list(one)?;
+        let Some(lights) = lights else {
+            return Err(LibError::param(
+                "lights",
+                "an image list needs a lights file",
+            ));
+        };
+        return CaptureFiles::from_files(&list.images, lights, mask.or(list.mask.as_deref()));
+    }
+    let Some(lights) = lights else {
+        return Err(LibError::param(
+            "lights",
+            "images need a lights file (JSON or `x y z` lines), unless the input is a DiLiGenT folder",
+        ));
+    };
+    CaptureFiles::from_files(inputs, lights, mask)
+}
+
+/// A mask file as a bool array (H×W).
+#[pyfunction]
+fn read_mask<'py>(py: Python<'py>, path: PathBuf) -> PyRes<Bound<'py, PyAny>> {
+    let m = lib(py.detach(|| photostereo::io::decode::read_mask(&path)))?;
+    Ok(m.into_array().into_pyarray(py).into_any())
+}
+
+/// Every channel of an EXR file: a list of (name, H×W float32 array).
+#[pyfunction]
+fn read_exr<'py>(py: Python<'py>, path: PathBuf) -> PyRes<Vec<(String, Bound<'py, PyAny>)>> {
+    let exr = lib(py.detach(|| read_exr_channels(&path)))?;
+    let (w, h) = (exr.width, exr.height);
+    exr.channels
+        .into_iter()
+        .map(|(name, v)| {
+            let a = Array2::from_shape_vec((h, w), v)
+                .map_err(|e| PyValueError::new_err(e.to_string()))?;
+            Ok((name, a.into_pyarray(py).into_any()))
+        })
+        .collect()
+}
+
+/// Writes channels (name, H×W float32) to a float32 EXR atomically.
+#[pyfunction]
+#[pyo3(signature = (path, channels, overwrite=false))]
+fn write_exr(
+    py: Python<'_>,
+    path: PathBuf,
+    channels: Vec<(String, PyReadonlyArray2<'_, f32>)>,
+    overwrite: bool,
+) -> PyRes<()> {
+    let Some((_, first)) = channels.first() else {
+        return Err(PyValueError::new_err(
+            "channels: none given; at least one (name, H×W float32 array) expected",
+        ));
+    };
+    let dim = first.as_array().dim();
+    let mut owned: Vec<(String, Vec<f32>)> = Vec::with_capacity(channels.len());
+    for (name, a) in &channels {
+        let v = a.as_array();
+        if v.dim() != dim {
+            return Err(PyValueError::new_err(format!(
+                "channels: {name:?} is {:?} but {:?} is {dim:?}; all channels must have one shape",
+                v.dim(),
+                channels[0].0
+            )));
+        }
+        owned.push((name.clone(), v.iter().copied().collect()));
+    }
+    let mode = if overwrite {
+        Overwrite::PreviousSet
+    } else {
+        Overwrite::Never
+    };
+    lib(py.detach(|| {
+        let refs: Vec<(&str, &[f32])> = owned
+            .iter()
+            .map(|(n, v)| (n.as_str(), v.as_slice()))
+            .collect();
+        write_exr_file(&path, mode, (dim.1, dim.0), &refs, &[])
+    }))
+}
+
+/// The library's version.
+#[pyfunction]
+fn version() -> &'static str {
+    env!("CARGO_PKG_VERSION")
+}
+
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("Error", m.py().get_type::<Error>())?;
+    m.add_function(wrap_pyfunction!(solve, m)?)?;
+    m.add_function(wrap_pyfunction!(estimate_model, m)?)?;
+    m.add_function(wrap_pyfunction!(convert, m)?)?;
+    m.add_function(wrap_pyfunction!(integrate, m)?)?;
+    m.add_function(wrap_pyfunction!(render, m)?)?;
+    m.add_function(wrap_pyfunction!(light_ring, m)?)?;
+    m.add_function(wrap_pyfunction!(reflectance_map, m)?)?;
+    m.add_function(wrap_pyfunction!(calibrate, m)?)?;
+    m.add_function(wrap_pyfunction!(read_image, m)?)?;
+    m.add_function(wrap_pyfunction!(read_mask, m)?)?;
+    m.add_function(wrap_pyfunction!(resolve, m)?)?;
+    m.add_function(wrap_pyfunction!(read_exr, m)?)?;
+    m.add_function(wrap_pyfunction!(write_exr, m)?)?;
+    m.add_function(wrap_pyfunction!(version, m)?)?;
+    Ok(())
+}

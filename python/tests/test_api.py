@@ -1,0 +1,196 @@
+"""The module on rendered scenes: accuracy against closed forms and ground truth, input types,
+bad input, the GIL, EXR files."""
+
+import threading
+
+import numpy as np
+import pytest
+
+import photostereo as ps
+
+
+def angles(a, b, mask):
+    cos = np.clip(np.sum(a[mask] * b[mask], axis=1), -1.0, 1.0)
+    return np.degrees(np.arccos(cos))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    lights = ps.light_ring(8, 40.0)
+    s = ps.render("sphere", 96, lights, cast_shadows=False)
+    return s, lights
+
+
+def test_rendered_sphere_is_recovered(scene):
+    s, lights = scene
+    r = ps.solve(s["images"], lights, mask=s["mask"])
+    assert angles(r.normals, s["normals"], s["mask"]).mean() < 0.01
+    assert r.counts["solved"] == int(s["mask"].sum())
+    alb = r.albedo[s["mask"]]
+    assert np.allclose(alb, 0.8, atol=1e-3)
+    assert r.normals.dtype == np.float32 and r.normals.shape == (96, 96, 3)
+    assert np.isnan(r.normals[~s["mask"]]).all()
+    # Integration of the recovered normals matches the true depth up to an offset.
+    d = ps.integrate(r.normals, r.solved, method="masked-ls")["depth"]
+    t = s["depth"]
+    m = s["mask"]
+    diff = (d[m] - d[m].mean()) - (t[m] - t[m].mean())
+    assert np.abs(diff).mean() < 0.02 * (t[m].max() - t[m].min())
+
+
+def test_sample_types_give_the_same_normals(scene):
+    s, lights = scene
+    img = s["images"]
+    top = float(img.max()) * 1.01
+    as16 = np.round(img / top * 65535).astype(np.uint16)
+    ref = ps.solve(img, lights, mask=s["mask"], method="ls").normals
+    for arr in (img.astype(np.float64), as16, (as16 / 65535.0).astype(np.float32)):
+        r = ps.solve(arr, lights, mask=s["mask"], method="ls")
+        assert angles(r.normals, ref, s["mask"]).max() < 0.05, arr.dtype
+    # 8-bit: linear on request; the quantisation costs a little accuracy only.
+    as8 = np.round(img / top * 255).astype(np.uint8)
+    r8 = ps.solve(as8, lights, mask=s["mask"], method="ls", transfer="linear")
+    assert angles(r8.normals, ref, s["mask"]).mean() < 1.0
+    # An RGB stack of three equal channels, grey-mixed (the weights sum to 1), gives the
+    # grey stack's normals.
+    rgb = np.repeat(img[..., None], 3, axis=3)
+    rr = ps.solve(rgb, lights, mask=s["mask"], method="ls")
+    assert np.nanmax(np.abs(rr.normals - ref)) < 1e-5
+
+
+def test_strided_views_equal_their_copies(scene):
+    s, lights = scene
+    view = s["images"][:, ::2, ::-2]
+    assert not view.flags["C_CONTIGUOUS"]
+    a = ps.solve(view, lights, method="ls")
+    b = ps.solve(np.ascontiguousarray(view), lights, method="ls")
+    assert np.array_equal(a.normals, b.normals, equal_nan=True)
+
+
+def test_saturated_samples_are_left_out():
+    lights = ps.light_ring(12, 40.0)
+    s = ps.render("sphere", 96, lights, cast_shadows=False)
+    img = s["images"]
+    # Clip at 80% of the brightest value as a camera would: 16-bit codes at the top code.
+    top = 0.8 * float(img.max())
+    as16 = np.round(np.minimum(img / top, 1.0) * 65535).astype(np.uint16)
+    assert ((img >= top) & s["mask"][None]).sum() > 1000
+    r = ps.solve(as16, lights, mask=s["mask"], method="threshold")
+    assert angles(r.normals, s["normals"], s["mask"]).mean() < 0.05
+    assert r.counts["solved"] == int(s["mask"].sum())
+    with pytest.warns(ps.PhotostereoWarning, match="saturated"):
+        plain = ps.solve(as16, lights, mask=s["mask"], method="ls")
+    assert angles(plain.normals, s["normals"], s["mask"]).mean() > 1.0
+
+
+@pytest.mark.parametrize(
+    "make, kind, words",
+    [
+        (lambda im, L: (im.astype(np.int32), L), TypeError, "int32"),
+        (lambda im, L: (im.tolist(), L), TypeError, "numpy array"),
+        (lambda im, L: (im[0], L), ValueError, "N×H×W"),
+        (lambda im, L: (im[:5], L), ValueError, "5 images for 8 lights"),
+        (lambda im, L: (im, L[:, :2]), ValueError, "8×2"),
+        (lambda im, L: (im, np.where(np.arange(24).reshape(8, 3) == 7, np.nan, L)), ValueError, "light 2"),
+        (lambda im, L: (im[..., None].repeat(5, axis=3), L), ValueError, "5 channels"),
+    ],
+)
+def test_bad_input_is_named(scene, make, kind, words):
+    s, lights = scene
+    images, L = make(s["images"], lights)
+    with pytest.raises(kind, match=words):
+        ps.solve(images, L)
+
+
+def test_bad_options_and_masks_are_named(scene):
+    s, lights = scene
+    im = s["images"]
+    with pytest.raises(ValueError, match="method"):
+        ps.solve(im, lights, method="magic")
+    with pytest.raises(ValueError, match="color"):
+        ps.solve(im, lights, color="purple")
+    with pytest.raises(ValueError, match="mask"):
+        ps.solve(im, lights, mask=np.ones((5, 5), bool))
+    with pytest.raises(TypeError, match="mask"):
+        ps.solve(im, lights, mask=np.ones((96, 96), np.complex64))
+    with pytest.raises(ValueError, match="no pixel"):
+        ps.solve(im, lights, mask=np.zeros((96, 96), bool))
+    with pytest.raises(ValueError, match="intensities"):
+        ps.solve(im, lights, intensities=np.ones((3, 3)))
+    with pytest.raises(ValueError, match="dark"):
+        ps.solve(np.zeros_like(im), lights)
+    with pytest.raises(ValueError, match="normals"):
+        ps.integrate(np.zeros((4, 4, 2), np.float32))
+    with pytest.raises(ValueError, match="scene"):
+        ps.render("teapot", 32, lights)
+    with pytest.raises(FileNotFoundError):
+        ps.load("/nonexistent/capture")
+
+
+def test_integrate_a_plane_in_closed_form():
+    # z = 0.2 x - 0.1 y (x right, y up): n ∝ (-0.2, 0.1, 1).
+    n = np.array([-0.2, 0.1, 1.0], np.float32)
+    n /= np.linalg.norm(n)
+    normals = np.broadcast_to(n, (40, 50, 3)).copy()
+    d = ps.integrate(normals, np.ones((40, 50), bool), method="masked-ls")["depth"]
+    y, x = np.mgrid[0:40, 0:50]
+    want = 0.2 * x + 0.1 * y  # row index grows downwards, so y up = -row
+    want = want - want.mean()
+    assert np.abs((d - d.mean()) - want).max() < 1e-3
+
+
+def test_reflectance_map_closed_form():
+    light = np.array([0.3, -0.2, 1.0])
+    r = ps.reflectance_map(light, size=257, extent=2.0)
+    # At p = q = 0 the normal is the view direction: R = l_z / |l|.
+    assert abs(r[128, 128] - light[2] / np.linalg.norm(light)) < 1e-5
+    assert r.min() >= 0.0
+
+
+def test_the_gil_is_released_while_solving():
+    lights = ps.light_ring(12, 40.0)
+    s = ps.render("sphere", 400, lights)
+    ticks = []
+    done = threading.Event()
+
+    def count():
+        while not done.is_set():
+            ticks.append(1)
+
+    t = threading.Thread(target=count)
+    t.start()
+    before = len(ticks)
+    ps.solve(s["images"], lights, mask=s["mask"])
+    during = len(ticks) - before
+    done.set()
+    t.join()
+    # A held GIL would leave the counting thread a handful of switch intervals at most.
+    assert during > 1000, during
+
+
+def test_exr_round_trip_and_atomic_refusal(tmp_path):
+    a = np.random.default_rng(1).random((7, 9)).astype(np.float32)
+    b = np.full((7, 9), np.nan, np.float32)
+    p = tmp_path / "x.exr"
+    ps.write_exr(p, {"depth": a, "mask": b})
+    back = ps.read_exr(p)
+    assert list(back) == ["depth", "mask"]
+    assert np.array_equal(back["depth"], a)
+    assert np.isnan(back["mask"]).all()
+    with pytest.raises(FileExistsError):
+        ps.write_exr(p, {"depth": a})
+    ps.write_exr(p, {"depth": 2 * a}, overwrite=True)
+    assert np.array_equal(ps.read_exr(p)["depth"], 2 * a)
+    with pytest.raises(ValueError, match="shape"):
+        ps.write_exr(tmp_path / "y.exr", {"a": a, "b": a[:3]})
+    assert not (tmp_path / "y.exr").exists()
+
+
+def test_models_round_trip_through_solve(scene):
+    s, lights = scene
+    models = ps.estimate_model(s["images"], lights, s["mask"])
+    a = ps.solve(s["images"], lights, mask=s["mask"])
+    b = ps.solve(s["images"], lights, mask=s["mask"], models=models)
+    assert np.array_equal(a.normals, b.normals, equal_nan=True)
+    with pytest.raises(ValueError, match="model"):
+        ps.solve(s["images"], lights, models=[{"sigma": models[0]["sigma"]}])

@@ -1,0 +1,88 @@
+"""photostereo.dask on a LocalCluster of 2 worker processes on loopback: tiles give the normals
+of the single-process solve. The size is PHOTOSTEREO_DASK_SIZE (default 1024; the figures in
+docs/python.md are of 4096, from python/benches/dask_tiles.py)."""
+
+import os
+import time
+
+import numpy as np
+import pytest
+
+import photostereo as ps
+
+dask = pytest.importorskip("dask")
+distributed = pytest.importorskip("distributed")
+import dask.array as da  # noqa: E402
+
+import photostereo.dask as psd  # noqa: E402
+
+
+def capture(size, count=12, seed=3):
+    """A rendered bumpy surface under `count` lights, with noise, as float32."""
+    lights = ps.light_ring(count, 40.0)
+    s = ps.render("bumps", size, lights, noise=0.005, seed=seed)
+    return s, lights
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+        dashboard_address=None, memory_limit="6GiB",
+    )
+    c = Client(cluster)
+    yield c
+    c.close()
+    cluster.close()
+
+
+def test_tiles_on_a_local_cluster_equal_the_single_process_solve(client):
+    size = int(os.environ.get("PHOTOSTEREO_DASK_SIZE", "1024"))
+    chunk = max(64, size // 8)
+    s, lights = capture(size)
+    images = da.from_array(s["images"], chunks=(12, chunk, chunk))
+    mask = s["mask"]
+    t = time.perf_counter()
+    maps = psd.solve(images, lights, mask=mask, chunks=chunk)
+    normals = maps["normals"].compute()
+    status = maps["status"].compute()
+    wall = time.perf_counter() - t
+    # The single-process solve under the same capture-wide model, without hole filling
+    # (which needs neighbours across tiles).
+    single = ps.solve(s["images"], lights, mask=mask, fill=False, models=maps["models"])
+    both = ~np.isnan(single.normals[..., 0])
+    assert np.array_equal(both, ~np.isnan(normals[..., 0]))
+    assert np.abs(normals[both] - single.normals[both]).max() <= 1e-6
+    assert np.array_equal(status, single.status)
+    err = np.degrees(np.arccos(np.clip(np.sum(normals[mask] * s["normals"][mask], -1), -1, 1)))
+    assert err.mean() < 1.0
+    # The model from a sample of rows is close to the one from every row.
+    whole = ps.estimate_model(s["images"], lights, mask)[0]["sigma"]
+    assert np.allclose(maps["models"][0]["sigma"], whole, rtol=0.2)
+    peaks = client.run(lambda: __import__("resource").getrusage(0).ru_maxrss)
+    print(
+        f"\ndask {size}² x 12 in {chunk}² tiles on 2 workers: {wall:.2f} s; peak RSS per "
+        f"worker {[round(v / 1024) for v in peaks.values()]} MiB; mean error {err.mean():.3f}°"
+    )
+
+
+def test_depth_of_the_assembled_normals(client):
+    s, lights = capture(256)
+    maps = psd.solve(da.from_array(s["images"], chunks=(12, 64, 64)), lights, mask=s["mask"], chunks=64)
+    d = psd.integrate(maps["normals"], s["mask"], method="masked-ls")["depth"]
+    single = ps.solve(s["images"], lights, mask=s["mask"], fill=False, models=maps["models"])
+    ref = ps.integrate(single.normals, s["mask"], method="masked-ls")["depth"]
+    m = s["mask"]
+    assert np.abs(d[m] - ref[m]).max() < 1e-3
+
+
+def test_bad_dask_input_is_named():
+    s, lights = capture(64)
+    with pytest.raises(ValueError, match="lights"):
+        psd.solve(da.from_array(s["images"]), lights[:5])
+    with pytest.raises(ValueError, match="chunks"):
+        psd.solve(da.from_array(s["images"]), lights, chunks=2)
+    with pytest.raises(TypeError, match="images"):
+        psd.solve(s["images"].tolist(), lights)
