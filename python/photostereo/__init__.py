@@ -324,13 +324,20 @@ def render(
     noise: float = 0.0,
     seed: int = 0,
     cast_shadows: bool = True,
+    light_radius_deg: Optional[float] = None,
+    ambient: float = 0.0,
+    pixel_samples: int = 1,
 ) -> Dict[str, np.ndarray]:
     """Renders a named scene (``"sphere"``, ``"vase"``, ``"peaks"``, ``"torus"``, ``"bumps"``,
     ``"groove"``, ``"bowl"``, ``"relief"``, ``"step"``, ``"ramp"``, ``"ellipsoid"``,
     ``"demo"``) at size x size pixels under ``lights`` (N x 3), with a reflectance model
     (``"lambert"``, ``"oren-nayar"``, ``"phong"``, ``"blinn-phong"``, ``"torrance-sparrow"``,
     ``"ward"``, ``"mirror"``; parameters ``ks``, ``shininess``, ``roughness``, ``f0``,
-    ``alpha_x``, ``alpha_y``, ``sigma``), cast shadows and Gaussian noise.
+    ``alpha_x``, ``alpha_y``, ``sigma``), cast shadows and Gaussian noise. ``light_radius_deg``
+    is each distant light's angular radius (the size of mirror highlights; default the
+    renderer's 1.5); ``ambient`` adds ambient x albedo to every pixel (a ball's outline in a
+    lit room); ``pixel_samples`` (n x n per pixel) integrates mirror highlights over the
+    pixel's area, as a camera does.
 
     Returns ``{"images": N x H x W float32, "lights", "normals": H x W x 3, "depth", "albedo",
     "mask", "cast_shadows": N x H x W bool, "attached_shadows"}`` (truth NaN outside the mask).
@@ -345,6 +352,9 @@ def render(
         float(noise),
         int(seed),
         bool(cast_shadows),
+        None if light_radius_deg is None else float(light_radius_deg),
+        float(ambient),
+        int(pixel_samples),
     )
 
 

@@ -52,6 +52,9 @@ def render(
     noise: float,
     seed: int,
     cast_shadows: bool,
+    light_radius_deg: Optional[float],
+    ambient: float,
+    pixel_samples: int,
 ) -> Dict[str, np.ndarray]: ...
 def light_ring(count: int, elevation_deg: float, azimuth0_deg: float) -> np.ndarray: ...
 def reflectance_map(

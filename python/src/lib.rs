@@ -438,11 +438,13 @@ fn solve<'py>(
     let recon = py.detach(|| {
         let capture =
             with_view!(views, v => capture_of(v, lights, mask.as_ref().map(|m| m.view()), &load))?;
-        let recon = reconstruct_normals_with_models(&capture, &config, models.as_deref(), &Silent)?;
+        // The models are estimated here, once, as the solve itself would (so that the caller
+        // gets the ones the solve used, without a second estimate).
         let models = match models {
             Some(m) => m,
-            None => estimate_models_if_needed(&capture, &config)?,
+            None => estimate_models(&capture, &config)?,
         };
+        let recon = reconstruct_normals_with_models(&capture, &config, Some(&models), &Silent)?;
         Ok::<_, LibError>((recon, models))
     });
     let (recon, models) = lib(recon)?;
@@ -492,24 +494,6 @@ fn solve<'py>(
     Ok(out)
 }
 
-/// The models the solve used: estimated again only when the method needs one (cheap
-/// otherwise: unit models).
-fn estimate_models_if_needed(
-    capture: &Capture,
-    config: &Config,
-) -> photostereo::Result<Vec<ImageModel>> {
-    if ImageModel::needed(&config.solve, capture.stack.count()) {
-        estimate_models(capture, config)
-    } else {
-        let n = if capture.stack.channels() == 3 && config.color == ColorSolve::SharedNormal {
-            1
-        } else {
-            capture.stack.channels()
-        };
-        Ok(vec![ImageModel::unit(capture.stack.count()); n])
-    }
-}
-
 /// The capture-wide models a solve of these images would estimate.
 #[pyfunction]
 #[pyo3(signature = (images, lights, mask=None, intensities=None, method="auto", color="grey", transfer="auto", saturation=None))]
@@ -535,7 +519,7 @@ fn estimate_model<'py>(
     let models = py.detach(|| {
         let capture =
             with_view!(views, v => capture_of(v, lights, mask.as_ref().map(|m| m.view()), &load))?;
-        estimate_models_if_needed(&capture, &config)
+        estimate_models(&capture, &config)
     });
     let list = PyList::empty(py);
     for m in &lib(models)? {
@@ -742,7 +726,7 @@ fn material_arg(name: &str, params: Option<&Bound<'_, PyDict>>) -> PyRes<Materia
 
 /// Renders a named scene under `lights`: images and ground truth.
 #[pyfunction]
-#[pyo3(signature = (scene, size, lights, material="lambert", material_params=None, albedo=0.8, noise=0.0, seed=0, cast_shadows=true))]
+#[pyo3(signature = (scene, size, lights, material="lambert", material_params=None, albedo=0.8, noise=0.0, seed=0, cast_shadows=true, light_radius_deg=None, ambient=0.0, pixel_samples=1))]
 #[allow(clippy::too_many_arguments)]
 fn render<'py>(
     py: Python<'py>,
@@ -755,6 +739,9 @@ fn render<'py>(
     noise: f32,
     seed: u64,
     cast_shadows: bool,
+    light_radius_deg: Option<f64>,
+    ambient: f32,
+    pixel_samples: usize,
 ) -> PyRes<Bound<'py, PyDict>> {
     let kind = SceneKind::ALL
         .iter()
@@ -780,6 +767,10 @@ fn render<'py>(
         cast_shadows,
         noise_sigma: noise,
         seed,
+        light_radius_deg: light_radius_deg
+            .unwrap_or(photostereo::synth::render::DEFAULT_LIGHT_RADIUS_DEG),
+        ambient,
+        pixel_samples,
         ..RenderOptions::default()
     };
     lib(options.validate())?;

@@ -194,3 +194,21 @@ def test_models_round_trip_through_solve(scene):
     assert np.array_equal(a.normals, b.normals, equal_nan=True)
     with pytest.raises(ValueError, match="model"):
         ps.solve(s["images"], lights, models=[{"sigma": models[0]["sigma"]}])
+
+
+def test_calibrate_recovers_rendered_lights_from_a_chrome_ball():
+    rng = np.random.default_rng(5)
+    # Twelve lights within 50° of the view direction.
+    tilt = np.radians(rng.uniform(10.0, 50.0, 12))
+    az = rng.uniform(0.0, 2 * np.pi, 12)
+    truth = np.stack([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)], 1)
+    s = ps.render(
+        "sphere", 200, truth, material="mirror", light_radius_deg=4.0, pixel_samples=4,
+        cast_shadows=False,
+    )
+    cal = ps.calibrate(s["images"], s["mask"])
+    assert cal["lights"] is not None, cal["report"]
+    err = np.degrees(np.arccos(np.clip(np.sum(cal["lights"] * truth, 1), -1, 1)))
+    assert err.mean() <= 0.2 and err.max() <= 0.6, err
+    with pytest.raises(ValueError, match="mask"):
+        ps.calibrate(s["images"], s["mask"][:10])
