@@ -13,7 +13,7 @@ Conventions (as the library's): camera frame x right, y up, z towards the camera
 is the top; light directions point from the surface towards the light; normals point out of
 the surface.
 
-Images are N x H x W (grey) or N x H x W x C (C = 1, 3, or 4 with alpha ignored) arrays of
+Images are N x H x W (grey) or N x H x W x C (C = 1, 2, 3 or 4; alpha ignored) arrays of
 uint8, uint16, float32 or float64, one image per light along the first axis, any strides.
 They are converted as image files of the same samples are: integers scaled to [0, 1] by their
 largest code (which marks a sample saturated; saturated samples are left out of the fit),
@@ -107,13 +107,42 @@ def _intensities(value: Any) -> Optional[np.ndarray]:
     return _f64_2d(value, "intensities", width=1)
 
 
-def _check_array(value: Any, name: str) -> Any:
+def _check_array(value: Any, name: str) -> np.ndarray:
+    """``value`` if it is a numpy array the library can read in place; a native-endian,
+    aligned copy of a byte-swapped or misaligned one; TypeError for anything else."""
     if not isinstance(value, np.ndarray):
         raise TypeError(
             f"{name}: got a {type(value).__name__}; a numpy array expected "
             f"(np.asarray(...) it, or load it with photostereo.load)"
         )
+    if not value.dtype.isnative or not value.flags.aligned:
+        value = value.astype(value.dtype.newbyteorder("="))
     return value
+
+
+def _mask(value: Any, name: str = "mask") -> Optional[np.ndarray]:
+    """A mask as an H x W bool array: bool as given, numbers > 0 set; None stays None."""
+    if value is None:
+        return None
+    m = np.asarray(value)
+    if m.dtype == np.bool_:
+        return _check_array(m, name)
+    if np.issubdtype(m.dtype, np.integer) or np.issubdtype(m.dtype, np.floating):
+        return m > 0
+    raise TypeError(
+        f"{name}: got an array of dtype {m.dtype}; bool (or numbers, > 0 meaning set) expected"
+    )
+
+
+def _int(value: Any, name: str, low: int, high: int) -> int:
+    """An integer argument in [low, high], or ValueError/TypeError naming it."""
+    try:
+        v = int(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: got {value!r}; an integer expected") from None
+    if v != value or not low <= v <= high:
+        raise ValueError(f"{name}: {value!r}; an integer from {low} to {high} expected")
+    return v
 
 
 @dataclass
@@ -186,7 +215,7 @@ def solve(
     color: str = "grey",
     transfer: str = "auto",
     saturation: Optional[float] = None,
-    fill: bool = True,
+    fill: Optional[bool] = None,
     models: Optional[Sequence[Dict[str, Any]]] = None,
 ) -> Solution:
     """Per-pixel photometric stereo: g = rho N from every image, robustly.
@@ -204,7 +233,8 @@ def solve(
         transfer: ``"auto"`` (sRGB for uint8, linear otherwise), ``"linear"`` or ``"srgb"``.
         saturation: stored level (integers scaled to [0, 1]) at or above which a sample is
             saturated; default the largest code for integers, none for floats.
-        fill: fill holes in the mask from neighbouring normals (reported as status 5).
+        fill: fill holes in the mask from neighbouring normals (reported as status 5);
+            default: inside a given mask only, as the command-line tool does.
         models: the capture-wide models to solve under (from :func:`estimate_model` on the
             whole capture) instead of estimating them from these images: for a capture
             solved in parts (see :mod:`photostereo.dask`).
@@ -212,12 +242,12 @@ def solve(
     Returns:
         A :class:`Solution`.
     """
-    _check_array(images, "images")
+    images = _check_array(images, "images")
     lights = _f64_2d(lights, "lights")
     r = _native.solve(
         images,
         lights,
-        mask,
+        _mask(mask),
         _intensities(intensities),
         method,
         color,
@@ -247,11 +277,11 @@ def estimate_model(
     """The capture-wide models (noise sigma and intensity gains per image) a solve of these
     images would estimate: estimate them once on the whole capture (or a sample of its rows)
     and pass them to :func:`solve` for each part. Arguments as :func:`solve`."""
-    _check_array(images, "images")
+    images = _check_array(images, "images")
     return _native.estimate_model(
         images,
         _f64_2d(lights, "lights"),
-        mask,
+        _mask(mask),
         _intensities(intensities),
         method,
         color,
@@ -271,7 +301,7 @@ def convert(
 ):
     """The images as the solver sees them: float32 linear radiance divided by the intensities,
     N x H x W (grey) or N x H x W x 3, and the N x H x W bool saturation flags."""
-    _check_array(images, "images")
+    images = _check_array(images, "images")
     return _native.convert(
         images, _f64_2d(lights, "lights"), _intensities(intensities), color, transfer, saturation
     )
@@ -298,7 +328,7 @@ def integrate(
         "iterations": int, "auto": dict or None (the figures behind auto's choice), "reason":
         str or None (auto's choice in words)}``; NaN outside the mask.
     """
-    _check_array(normals, "normals")
+    normals = _check_array(normals, "normals")
     if normals.dtype != np.float32:
         if normals.dtype == np.float64:
             normals = normals.astype(np.float32)
@@ -307,7 +337,7 @@ def integrate(
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise ValueError(f"normals: shape {normals.shape}; H x W x 3 expected")
     k = None if K is None else _f64_2d(K, "K")
-    r = _native.integrate(normals, mask, method, k)
+    r = _native.integrate(normals, _mask(mask), method, k)
     if r["auto"] is not None:
         r["auto"] = json.loads(r["auto"])
     return r
@@ -344,24 +374,26 @@ def render(
     """
     return _native.render(
         scene,
-        int(size),
+        _int(size, "size", 8, 8192),
         _f64_2d(lights, "lights"),
         material,
         material_params,
         float(albedo),
         float(noise),
-        int(seed),
+        _int(seed, "seed", 0, 2**64 - 1),
         bool(cast_shadows),
         None if light_radius_deg is None else float(light_radius_deg),
         float(ambient),
-        int(pixel_samples),
+        _int(pixel_samples, "pixel_samples", 1, 16),
     )
 
 
 def light_ring(count: int, elevation_deg: float, azimuth0_deg: float = 0.0) -> np.ndarray:
     """``count`` light directions (N x 3) evenly spaced in azimuth at ``elevation_deg`` above
     the image plane."""
-    return _native.light_ring(int(count), float(elevation_deg), float(azimuth0_deg))
+    return _native.light_ring(
+        _int(count, "count", 1, 65536), float(elevation_deg), float(azimuth0_deg)
+    )
 
 
 def reflectance_map(
@@ -376,7 +408,9 @@ def reflectance_map(
     light = [float(v) for v in light]
     if len(light) != 3:
         raise ValueError(f"light: {len(light)} values; x, y, z expected")
-    return _native.reflectance_map(light, material, material_params, float(extent), int(size))
+    return _native.reflectance_map(
+        light, material, material_params, float(extent), _int(size, "size", 2, 8192)
+    )
 
 
 def calibrate(images: np.ndarray, mask: Optional[np.ndarray] = None) -> Dict[str, Any]:
@@ -386,8 +420,8 @@ def calibrate(images: np.ndarray, mask: Optional[np.ndarray] = None) -> Dict[str
     "report": dict}``: the sphere fitted, and per image the highlight, its light and its
     uncertainty, or why there is none.
     """
-    _check_array(images, "images")
-    lights, report = _native.calibrate(images, mask)
+    images = _check_array(images, "images")
+    lights, report = _native.calibrate(images, _mask(mask))
     return {"lights": lights, "report": json.loads(report)}
 
 

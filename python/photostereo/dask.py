@@ -22,6 +22,7 @@ integrates them with the library's solver); pixels a tile could not solve keep t
 
 from __future__ import annotations
 
+import numbers
 from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
@@ -44,6 +45,8 @@ MAX_SAMPLE_ROWS = 1024
 
 # Planes of a solved tile, packed into one float32 array per tile.
 _SCALARS = ("residual", "samples", "condition", "status", "robust")
+# Those of them that are NaN outside the mask (the others are 0 there).
+_NAN_OUTSIDE = ("residual", "condition")
 
 
 def _as_dask(a: Any, name: str) -> "da.Array":
@@ -80,10 +83,10 @@ def estimate_model(
     sample = np.asarray(images[:, rows].compute())
     m = None
     if mask is not None:
-        m = np.asarray(_as_dask(mask, "mask")[rows].compute())
+        m = _ps._mask(np.asarray(_as_dask(mask, "mask")[rows].compute()))
         if not m.any():
             # No object pixel in the sample: fall back to the whole mask's rows.
-            full = np.asarray(_as_dask(mask, "mask").compute())
+            full = _ps._mask(np.asarray(_as_dask(mask, "mask").compute()))
             rows = np.flatnonzero(full.any(axis=1))[:max_rows]
             sample = np.asarray(images[:, rows].compute())
             m = full[rows]
@@ -102,8 +105,13 @@ def _solve_tile(
     """One tile: N x h x w[ x C] images (and an h x w mask) -> h x w x K float32 planes:
     normals (3), albedo (1 or 3), then _SCALARS."""
     h, w = block.shape[1], block.shape[2]
-    out = np.full((h, w, 3 + albedo_channels + len(_SCALARS)), np.nan, dtype=np.float32)
-    out[..., 3 + albedo_channels :] = 0.0
+    base = 3 + albedo_channels
+    # Outside the mask, as the library's maps: NaN normals, albedo, residual and condition;
+    # no samples, status 0 ("outside the mask"), not robust.
+    out = np.full((h, w, base + len(_SCALARS)), np.nan, dtype=np.float32)
+    for i, key in enumerate(_SCALARS):
+        if key not in _NAN_OUTSIDE:
+            out[..., base + i] = 0.0
     if mask_block is not None and not mask_block.any():
         return out
     import warnings
@@ -153,7 +161,7 @@ def solve(
         raise ValueError(
             f"images: shape {images.shape}; N x H x W or N x H x W x C expected"
         )
-    if not isinstance(chunks, int) or chunks < 8:
+    if not isinstance(chunks, numbers.Integral) or isinstance(chunks, bool) or chunks < 8:
         raise ValueError(f"chunks: {chunks!r}; a tile side of at least 8 pixels expected")
     lights = np.ascontiguousarray(np.asarray(lights, dtype=np.float64))
     n, h, w = images.shape[:3]
@@ -163,6 +171,7 @@ def solve(
         intensities=intensities, method=method, color=color, transfer=transfer,
         saturation=saturation,
     )
+    chunks = int(chunks)
     spatial = (chunks, chunks)
     images = images.rechunk((n,) + spatial + ((images.shape[3],) if images.ndim == 4 else ()))
     mask_d = None
@@ -170,7 +179,8 @@ def solve(
         mask_d = _as_dask(mask, "mask")
         if mask_d.shape != (h, w):
             raise ValueError(f"mask: shape {mask_d.shape} differs from the images' {(h, w)}")
-        mask_d = mask_d.astype(bool).rechunk(spatial)
+        # Numbers > 0 are set, as photostereo.solve reads a mask.
+        mask_d = (mask_d if mask_d.dtype == bool else mask_d > 0).rechunk(spatial)
     if models is None:
         models = estimate_model(images, lights, mask_d, **options)
     models = list(models)

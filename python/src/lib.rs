@@ -18,7 +18,7 @@ use photostereo::capture::stack::{ColorMode, LoadOptions, Transfer};
 use photostereo::capture::{Capture, CaptureFiles, ImageStack, Lights};
 use photostereo::grid::{Grid, Mask, ScalarMap};
 use photostereo::integrate::{IntegrationOptions, Integrator, integrate_normals};
-use photostereo::io::decode::{ImageArray, read_array, read_exr_channels};
+use photostereo::io::decode::{ImageArray, MAX_IMAGE_SAMPLES, read_array, read_exr_channels};
 use photostereo::io::output::{Overwrite, write_exr_file};
 use photostereo::progress::Silent;
 use photostereo::ps::color::ColorSolve;
@@ -180,25 +180,23 @@ fn stack_of<S: Sample>(
 }
 
 /// `images`, `lights` and `mask` as a capture (storing the part the mask spans).
+/// `part`: the images are a part (a tile) of a larger capture solved under its models, so an
+/// image dark or saturated in this part alone is kept.
 fn capture_of<S: Sample>(
     images: ArrayViewD<'_, S>,
     lights: Lights,
     mask: Option<ArrayView2<'_, bool>>,
     options: &LoadOptions,
+    part: bool,
 ) -> photostereo::Result<Capture> {
-    match images.ndim() {
-        3 => Capture::from_arrays(
-            shape_ok(images.into_dimensionality::<Ix3>())?,
-            lights,
-            mask,
-            options,
-        ),
-        _ => Capture::from_arrays_channels(
-            shape_ok(images.into_dimensionality::<Ix4>())?,
-            lights,
-            mask,
-            options,
-        ),
+    let images = match images.ndim() {
+        3 => shape_ok(images.into_dimensionality::<Ix3>())?.insert_axis(ndarray::Axis(3)),
+        _ => shape_ok(images.into_dimensionality::<Ix4>())?,
+    };
+    if part {
+        Capture::from_arrays_part(images, lights, mask, options)
+    } else {
+        Capture::from_arrays_channels(images, lights, mask, options)
     }
 }
 
@@ -206,24 +204,50 @@ fn shape_ok<T>(r: Result<T, ndarray::ShapeError>) -> photostereo::Result<T> {
     r.map_err(|e| LibError::param("images", e.to_string()))
 }
 
+/// Most samples `render` makes (4 GiB of float32 images).
+const MAX_RENDERED_SAMPLES: usize = 1 << 30;
+
+/// Most images a stack may have (far above any capture; it bounds what is allocated per
+/// image before the images are read).
+const MAX_IMAGES: usize = 1 << 16;
+
 fn check_image_ndim(s: &Samples<'_>, name: &str) -> PyRes<()> {
     let nd = s.ndim();
-    if nd == 3 || nd == 4 {
-        return Ok(());
+    if nd != 3 && nd != 4 {
+        return Err(PyValueError::new_err(format!(
+            "{name}: shape {:?}; N×H×W (grey) or N×H×W×C (C = 1, 2, 3 or 4) expected, one image per light along the first axis",
+            s.shape()
+        )));
     }
-    Err(PyValueError::new_err(format!(
-        "{name}: shape {:?}; N×H×W (grey) or N×H×W×C (C = 1, 3 or 4) expected, one image per light along the first axis",
-        s.shape()
-    )))
+    let shape = s.shape();
+    let per_image = shape[1..].iter().try_fold(1usize, |a, &b| a.checked_mul(b));
+    if shape[0] > MAX_IMAGES || per_image.is_none_or(|p| p > MAX_IMAGE_SAMPLES) {
+        return Err(PyValueError::new_err(format!(
+            "{name}: shape {shape:?}; at most {MAX_IMAGES} images of at most {MAX_IMAGE_SAMPLES} samples each are read"
+        )));
+    }
+    Ok(())
 }
 
-/// A mask argument: bool, or numbers (non-zero is set), H×W.
+/// Refuses an `H×W` (or `H×W×C`) map larger than an image may be, before it is copied.
+fn check_map_size(shape: &[usize], name: &str) -> PyRes<()> {
+    let n = shape.iter().try_fold(1usize, |a, &b| a.checked_mul(b));
+    if n.is_none_or(|n| n > MAX_IMAGE_SAMPLES) {
+        return Err(PyValueError::new_err(format!(
+            "{name}: shape {shape:?}; at most {MAX_IMAGE_SAMPLES} values are read"
+        )));
+    }
+    Ok(())
+}
+
+/// A mask argument: bool, or numbers (> 0 is set), H×W.
 fn mask_arg(obj: Option<&Bound<'_, PyAny>>, name: &str) -> PyRes<Option<Array2<bool>>> {
     let Some(obj) = obj else { return Ok(None) };
     if obj.is_none() {
         return Ok(None);
     }
     if let Ok(a) = obj.extract::<PyReadonlyArrayDyn<'_, bool>>() {
+        check_map_size(a.shape(), name)?;
         let v = a.as_array();
         let v = v.into_dimensionality::<Ix2>().map_err(|_| {
             PyValueError::new_err(format!("{name}: shape {:?}; H×W expected", a.shape()))
@@ -232,7 +256,7 @@ fn mask_arg(obj: Option<&Bound<'_, PyAny>>, name: &str) -> PyRes<Option<Array2<b
     }
     let s = Samples::extract(obj, name).map_err(|_| {
         PyTypeError::new_err(format!(
-            "{name}: got {}; a numpy array of bool (or of numbers, non-zero meaning set) expected",
+            "{name}: got {}; a numpy array of bool (or of numbers, > 0 meaning set) expected",
             describe(obj)
         ))
     })?;
@@ -242,6 +266,7 @@ fn mask_arg(obj: Option<&Bound<'_, PyAny>>, name: &str) -> PyRes<Option<Array2<b
             s.shape()
         )));
     }
+    check_map_size(&s.shape(), name)?;
     Ok(Some(
         with_view!(s.views(), v => v.into_dimensionality::<Ix2>().map_err(|e| PyValueError::new_err(e.to_string()))?.map(|x| x.stored() > 0.0)),
     ))
@@ -312,6 +337,7 @@ fn method_arg(name: &str) -> PyRes<Method> {
 }
 
 /// The per-pixel configuration of a solve from its keyword arguments.
+/// `fill`: fill holes from neighbouring normals (the library's default fills inside a mask).
 fn solve_config(method: &str, color: ColorSolve, fill: bool) -> PyRes<Config> {
     let mut config = Config {
         integration: None,
@@ -405,7 +431,7 @@ fn json<T: serde::Serialize>(v: &T) -> PyRes<String> {
 
 /// Solve: images, lights, mask → the per-pixel maps, summaries as JSON text.
 #[pyfunction]
-#[pyo3(signature = (images, lights, mask=None, intensities=None, method="auto", color="grey", transfer="auto", saturation=None, fill=true, models=None))]
+#[pyo3(signature = (images, lights, mask=None, intensities=None, method="auto", color="grey", transfer="auto", saturation=None, fill=None, models=None))]
 #[allow(clippy::too_many_arguments)]
 fn solve<'py>(
     py: Python<'py>,
@@ -417,7 +443,7 @@ fn solve<'py>(
     color: &str,
     transfer: &str,
     saturation: Option<f32>,
-    fill: bool,
+    fill: Option<bool>,
     models: Option<&Bound<'py, PyList>>,
 ) -> PyRes<Bound<'py, PyDict>> {
     let samples = Samples::extract(images, "images")?;
@@ -425,7 +451,10 @@ fn solve<'py>(
     let lights = lights_arg(lights, intensities)?;
     let mask = mask_arg(mask, "mask")?;
     let (load, color_solve) = load_options(color, transfer, saturation)?;
+    // As the command-line tool: holes are filled inside a mask, not over a whole frame.
+    let fill = fill.unwrap_or(mask.is_some());
     let config = solve_config(method, color_solve, fill)?;
+    let part = models.is_some();
     let models: Option<Vec<ImageModel>> = match models {
         Some(list) => Some(
             list.iter()
@@ -436,8 +465,7 @@ fn solve<'py>(
     };
     let views = samples.views();
     let recon = py.detach(|| {
-        let capture =
-            with_view!(views, v => capture_of(v, lights, mask.as_ref().map(|m| m.view()), &load))?;
+        let capture = with_view!(views, v => capture_of(v, lights, mask.as_ref().map(|m| m.view()), &load, part))?;
         // The models are estimated here, once, as the solve itself would (so that the caller
         // gets the ones the solve used, without a second estimate).
         let models = match models {
@@ -517,8 +545,7 @@ fn estimate_model<'py>(
     let config = solve_config(method, color_solve, true)?;
     let views = samples.views();
     let models = py.detach(|| {
-        let capture =
-            with_view!(views, v => capture_of(v, lights, mask.as_ref().map(|m| m.view()), &load))?;
+        let capture = with_view!(views, v => capture_of(v, lights, mask.as_ref().map(|m| m.view()), &load, false))?;
         estimate_models(&capture, &config)
     });
     let list = PyList::empty(py);
@@ -598,6 +625,7 @@ fn integrate<'py>(
     method: &str,
     k: Option<PyReadonlyArray2<'py, f64>>,
 ) -> PyRes<Bound<'py, PyDict>> {
+    check_map_size(normals.shape(), "normals")?;
     let map = lib(normals_from_array(normals.as_array()))?;
     let mask: Mask = match mask_arg(mask, "mask")? {
         Some(m) => {
@@ -762,6 +790,12 @@ fn render<'py>(
         )));
     }
     let lights = lights_arg(lights, None)?;
+    if lights.len().saturating_mul(size * size) > MAX_RENDERED_SAMPLES {
+        return Err(PyValueError::new_err(format!(
+            "{} lights × {size}² pixels: more than {MAX_RENDERED_SAMPLES} samples (4 GiB); fewer lights or a smaller size",
+            lights.len()
+        )));
+    }
     let material = material_arg(material, material_params)?;
     let options = RenderOptions {
         cast_shadows,
@@ -809,6 +843,11 @@ fn light_ring<'py>(
     elevation_deg: f64,
     azimuth0_deg: f64,
 ) -> PyRes<Bound<'py, PyArray2<f64>>> {
+    if count > MAX_IMAGES {
+        return Err(PyValueError::new_err(format!(
+            "count: {count}; at most {MAX_IMAGES} lights"
+        )));
+    }
     Ok(lib(Lights::ring(count, elevation_deg, azimuth0_deg))?
         .directions_array()
         .into_pyarray(py))
@@ -825,9 +864,14 @@ fn reflectance_map<'py>(
     extent: f64,
     size: usize,
 ) -> PyRes<Bound<'py, PyAny>> {
+    if !(2..=8192).contains(&size) {
+        return Err(PyValueError::new_err(format!(
+            "size: {size}; 2 to 8192 samples a side expected"
+        )));
+    }
     let material = material_arg(material, material_params)?;
     let rm = lib(ReflectanceMap::new(nalgebra_vec(light), material))?;
-    Ok(lib(rm.sample(extent, size))?
+    Ok(lib(py.detach(|| rm.sample(extent, size)))?
         .into_array()
         .into_pyarray(py)
         .into_any())

@@ -212,3 +212,47 @@ def test_calibrate_recovers_rendered_lights_from_a_chrome_ball():
     assert err.mean() <= 0.2 and err.max() <= 0.6, err
     with pytest.raises(ValueError, match="mask"):
         ps.calibrate(s["images"], s["mask"][:10])
+
+
+def test_byte_swapped_and_huge_inputs(scene):
+    s, lights = scene
+    ref = ps.solve(s["images"], lights, mask=s["mask"])
+    swapped = ps.solve(s["images"].astype(">f4"), lights, mask=s["mask"].astype(">i4"))
+    assert np.array_equal(swapped.normals, ref.normals, equal_nan=True)
+    # A broadcast view of 8 images of 200000² pixels is refused before anything is allocated.
+    huge = np.broadcast_to(np.uint8(1), (8, 200_000, 200_000))
+    with pytest.raises(ValueError, match="at most"):
+        ps.solve(huge, lights)
+    with pytest.raises(ValueError, match="count"):
+        ps.light_ring(-1, 40.0)
+    with pytest.raises(ValueError, match="size"):
+        ps.reflectance_map([0, 0, 1], size=10**9)
+    with pytest.raises(ValueError, match="lights"):
+        ps.render("sphere", 8192, ps.light_ring(64, 40.0))
+
+
+def test_fill_is_inside_a_mask_only_by_default(scene):
+    s, lights = scene
+    # Without a mask the background (black in every image: no usable sample) is left
+    # unsolved and said so, not filled.
+    with pytest.warns(ps.PhotostereoWarning, match="no normal"):
+        r = ps.solve(s["images"], lights)
+    assert r.counts["filled"] == 0
+    assert r.counts["too_few_samples"] == int((~s["mask"]).sum())
+    assert np.isnan(r.normals[~s["mask"]]).all()
+    forced = ps.solve(s["images"], lights, fill=True)
+    assert forced.counts["filled"] > 0
+
+
+def test_models_with_bad_values_are_refused(scene):
+    s, lights = scene
+    m = ps.estimate_model(s["images"], lights, s["mask"])[0]
+    nan_sigma = dict(m, sigma=np.full_like(m["sigma"], np.nan))
+    with pytest.raises(ValueError, match="noise σ"):
+        ps.solve(s["images"], lights, mask=s["mask"], models=[nan_sigma])
+    zero_gain = dict(m, gains=np.zeros_like(m["gains"]))
+    with pytest.raises(ValueError, match="gain"):
+        ps.solve(s["images"], lights, mask=s["mask"], models=[zero_gain])
+    # Plain least squares needs no σ: the unit model's NaN is fine there.
+    unit = ps.estimate_model(s["images"], lights, s["mask"], method="ls")
+    ps.solve(s["images"], lights, mask=s["mask"], method="ls", models=unit)

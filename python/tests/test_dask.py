@@ -86,3 +86,19 @@ def test_bad_dask_input_is_named():
         psd.solve(da.from_array(s["images"]), lights, chunks=2)
     with pytest.raises(TypeError, match="images"):
         psd.solve(s["images"].tolist(), lights)
+
+
+def test_tiles_dark_under_a_light_and_outside_the_object(client):
+    # No mask: tiles of the black background are dark in every image, which the whole capture
+    # is not; they are solved as what they are (status "dark"), not refused.
+    lights = ps.light_ring(8, 40.0)
+    s = ps.render("sphere", 96, lights, cast_shadows=False)
+    maps = psd.solve(s["images"], lights, chunks=32)
+    normals = maps["normals"].compute()
+    single = ps.solve(s["images"], lights, fill=False, models=maps["models"])
+    assert np.array_equal(normals, single.normals, equal_nan=True)
+    assert np.array_equal(maps["status"].compute(), single.status)
+    # Residual and condition are NaN outside the mask, as the library's maps are.
+    masked = psd.solve(s["images"], lights, mask=s["mask"], chunks=32)
+    res = masked["residual"].compute()
+    assert np.isnan(res[~s["mask"]]).all() and np.isfinite(res[s["mask"]]).all()

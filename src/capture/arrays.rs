@@ -1,10 +1,11 @@
 //! Captures from arrays ([`ndarray`]): image stacks, lights and masks built from the arrays a
 //! Rust vision program or a Python caller already holds, and the maps handed back as arrays.
 //!
-//! Images come as `N×H×W` (grey) or `N×H×W×C` (C = 1, 3, or 4 with the alpha ignored) views of
-//! `u8`, `u16`, `f32` or `f64` samples, any strides. They are converted exactly as files of the
-//! same samples are ([`crate::capture::stack`]): integers scaled to [0, 1] by their largest code
-//! (which marks a sample saturated), 8-bit values sRGB-decoded unless [`Transfer::Linear`],
+//! Images come as `N×H×W` (grey) or `N×H×W×C` (C = 1 grey, 2 grey and alpha, 3 RGB, 4 RGBA;
+//! alpha ignored) views of `u8`, `u16`, `f32` or `f64` samples, any strides. They are converted
+//! exactly as files of the same samples are ([`crate::capture::stack`]): integers scaled to
+//! [0, 1] by their largest code (which marks a sample saturated, judged on the codes as the
+//! file reader judges it), 8-bit values sRGB-decoded unless [`Transfer::Linear`],
 //! each image divided by its light's intensity, then mixed to grey or kept per channel. That
 //! conversion is the one pass over the samples: a view is read where it lies, not copied
 //! first. With [`LoadOptions::window`] only that part of each image is stored (a mask's
@@ -40,18 +41,23 @@ use crate::capture::stack::{
 };
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, Window};
-use crate::io::decode::{SampleFormat, srgb_to_linear};
+use crate::io::decode::{MAX_IMAGE_SAMPLES, SampleFormat, srgb_to_linear};
 use nalgebra::Vector3;
 use ndarray::{Array2, Array3, ArrayView2, ArrayView3, ArrayView4, Axis};
 use rayon::prelude::*;
 use std::path::PathBuf;
 
 /// A sample type images can be given in: how it is stored and scaled to [0, 1].
-pub trait Sample: Copy + Send + Sync + 'static {
+pub trait Sample: Copy + PartialOrd + Send + Sync + 'static {
     /// The storage format it stands for (integers have a saturating maximum code).
     const FORMAT: SampleFormat;
     /// The value scaled to [0, 1] for integers, as is (in `f32`) for floats.
     fn stored(self) -> f32;
+    /// An integer code as the saturation level it is compared with (`code / max`, as the
+    /// file reader computes it); floats as [`Sample::stored`].
+    fn level(self) -> f32 {
+        self.stored()
+    }
 }
 
 impl Sample for u8 {
@@ -59,12 +65,18 @@ impl Sample for u8 {
     fn stored(self) -> f32 {
         f32::from(self) * (1.0 / 255.0)
     }
+    fn level(self) -> f32 {
+        f32::from(self) / 255.0
+    }
 }
 
 impl Sample for u16 {
     const FORMAT: SampleFormat = SampleFormat::U16;
     fn stored(self) -> f32 {
         f32::from(self) * (1.0 / 65535.0)
+    }
+    fn level(self) -> f32 {
+        f32::from(self) / 65535.0
     }
 }
 
@@ -81,6 +93,14 @@ impl Sample for f64 {
         // Beyond f32's range a value becomes infinite, and is then treated as non-finite.
         self as f32
     }
+}
+
+/// Whether arrays hold a whole capture or a part of one (whose images may be dark or
+/// saturated in that part alone).
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Extent {
+    Whole,
+    Part,
 }
 
 /// The name an in-memory image goes by in messages and [`ImageInfo::path`].
@@ -102,20 +122,44 @@ impl ImageStack {
         ImageStack::from_array_channels(images.insert_axis(Axis(3)), lights, options)
     }
 
-    /// A stack from `N×H×W×C` images (C = 1 grey, 3 RGB, or 4 RGBA whose alpha is ignored),
-    /// image `k` lit by light `k` of `lights`, converted as `options` says: mixed to grey with
+    /// A stack from `N×H×W×C` images (C = 1 grey, 2 grey and alpha, 3 RGB, or 4 RGBA; alpha
+    /// ignored), image `k` lit by light `k` of `lights`, converted as `options` says: mixed to grey with
     /// [`crate::capture::stack::GREY_WEIGHTS`] or kept per channel ([`ColorMode`]).
     ///
     /// # Errors
     /// [`Error::LightsMismatch`] when N differs from the light count;
     /// [`Error::TooFewImages`] for no image; [`Error::InvalidParameter`] (`images`) for an
-    /// empty image, C not 1, 3 or 4, or a per-channel load of grey images; (`window`) for a
-    /// window outside the images; [`Error::BadImage`] for an image that is entirely dark or
+    /// empty image, C not 1 to 4, more than [`MAX_IMAGE_SAMPLES`] samples an image or a stack
+    /// too large to allocate, or a per-channel load of grey images; (`window`) for a window
+    /// outside the images; [`Error::BadImage`] for an image that is entirely dark or
     /// saturated everywhere.
     pub fn from_array_channels<S: Sample>(
         images: ArrayView4<'_, S>,
         lights: &Lights,
         options: &LoadOptions,
+    ) -> Result<ImageStack> {
+        ImageStack::convert_array(images, lights, options, Extent::Whole)
+    }
+
+    /// [`ImageStack::from_array_channels`] for a part of a larger capture (a tile of it): an
+    /// image that is entirely dark or saturated in this part is kept, not refused (a tile in a
+    /// cast shadow under one light is, while the whole image is not).
+    ///
+    /// # Errors
+    /// As [`ImageStack::from_array_channels`], but for [`Error::BadImage`].
+    pub fn from_array_part<S: Sample>(
+        images: ArrayView4<'_, S>,
+        lights: &Lights,
+        options: &LoadOptions,
+    ) -> Result<ImageStack> {
+        ImageStack::convert_array(images, lights, options, Extent::Part)
+    }
+
+    fn convert_array<S: Sample>(
+        images: ArrayView4<'_, S>,
+        lights: &Lights,
+        options: &LoadOptions,
+        extent: Extent,
     ) -> Result<ImageStack> {
         let (count, height, width, stride) = images.dim();
         if count != lights.len() {
@@ -139,7 +183,7 @@ impl ImageStack {
                 return Err(Error::param(
                     "images",
                     format!(
-                        "{stride} channels per pixel (last axis); 1 (grey), 3 (RGB) or 4 (RGBA) expected"
+                        "{stride} channels per pixel (last axis); 1 (grey), 2 (grey and alpha), 3 (RGB) or 4 (RGBA) expected"
                     ),
                 ));
             }
@@ -177,8 +221,32 @@ impl ImageStack {
             .or(S::FORMAT.is_integer().then_some(1.0))
             .unwrap_or(f32::INFINITY);
         let n = window.len();
+        // The limits of a decoded file hold for an array too: each stored image at most
+        // MAX_IMAGE_SAMPLES samples, and the whole stack an allocation that can be had.
+        let per_image = n.checked_mul(channels).filter(|&v| v <= MAX_IMAGE_SAMPLES);
+        let total = per_image.and_then(|v| v.checked_mul(count));
+        let Some(total) = total else {
+            return Err(Error::param(
+                "images",
+                format!(
+                    "{count} images of {} stored pixels × {channels} channel(s): more than {MAX_IMAGE_SAMPLES} samples an image; pass a mask or solve the capture in parts",
+                    n
+                ),
+            ));
+        };
+        let mut probe: Vec<f32> = Vec::new();
+        if probe.try_reserve_exact(total).is_err() {
+            return Err(Error::param(
+                "images",
+                format!(
+                    "{count} images of {n} stored pixels × {channels} channel(s) need {} GiB of memory, which could not be had; pass a mask or solve the capture in parts",
+                    (total * 4) >> 30
+                ),
+            ));
+        }
+        drop(probe);
         let lut = srgb_lut();
-        let mut data = crate::buffer::zeroed_f32(count * channels * n);
+        let mut data = crate::buffer::zeroed_f32(total);
         let results: Vec<Result<(Option<Vec<u64>>, ImageInfo)>> = data
             .par_chunks_mut(channels * n)
             .enumerate()
@@ -223,7 +291,9 @@ impl ImageStack {
                     // Integer rows are finite, and saturated only if their largest value reaches
                     // the level; float rows are checked per pixel.
                     let (row_max, check_finite) = if S::FORMAT.is_integer() {
-                        (stored.iter().fold(0f32, |m, v| m.max(*v)), false)
+                        // The largest code, as a level the way the file reader makes it.
+                        let top = row.iter().copied().reduce(|a, b| if b > a { b } else { a });
+                        (top.map_or(0.0, Sample::level), false)
                     } else {
                         (level, true)
                     };
@@ -254,7 +324,9 @@ impl ImageStack {
                         format!(" in the part the mask spans ({window})")
                     }
                 };
-                check_usable(out, c.saturated, n, &path, index, where_)?;
+                if extent == Extent::Whole {
+                    check_usable(out, c.saturated, n, &path, index, where_)?;
+                }
                 let info = ImageInfo {
                     path,
                     format: S::FORMAT,
@@ -412,6 +484,32 @@ impl Capture {
         mask: Option<ArrayView2<'_, bool>>,
         options: &LoadOptions,
     ) -> Result<Capture> {
+        Capture::from_array_views(images, lights, mask, options, Extent::Whole)
+    }
+
+    /// [`Capture::from_arrays_channels`] for a part of a larger capture (a tile), to be solved
+    /// under the whole capture's models
+    /// ([`crate::run::pipeline::reconstruct_normals_with_models`]): images dark or saturated
+    /// in this part alone are kept ([`ImageStack::from_array_part`]).
+    ///
+    /// # Errors
+    /// As [`Capture::from_arrays_channels`], but for [`Error::BadImage`].
+    pub fn from_arrays_part<S: Sample>(
+        images: ArrayView4<'_, S>,
+        lights: Lights,
+        mask: Option<ArrayView2<'_, bool>>,
+        options: &LoadOptions,
+    ) -> Result<Capture> {
+        Capture::from_array_views(images, lights, mask, options, Extent::Part)
+    }
+
+    fn from_array_views<S: Sample>(
+        images: ArrayView4<'_, S>,
+        lights: Lights,
+        mask: Option<ArrayView2<'_, bool>>,
+        options: &LoadOptions,
+        extent: Extent,
+    ) -> Result<Capture> {
         let (_, height, width, _) = images.dim();
         let mask: Option<Mask> = match mask {
             Some(m) => {
@@ -441,7 +539,7 @@ impl Capture {
             window: options.window.or(window),
             ..*options
         };
-        let stack = ImageStack::from_array_channels(images, &lights, &options)?;
+        let stack = ImageStack::convert_array(images, &lights, &options, extent)?;
         Capture::from_stack(stack, lights, mask)
     }
 }
@@ -574,6 +672,27 @@ mod tests {
             &LoadOptions::default(),
         );
         assert!(matches!(e, Err(Error::Mask { .. })));
+    }
+
+    /// A part of a capture may be dark under one light (a tile in a cast shadow): kept as a
+    /// part, refused as a whole; and integer saturation is judged on codes, as files are.
+    #[test]
+    fn parts_keep_images_dark_in_the_part_alone() {
+        let lights = lights4();
+        let mut imgs = Array4::<u16>::from_elem((4, 3, 3, 1), 1000);
+        imgs.index_axis_mut(Axis(0), 1).fill(0);
+        let whole = ImageStack::from_array_channels(imgs.view(), &lights, &LoadOptions::default());
+        assert!(matches!(whole, Err(Error::BadImage { index: 1, .. })));
+        let part =
+            ImageStack::from_array_part(imgs.view(), &lights, &LoadOptions::default()).unwrap();
+        assert_eq!(part.value(1, 0, 4), 0.0);
+        // A user level just below code 1000's flags every sample of images 0, 2 and 3.
+        let level = LoadOptions {
+            saturation: Some(999.5 / 65535.0),
+            ..LoadOptions::default()
+        };
+        let sat = ImageStack::from_array_part(imgs.view(), &lights, &level).unwrap();
+        assert!(sat.is_saturated(0, 4) && !sat.is_saturated(1, 4));
     }
 
     /// A mask stores only its bounding box, and maps round-trip through arrays.

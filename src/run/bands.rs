@@ -312,6 +312,42 @@ impl BandSource for WholeStack<'_> {
                 ),
             ));
         }
+        let count = self.stack.count();
+        let needs_sigma = ImageModel::needed(&config.solve, count);
+        for (m, model) in given.iter().enumerate() {
+            let bad = |what: String| {
+                Err(crate::Error::param(
+                    "models",
+                    format!("model {m}: {what}; pass models estimated from the capture"),
+                ))
+            };
+            if model.sigma.len() != count || model.gains.gains.len() != count {
+                return bad(format!(
+                    "{} noise σ and {} gains for {count} images",
+                    model.sigma.len(),
+                    model.gains.gains.len()
+                ));
+            }
+            if let Some(k) = model
+                .gains
+                .gains
+                .iter()
+                .position(|g| !(g.is_finite() && *g > 0.0))
+            {
+                return bad(format!("image {k}'s gain is {}", model.gains.gains[k]));
+            }
+            if needs_sigma
+                && let Some(k) = model
+                    .sigma
+                    .iter()
+                    .position(|s| !(s.is_finite() && *s > 0.0))
+            {
+                return bad(format!(
+                    "image {k}'s noise σ is {}, and the method weighs samples by it",
+                    model.sigma[k]
+                ));
+            }
+        }
         if shared_normal(self.stack.channels(), config) {
             crate::ps::color::check_rgb_inputs(self.stack, lights, self.mask, &config.solve)?;
             self.grey = Some(self.stack.grey_mix());
