@@ -375,24 +375,21 @@ fn model_from_py(d: &Bound<'_, PyAny>) -> PyRes<ImageModel> {
             ))
         })
     };
-    let sigma: Vec<f32> = get("sigma")?
-        .extract::<PyReadonlyArrayDyn<'_, f32>>()?
-        .as_array()
-        .iter()
-        .copied()
-        .collect();
-    let gains: Vec<f32> = get("gains")?
-        .extract::<PyReadonlyArrayDyn<'_, f32>>()?
-        .as_array()
-        .iter()
-        .copied()
-        .collect();
-    let estimated: Vec<f32> = get("estimated_gains")?
-        .extract::<PyReadonlyArrayDyn<'_, f32>>()?
-        .as_array()
-        .iter()
-        .copied()
-        .collect();
+    let values = |k: &str| -> PyRes<Vec<f32>> {
+        let a = get(k)?
+            .extract::<PyReadonlyArrayDyn<'_, f32>>()
+            .map_err(|_| {
+                PyTypeError::new_err(format!(
+                    "model: {k:?} is not a float32 array; pass a model returned by estimate_model"
+                ))
+            })?;
+        Ok(a.as_array().iter().copied().collect())
+    };
+    let (sigma, gains, estimated) = (
+        values("sigma")?,
+        values("gains")?,
+        values("estimated_gains")?,
+    );
     if gains.len() != sigma.len() || estimated.len() != sigma.len() {
         return Err(PyValueError::new_err(format!(
             "model: {} sigmas, {} gains and {} estimated gains; one of each per image expected",

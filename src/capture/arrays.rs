@@ -37,7 +37,7 @@ use crate::capture::dataset::Capture;
 use crate::capture::lights::{Light, Lights};
 use crate::capture::stack::{
     ColorMode, Converted, ImageInfo, ImageStack, LoadOptions, RowPlace, Transfer, check_usable,
-    coefficients, combine_any, srgb_lut,
+    coefficients, combine_any, srgb_lut, stored_window,
 };
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, Window};
@@ -198,19 +198,7 @@ impl ImageStack {
                 ));
             }
         };
-        let window = match options.window {
-            Some(win) => {
-                let clamped = win.clamp(width, height);
-                if clamped.is_empty() {
-                    return Err(Error::param(
-                        "window",
-                        format!("{win} holds no pixel of the {width}×{height} images"),
-                    ));
-                }
-                clamped
-            }
-            None => Window::full(width, height),
-        };
+        let window = stored_window(options.window, width, height)?;
         let linearise = match options.transfer {
             Transfer::Auto => S::FORMAT == SampleFormat::U8,
             Transfer::Linear => false,

@@ -402,19 +402,7 @@ pub fn load_stack(
             ),
         });
     }
-    let window = match options.window {
-        Some(win) => {
-            let clamped = win.clamp(width, height);
-            if clamped.is_empty() {
-                return Err(Error::param(
-                    "window",
-                    format!("{win} holds no pixel of the {width}×{height} images"),
-                ));
-            }
-            clamped
-        }
-        None => Window::full(width, height),
-    };
+    let window = stored_window(options.window, width, height)?;
     let n = window.len();
     let channels = match options.color {
         ColorMode::Grey => 1,
@@ -500,6 +488,24 @@ pub fn load_stack(
         info,
         window,
     })
+}
+
+/// The part of `width`×`height` images a load stores: `window` clamped to them (refused when
+/// it holds no pixel of them), or the whole images.
+pub(crate) fn stored_window(window: Option<Window>, width: usize, height: usize) -> Result<Window> {
+    match window {
+        Some(win) => {
+            let clamped = win.clamp(width, height);
+            if clamped.is_empty() {
+                return Err(Error::param(
+                    "window",
+                    format!("{win} holds no pixel of the {width}×{height} images"),
+                ));
+            }
+            Ok(clamped)
+        }
+        None => Ok(Window::full(width, height)),
+    }
 }
 
 /// Refuses a converted image (`out`, its planes) that is entirely dark or whose every pixel of
