@@ -90,6 +90,14 @@ enum Samples<'py> {
 }
 
 impl<'py> Samples<'py> {
+    /// An image stack argument: samples of an accepted type, `N×H×W` or `N×H×W×C`, of a size
+    /// that may be read.
+    fn images(obj: &Bound<'py, PyAny>, name: &str) -> PyRes<Self> {
+        let s = Samples::extract(obj, name)?;
+        check_image_ndim(&s, name)?;
+        Ok(s)
+    }
+
     fn extract(obj: &Bound<'py, PyAny>, name: &str) -> PyRes<Self> {
         if let Ok(a) = obj.extract::<PyReadonlyArrayDyn<'py, u16>>() {
             return Ok(Samples::U16(a));
@@ -165,18 +173,15 @@ fn stack_of<S: Sample>(
     lights: &Lights,
     options: &LoadOptions,
 ) -> photostereo::Result<ImageStack> {
-    match images.ndim() {
-        3 => ImageStack::from_array(
-            shape_ok(images.into_dimensionality::<Ix3>())?,
-            lights,
-            options,
-        ),
-        _ => ImageStack::from_array_channels(
-            shape_ok(images.into_dimensionality::<Ix4>())?,
-            lights,
-            options,
-        ),
-    }
+    ImageStack::from_array_channels(four_d(images)?, lights, options)
+}
+
+/// `images` as `N×H×W×C`: grey `N×H×W` gains a channel axis of 1.
+fn four_d<S>(images: ArrayViewD<'_, S>) -> photostereo::Result<ndarray::ArrayView4<'_, S>> {
+    Ok(match images.ndim() {
+        3 => shape_ok(images.into_dimensionality::<Ix3>())?.insert_axis(ndarray::Axis(3)),
+        _ => shape_ok(images.into_dimensionality::<Ix4>())?,
+    })
 }
 
 /// `images`, `lights` and `mask` as a capture (storing the part the mask spans).
@@ -189,10 +194,7 @@ fn capture_of<S: Sample>(
     options: &LoadOptions,
     part: bool,
 ) -> photostereo::Result<Capture> {
-    let images = match images.ndim() {
-        3 => shape_ok(images.into_dimensionality::<Ix3>())?.insert_axis(ndarray::Axis(3)),
-        _ => shape_ok(images.into_dimensionality::<Ix4>())?,
-    };
+    let images = four_d(images)?;
     if part {
         Capture::from_arrays_part(images, lights, mask, options)
     } else {
@@ -443,8 +445,7 @@ fn solve<'py>(
     fill: Option<bool>,
     models: Option<&Bound<'py, PyList>>,
 ) -> PyRes<Bound<'py, PyDict>> {
-    let samples = Samples::extract(images, "images")?;
-    check_image_ndim(&samples, "images")?;
+    let samples = Samples::images(images, "images")?;
     let lights = lights_arg(lights, intensities)?;
     let mask = mask_arg(mask, "mask")?;
     let (load, color_solve) = load_options(color, transfer, saturation)?;
@@ -534,8 +535,7 @@ fn estimate_model<'py>(
     transfer: &str,
     saturation: Option<f32>,
 ) -> PyRes<Bound<'py, PyList>> {
-    let samples = Samples::extract(images, "images")?;
-    check_image_ndim(&samples, "images")?;
+    let samples = Samples::images(images, "images")?;
     let lights = lights_arg(lights, intensities)?;
     let mask = mask_arg(mask, "mask")?;
     let (load, color_solve) = load_options(color, transfer, saturation)?;
@@ -564,8 +564,7 @@ fn convert<'py>(
     transfer: &str,
     saturation: Option<f32>,
 ) -> PyRes<(Bound<'py, PyAny>, Bound<'py, PyAny>)> {
-    let samples = Samples::extract(images, "images")?;
-    check_image_ndim(&samples, "images")?;
+    let samples = Samples::images(images, "images")?;
     let lights = lights_arg(lights, intensities)?;
     let (load, _) = load_options(color, transfer, saturation)?;
     let views = samples.views();
@@ -886,8 +885,7 @@ fn calibrate<'py>(
     images: &Bound<'py, PyAny>,
     mask: Option<&Bound<'py, PyAny>>,
 ) -> PyRes<(Option<Bound<'py, PyArray2<f64>>>, String)> {
-    let samples = Samples::extract(images, "images")?;
-    check_image_ndim(&samples, "images")?;
+    let samples = Samples::images(images, "images")?;
     let n = samples.shape()[0];
     let mask = mask_arg(mask, "mask")?;
     let views = samples.views();
