@@ -673,13 +673,14 @@ impl IntegrateArg {
 /// `--solver` values.
 #[derive(Debug, Clone, Copy, ValueEnum)]
 pub enum SolverArg {
-    /// Direct up to 100 000 unknowns, conjugate gradients beyond.
+    /// Direct up to 100 000 unknowns, multigrid-preconditioned conjugate gradients beyond.
     Auto,
     /// Sparse Cholesky.
     Direct,
     /// Preconditioned conjugate gradients (DCT for masked-ls, Jacobi for bilateral).
     Cg,
-    /// Conjugate gradients preconditioned with aggregation multigrid (linear time and memory).
+    /// Conjugate gradients preconditioned with multigrid (linear time and memory): on the pixel
+    /// grid for masked-ls, aggregation multigrid for bilateral.
     Multigrid,
 }
 
@@ -690,8 +691,9 @@ pub struct IntegrationArgs {
     /// the distance along the optical axis, up to scale.
     #[arg(long, value_name = "K.txt")]
     pub camera: Option<PathBuf>,
-    /// Linear solver of `masked-ls` (auto: direct up to 100 000 pixels, DCT-preconditioned
-    /// conjugate gradients beyond) and `bilateral` (auto: each reweighting step by
+    /// Linear solver of `masked-ls` (auto: direct up to 100 000 pixels, conjugate gradients
+    /// preconditioned with multigrid on the pixel grid beyond, in about 32 bytes a pixel of the
+    /// mask's bounding box) and `bilateral` (auto: each reweighting step by
     /// multigrid-preconditioned conjugate gradients to the published tolerance; cg: Jacobi, as
     /// published; direct: exact steps, a different fixed point).
     #[arg(long, value_enum, default_value_t = SolverArg::Auto)]
@@ -747,6 +749,7 @@ impl IntegrationArgs {
                 reintegrate: !self.bilateral_published,
                 ..BilateralParams::default()
             },
+            max_memory: None,
         })
     }
 }

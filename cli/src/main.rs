@@ -258,21 +258,32 @@ fn in_memory_bytes(rc: &RunConfig, files: &CaptureFiles, window_only: bool) -> R
     // Only the window the mask spans is stored; the mask is small to read.
     // Under a budget that cannot hold even the maps of a run with no masked pixel, the mask
     // is not read: the run is refused on the declared size when it is planned.
-    let floor = photostereo::run::stream::resident_bytes(w, h, channels as usize, 0, &rc.config);
+    let none = photostereo::grid::Window {
+        x0: 0,
+        y0: 0,
+        x1: 0,
+        y1: 0,
+    };
+    let floor =
+        photostereo::run::stream::resident_bytes(w, h, channels as usize, 0, none, &rc.config);
     let hopeless = rc.stream.is_some_and(|o| floor > o.max_memory);
     let (window, masked) = match &files.mask_source {
         Some(m) if window_only && !hopeless => {
             let mask = photostereo::io::decode::read_mask(m)?;
-            let window = mask
-                .bounding_box()
-                .map_or(w * h, |b| b.width() * b.height());
+            let window = mask.bounding_box().unwrap_or(none);
             (window, mask.count())
         }
-        _ => (w * h, w * h),
+        _ => (photostereo::grid::Window::full(w, h), w * h),
     };
-    let stack = files.images.len() as u64 * channels * window as u64 * 4;
-    let resident =
-        photostereo::run::stream::resident_bytes(w, h, channels as usize, masked, &rc.config);
+    let stack = files.images.len() as u64 * channels * window.len() as u64 * 4;
+    let resident = photostereo::run::stream::resident_bytes(
+        w,
+        h,
+        channels as usize,
+        masked,
+        window,
+        &rc.config,
+    );
     Ok(Some(stack + resident))
 }
 
@@ -345,11 +356,12 @@ fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
             &files, &rc.load, &rc.config, &options, &rc.output, progress,
         )?;
         say!(
-            "streamed {} bands of {} rows ({} MiB a band, {} MiB resident; the stack in memory would be {} MiB)",
+            "streamed {} bands of {} rows ({} MiB a band, {} MiB resident, {} MiB to finish; the stack in memory would be {} MiB)",
             plan.bands,
             plan.band_rows,
             plan.band_bytes >> 20,
             plan.resident_bytes >> 20,
+            plan.finish_bytes >> 20,
             plan.in_memory_stack_bytes >> 20
         );
         print_summary(&report, &rc.output);

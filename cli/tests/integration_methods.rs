@@ -9,7 +9,7 @@ use photostereo::camera::Intrinsics;
 use photostereo::eval::metrics::{depth_errors, scaled_depth_errors};
 use photostereo::grid::{Grid, Mask, NormalMap, ScalarMap};
 use photostereo::integrate::{
-    BilateralParams, Censoring, IntegrationOptions, Integrator, LinearSolver,
+    BilateralParams, Censoring, IntegrationOptions, Integrator, LinearSolver, SolveMethod,
     integrate_censored_gradients, integrate_gradients, integrate_normals,
 };
 use photostereo::io::decode::{read_image, read_mask, read_normal_map};
@@ -66,9 +66,14 @@ fn masked_least_squares_is_exact_on_quadratics_and_irregular_masks() {
         let disk = dx * dx + dy * dy < 900.0 && dx * dx + dy * dy > 25.0;
         disk || (c > 75 && c < 115 && r > 10 && r < 80)
     });
-    for solver in [LinearSolver::Direct, LinearSolver::ConjugateGradient] {
+    for (solver, method) in [
+        (LinearSolver::Direct, SolveMethod::Direct),
+        (LinearSolver::ConjugateGradient, SolveMethod::DctCg),
+        (LinearSolver::Multigrid, SolveMethod::GridMultigridCg),
+    ] {
         let (est, info) = integrate_gradients(&p, &q, &mask, Integrator::MaskedLs, solver).unwrap();
         let info = info.unwrap();
+        assert_eq!(info.method, method);
         // Per connected part, depth is known up to an offset: compare each part separately.
         for part in [
             Grid::from_fn(w, h, |c, r| *mask.at(c, r) && c < 70),
@@ -577,4 +582,43 @@ fn auto_chooses_from_the_residual() {
             "{name}: auto returns the chosen method's depth"
         );
     }
+}
+
+/// Under a memory cap too small for bilateral integration, `auto` still finds the floating
+/// ball's depth jump but keeps masked least squares (its depth, bit for bit), and its decision
+/// says so with the bytes needed and allowed; with room, it runs bilateral integration.
+#[test]
+fn auto_keeps_the_smooth_integrator_where_bilateral_would_not_fit() {
+    let (w, h) = (96, 96);
+    let mask = Grid::new(w, h, true);
+    let r = 28.0;
+    let (_, _, _, jump) = field(w, h, |x, y| {
+        if x * x + y * y < r * r {
+            let s = (r * r - x * x - y * y).sqrt().max(1e-3);
+            (25.0 + s, -x / s, -y / s)
+        } else {
+            (0.3 * x, 0.3, 0.0)
+        }
+    });
+    let normals = noisy(&jump, 0.01, 2);
+    let capped = |bytes: u64| IntegrationOptions {
+        max_memory: Some(bytes),
+        ..options(Integrator::Auto)
+    };
+    let tight = integrate_normals(&normals, &mask, &capped(1 << 20), &Silent).unwrap();
+    let d = tight.auto.expect("auto reports its decision");
+    assert_eq!(d.chosen, Integrator::MaskedLs, "{}", d.reason());
+    assert!(d.jumps(), "the jump is still found: {}", d.reason());
+    let held = d.held_back.expect("held back by the cap");
+    assert!(
+        held.needed > held.allowed && held.allowed == 1 << 20,
+        "{held:?}"
+    );
+    assert!(d.reason().contains("MiB"), "{}", d.reason());
+    let smooth =
+        integrate_normals(&normals, &mask, &options(Integrator::MaskedLs), &Silent).unwrap();
+    assert_eq!(tight.depth.data(), smooth.depth.data());
+    let roomy = integrate_normals(&normals, &mask, &capped(1 << 30), &Silent).unwrap();
+    let d = roomy.auto.unwrap();
+    assert_eq!((d.chosen, d.held_back), (Integrator::Bilateral, None));
 }

@@ -60,17 +60,41 @@ pub struct AutoDecision {
     pub outlying_loops: usize,
     /// Share of the circulation's energy on the outlying loops.
     pub outlying_share: f64,
+    /// Set when the surface has depth jumps but bilateral integration would need more memory
+    /// than integration was allowed: masked least squares ran instead.
+    pub held_back: Option<HeldBack>,
+}
+
+/// Bilateral integration held back by the memory cap
+/// ([`super::IntegrationOptions::max_memory`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct HeldBack {
+    /// Bytes bilateral integration would need.
+    pub needed: u64,
+    /// Bytes integration was allowed.
+    pub allowed: u64,
 }
 
 impl AutoDecision {
-    /// Whether the test found depth jumps (and bilateral integration ran).
+    /// Whether the test found depth jumps (bilateral integration ran, unless it was
+    /// [`held back`](Self::held_back)).
     pub fn jumps(&self) -> bool {
-        self.chosen == Integrator::Bilateral
+        self.chosen == Integrator::Bilateral || self.held_back.is_some()
     }
 
     /// One sentence: what was chosen and why.
     pub fn reason(&self) -> String {
-        if self.jumps() {
+        if let Some(h) = self.held_back {
+            format!(
+                "depth jumps: {} of {} pixel loops whose gradients do not close beyond {:.1}σ carry {:.0}% of the non-integrability, but the discontinuity-preserving integrator would need about {} MiB and integration may use {} MiB, so the smooth integrator was used: it smooths over the jumps",
+                self.outlying_loops,
+                self.loops,
+                self.tau,
+                100.0 * self.outlying_share,
+                h.needed.div_ceil(1 << 20),
+                h.allowed >> 20
+            )
+        } else if self.jumps() {
             format!(
                 "depth jumps: {} of {} pixel loops whose gradients do not close beyond {:.1}σ carry {:.0}% of the non-integrability, so the discontinuity-preserving integrator was used",
                 self.outlying_loops,
@@ -166,6 +190,7 @@ pub(crate) fn decide(p: &ScalarMap, q: &ScalarMap, a: &[f64], domain: &Mask) -> 
         tau,
         outlying_loops: outlying,
         outlying_share: share,
+        held_back: None,
     }
 }
 

@@ -18,7 +18,7 @@
 //! reach a different fixed point. The published code preconditions with the diagonal (Jacobi,
 //! [`LinearSolver::ConjugateGradient`] here), which takes hundreds of iterations per step and
 //! more with the image size; by default the steps are preconditioned with aggregation multigrid
-//! (`integrate/multigrid.rs`): a few iterations per step at any size, the hierarchy rebuilt only
+//! (`integrate/multigrid/mod.rs`): a few iterations per step at any size, the hierarchy rebuilt only
 //! when the weights have moved away from it. The path differs, and so does the soft-weighted
 //! depth (DiLiGenT cat 0.104 mm against the published 0.074), so the published variant without
 //! re-integration keeps Jacobi steps; the re-integrated depth does not depend on the path

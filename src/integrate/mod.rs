@@ -44,6 +44,7 @@ pub(crate) mod sparse;
 pub use auto::AutoDecision;
 pub use bilateral::BilateralParams;
 pub use masked::SolveInfo;
+pub use multigrid::grid::BYTES_PER_CELL as GRID_BYTES_PER_CELL;
 pub use sparse::{LinearSolver, SolveMethod};
 
 use crate::camera::Intrinsics;
@@ -117,6 +118,10 @@ pub struct IntegrationOptions {
     pub solver: LinearSolver,
     /// Parameters of [`Integrator::Bilateral`].
     pub bilateral: BilateralParams,
+    /// Most working memory integration may take, in bytes (`None`: no cap). [`Integrator::Auto`]
+    /// keeps masked least squares, and says so in its decision, where the surface has depth
+    /// jumps but bilateral integration would need more.
+    pub max_memory: Option<u64>,
 }
 
 /// Depth and diagnostics from [`integrate_normals`].
@@ -322,7 +327,25 @@ pub fn integrate_normals(
     let method = match options.method {
         Integrator::Auto => {
             let a = normal_factor(normals, &domain, options.camera.as_ref());
-            let d = auto::decide(&p, &q, &a, &domain);
+            let mut d = auto::decide(&p, &q, &a, &domain);
+            if d.chosen == Integrator::Bilateral
+                && let Some(allowed) = options.max_memory
+            {
+                let window = domain
+                    .bounding_box()
+                    .unwrap_or(crate::grid::Window::full(0, 0));
+                let needed = Integrator::Bilateral.working_bytes(
+                    normals.width(),
+                    normals.height(),
+                    domain.count(),
+                    window,
+                    options.solver,
+                );
+                if needed > allowed {
+                    d.chosen = Integrator::MaskedLs;
+                    d.held_back = Some(auto::HeldBack { needed, allowed });
+                }
+            }
             decision = Some(d);
             d.chosen
         }
@@ -432,34 +455,57 @@ pub fn integration_residual(
     domain: &Mask,
 ) -> ScalarMap {
     let (w, h) = (z.width(), z.height());
-    let (right, down) = edge_differences(p, q, domain, &Censoring::None);
+    let mut out = Grid::new(w, h, f32::NAN);
+    // Only the domain's bounding box holds edges: the differences are taken there.
+    let Some(win) = domain.bounding_box() else {
+        return out;
+    };
+    let (bw, bh) = (win.width(), win.height());
+    let crop = |m: &ScalarMap| Grid::from_fn(bw, bh, |x, y| *m.at(win.x0 + x, win.y0 + y));
+    let inside = Grid::from_fn(bw, bh, |x, y| *domain.at(win.x0 + x, win.y0 + y));
+    let (right, down) = edge_differences(&crop(p), &crop(q), &inside, &Censoring::None);
     let zd = z.data();
-    let mut sum = vec![0f64; w * h];
-    let mut count = vec![0u32; w * h];
-    for i in 0..w * h {
-        for (j, d) in [(i + 1, right[i]), (i + w, down[i])] {
-            if d.is_nan() || j >= w * h {
-                continue;
+    let depth = |x: usize, y: usize| f64::from(zd[(win.y0 + y) * w + win.x0 + x]);
+    out.data_mut()
+        .par_chunks_mut(w)
+        .skip(win.y0)
+        .take(bh)
+        .enumerate()
+        .for_each(|(y, row)| {
+            for x in 0..bw {
+                if !inside.data()[y * bw + x] {
+                    continue;
+                }
+                // The pixel's edges, summed in the order above, left, right, below.
+                let i = y * bw + x;
+                let mut sum = 0.0;
+                let mut count = 0u32;
+                let mut add = |d: f64, from: (usize, usize), to: (usize, usize)| {
+                    if !d.is_nan() {
+                        sum += (depth(to.0, to.1) - depth(from.0, from.1) - d).powi(2);
+                        count += 1;
+                    }
+                };
+                if y > 0 {
+                    add(down[i - bw], (x, y - 1), (x, y));
+                }
+                if x > 0 {
+                    add(right[i - 1], (x - 1, y), (x, y));
+                }
+                if x + 1 < bw {
+                    add(right[i], (x, y), (x + 1, y));
+                }
+                if y + 1 < bh {
+                    add(down[i], (x, y), (x, y + 1));
+                }
+                row[win.x0 + x] = if count > 0 {
+                    (sum / f64::from(count)).sqrt() as f32
+                } else {
+                    0.0
+                };
             }
-            let e = (f64::from(zd[j]) - f64::from(zd[i]) - d).powi(2);
-            sum[i] += e;
-            sum[j] += e;
-            count[i] += 1;
-            count[j] += 1;
-        }
-    }
-    let data = (0..w * h)
-        .map(|i| {
-            if domain.data()[i] && count[i] > 0 {
-                (sum[i] / f64::from(count[i])).sqrt() as f32
-            } else if domain.data()[i] {
-                0.0
-            } else {
-                f32::NAN
-            }
-        })
-        .collect();
-    Grid::from_vec(w, h, data).unwrap_or_else(|_| Grid::new(w, h, f32::NAN))
+        });
+    out
 }
 
 /// ∫ between the centres of the middle two of four equally spaced derivative samples, exact for

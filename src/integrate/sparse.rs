@@ -29,7 +29,7 @@ pub(crate) const NONE: u32 = u32::MAX;
 #[non_exhaustive]
 pub enum LinearSolver {
     /// Direct up to 100 000 unknowns, iterative beyond: masked least squares by
-    /// conjugate gradients preconditioned with the DCT solve of the enclosing rectangle; the
+    /// conjugate gradients preconditioned with multigrid on the pixel grid (bounded memory); the
     /// bilateral integrator's reweighting steps always by conjugate gradients preconditioned with
     /// multigrid (Jacobi, as published, for its soft-weighted variant without re-integration),
     /// its final re-integration with multigrid beyond the direct limit.
@@ -40,8 +40,9 @@ pub enum LinearSolver {
     /// Conjugate gradients with the simplest preconditioner that fits: the rectangle's DCT solve
     /// for masked least squares, Jacobi (as published) for the bilateral integrator.
     ConjugateGradient,
-    /// Conjugate gradients preconditioned with aggregation multigrid (`integrate/multigrid.rs`):
-    /// time and memory linear in n, for any mask and any weights.
+    /// Conjugate gradients preconditioned with multigrid (`integrate/multigrid/`): time and
+    /// memory linear in n; for masked least squares on the pixel grid, for the bilateral
+    /// integrator aggregation multigrid, which follows its weights.
     Multigrid,
 }
 
@@ -72,6 +73,9 @@ pub enum SolveMethod {
     DctCg,
     /// Conjugate gradients, multigrid preconditioner.
     MultigridCg,
+    /// Conjugate gradients preconditioned with multigrid on the pixel grid (2×2 blocks,
+    /// `integrate/multigrid/grid.rs`): uniform-weight systems in bounded memory.
+    GridMultigridCg,
 }
 
 impl SolveMethod {
@@ -82,6 +86,7 @@ impl SolveMethod {
             SolveMethod::JacobiCg => "jacobi-cg",
             SolveMethod::DctCg => "dct-cg",
             SolveMethod::MultigridCg => "multigrid-cg",
+            SolveMethod::GridMultigridCg => "grid-multigrid-cg",
         }
     }
 }
@@ -470,7 +475,9 @@ pub(crate) fn solve(
             dct = NeumannSolver::new(u.w, u.h);
             Preconditioner::Dct(&dct)
         }
-        SolveMethod::MultigridCg => {
+        // The grid hierarchy takes its own system (`masked.rs`); on a stencil it is the
+        // algebraic one.
+        SolveMethod::MultigridCg | SolveMethod::GridMultigridCg => {
             multigrid = super::multigrid::Multigrid::new(u, a);
             Preconditioner::Multigrid(&multigrid)
         }
@@ -484,7 +491,7 @@ pub(crate) enum Preconditioner<'a> {
     Jacobi,
     /// The DCT Neumann solve on the enclosing w×h grid (for uniform-weight Laplacians).
     Dct(&'a NeumannSolver),
-    /// One V-cycle of aggregation multigrid (`integrate/multigrid.rs`).
+    /// One V-cycle of aggregation multigrid (`integrate/multigrid/mod.rs`).
     Multigrid(&'a super::multigrid::Multigrid),
 }
 

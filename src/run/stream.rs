@@ -109,8 +109,11 @@ pub struct StreamPlan {
     pub bands: usize,
     /// Bytes one band's stack takes.
     pub band_bytes: u64,
-    /// Bytes held for the whole run: resident maps and the integrator's working memory.
+    /// Bytes held while the bands run, besides the band: the resident maps.
     pub resident_bytes: u64,
+    /// Bytes held while the run finishes after the bands (their memory freed): the normals and
+    /// the integrator's working memory (0 for a run that integrates nothing here).
+    pub finish_bytes: u64,
     /// Bytes the whole stack would take in memory ([`crate::capture::stack::ImageStack`], f32).
     pub in_memory_stack_bytes: u64,
     /// Rows sampled by the model pass (0: the method needs no model pass).
@@ -128,29 +131,113 @@ pub fn resident_bytes(
     height: usize,
     channels: usize,
     masked: usize,
+    window: Window,
     config: &Config,
 ) -> u64 {
-    resident_for(Keep::Written, width, height, channels, masked, config)
+    resident_for(
+        Keep::Written,
+        width,
+        height,
+        channels,
+        (masked, window),
+        config,
+    )
 }
 
-fn resident_for(
-    keep: Keep,
-    width: usize,
-    height: usize,
-    channels: usize,
-    masked: usize,
-    config: &Config,
-) -> u64 {
+/// The resident maps of a run that keeps `keep`, without integration.
+fn maps_bytes(keep: Keep, width: usize, height: usize, channels: usize) -> u64 {
     let pixels = (width * height) as u64;
     let (base, extra) = match keep {
         Keep::Written => (RESIDENT_BYTES_PER_PIXEL, RESIDENT_BYTES_PER_EXTRA_CHANNEL),
         Keep::Assembled => (ASSEMBLED_BYTES_PER_PIXEL, ASSEMBLED_BYTES_PER_EXTRA_CHANNEL),
     };
-    let per = base + extra * (channels.saturating_sub(1) as u64);
+    BASE_BYTES + (base + extra * (channels.saturating_sub(1) as u64)) * pixels
+}
+
+/// [`maps_bytes`] plus the integrator's working memory on the mask (`masked` pixels spanning
+/// `window`). `auto` is counted as masked least squares: under a budget it keeps that
+/// integrator where bilateral integration would not fit ([`capped`]).
+fn resident_for(
+    keep: Keep,
+    width: usize,
+    height: usize,
+    channels: usize,
+    (masked, window): (usize, Window),
+    config: &Config,
+) -> u64 {
     let integration = config.integration.as_ref().map_or(0, |o| {
-        o.method.working_bytes(width, height, masked, o.solver)
+        let method = match o.method {
+            Integrator::Auto => Integrator::MaskedLs,
+            m => m,
+        };
+        method.working_bytes(width, height, masked, window, o.solver)
     });
-    BASE_BYTES + per * pixels + integration
+    maps_bytes(keep, width, height, channels) + integration
+}
+
+/// Hands the memory the bands freed back to the system before the finishing stage, whose
+/// budget assumes it is gone: glibc keeps freed blocks below its (adaptive) mmap threshold in
+/// its arenas, one per thread, which measured 116 MiB more than the maps held after the bands
+/// of 48 images of 1732×1732 (`malloc_trim`; elsewhere the allocator's own policy applies).
+fn release_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        // SAFETY: malloc_trim only returns free heap memory to the system; it takes no
+        // pointers and is safe to call at any time from any thread.
+        #[allow(unsafe_code)]
+        unsafe {
+            libc::malloc_trim(0);
+        }
+    }
+}
+
+/// Bytes per image pixel held while a written run finishes after the bands, besides
+/// [`BASE_BYTES`] and the integrator: the normals (12 B), the solved mask (1 B), the curl
+/// (4 B) and the curl file's compressed rows being written beside the integration — and more
+/// that the count does not explain: measured 37 B (the process's resident memory once the
+/// bands of 48 images of 1732×1732 are done and freed memory handed back, 147 MiB, less the
+/// 42 MiB it held before the first band, over 3.0 M pixels), with 10% added.
+pub const FINISH_BYTES_PER_PIXEL: u64 = 40;
+
+/// The two phases of a run that keeps `keep`, in bytes: while the bands run (the resident
+/// maps, without the band itself) and while it finishes (a written run's integration, which
+/// starts after the bands have freed their memory; 0 for an assembled run, which integrates
+/// nothing). What each phase holds is described at [`RESIDENT_BYTES_PER_PIXEL`] and
+/// [`FINISH_BYTES_PER_PIXEL`].
+fn phases(
+    keep: Keep,
+    width: usize,
+    height: usize,
+    channels: usize,
+    domain: (usize, Window),
+    config: &Config,
+) -> (u64, u64) {
+    match keep {
+        Keep::Written => {
+            let integration = resident_for(keep, width, height, channels, domain, config)
+                - maps_bytes(keep, width, height, channels);
+            (
+                maps_bytes(keep, width, height, channels),
+                BASE_BYTES + FINISH_BYTES_PER_PIXEL * (width * height) as u64 + integration,
+            )
+        }
+        Keep::Assembled => (
+            resident_for(keep, width, height, channels, domain, config),
+            0,
+        ),
+    }
+}
+
+/// `config` with integration capped at what the budget leaves beside what the finishing stage
+/// holds, so that `auto` keeps masked least squares where bilateral integration would not fit.
+fn capped(config: &Config, options: &StreamOptions, plan: &StreamPlan) -> Config {
+    let mut config = *config;
+    if let Some(o) = config.integration.as_mut() {
+        let held = BASE_BYTES + FINISH_BYTES_PER_PIXEL * (plan.width * plan.height) as u64;
+        let left = options.max_memory.saturating_sub(held);
+        o.max_memory = Some(o.max_memory.map_or(left, |m| m.min(left)));
+    }
+    config
 }
 
 /// Parses a memory size: bytes, or a number with K, M, G or T (powers of 1024; a trailing
@@ -291,26 +378,52 @@ fn open_all(
     })
 }
 
-/// The error of a budget that cannot hold the resident maps of a `size` image (`resident`
-/// bytes) plus, where known, a band of [`MIN_BAND_ROWS`] rows of `count` images (`row_bytes` a
-/// row).
+/// The error of a budget that cannot hold `what` of a `size` image (`resident` bytes: the
+/// resident maps, or the finishing stage with integration) plus, where known, a band of [`MIN_BAND_ROWS`] rows of `count` images (`row_bytes` a
+/// row). Besides raising the budget it suggests only what would fit (`fits` tells whether a
+/// run with another configuration would): Poisson integration, or none.
 fn over_budget(
     options: &StreamOptions,
     config: &Config,
     (width, height): (usize, usize),
-    resident: u64,
+    (what, resident): (&str, u64),
     band: Option<(u64, usize)>,
+    fits: &dyn Fn(&Config) -> bool,
 ) -> Error {
+    let mut remedies = vec!["raise it"];
+    if let Some(o) = config.integration
+        && o.method != Integrator::Poisson
+    {
+        let poisson = Config {
+            integration: Some(crate::integrate::IntegrationOptions {
+                method: Integrator::Poisson,
+                ..o
+            }),
+            ..*config
+        };
+        if fits(&poisson) {
+            remedies.push("integrate with a method that needs less memory (Poisson)");
+        }
+    }
+    if config.integration.is_some()
+        && fits(&Config {
+            integration: None,
+            ..*config
+        })
+    {
+        remedies.push("leave out integration");
+    }
+    let last = remedies.pop().unwrap_or("raise it");
+    let remedy = if remedies.is_empty() {
+        last.to_string()
+    } else {
+        format!("{}, or {last}", remedies.join(", "))
+    };
     Error::param(
         "max-memory",
         format!(
-            "{} MiB cannot hold the outputs{} of a {width}x{height} image ({} MiB){}; {}",
+            "{} MiB cannot hold {what} of a {width}x{height} image ({} MiB){}; {remedy}",
             options.max_memory >> 20,
-            if config.integration.is_some() {
-                " and integration"
-            } else {
-                ""
-            },
             resident >> 20,
             match band {
                 Some((row_bytes, count)) => format!(
@@ -319,13 +432,6 @@ fn over_budget(
                 ),
                 None => String::new(),
             },
-            match config.integration.as_ref().map(|i| i.method) {
-                None => "raise it",
-                Some(crate::integrate::Integrator::Poisson) => "raise it, or leave out integration",
-                Some(_) => {
-                    "raise it, or integrate with a method that needs less memory (Poisson), or leave out integration"
-                }
-            }
         ),
     )
 }
@@ -339,14 +445,30 @@ fn budget_floor<'a>(
     keep: Keep,
 ) -> impl Fn(usize, usize, usize) -> Result<()> + 'a {
     move |width, height, channels| {
-        let resident = resident_for(keep, width, height, channels, 0, config);
+        let none = Window {
+            x0: 0,
+            y0: 0,
+            x1: 0,
+            y1: 0,
+        };
+        let need = |c: &Config| {
+            let (bands, finish) = phases(keep, width, height, channels, (0, none), c);
+            bands.max(finish)
+        };
+        let resident = need(config);
         if resident > options.max_memory {
+            let what = if config.integration.is_some() {
+                "the outputs and integration"
+            } else {
+                "the outputs"
+            };
             return Err(over_budget(
                 options,
                 config,
                 (width, height),
-                resident,
+                (what, resident),
                 None,
+                &|c| need(c) <= options.max_memory,
             ));
         }
         Ok(())
@@ -378,7 +500,17 @@ fn plan_for(
     keep: Keep,
 ) -> Result<StreamPlan> {
     let win = o.window;
-    let resident = resident_for(keep, o.width, o.height, o.channels, o.mask.count(), config);
+    let phases_of = |c: &Config| {
+        phases(
+            keep,
+            o.width,
+            o.height,
+            o.channels,
+            (o.mask.count(), win),
+            c,
+        )
+    };
+    let (resident, finish) = phases_of(config);
     // One band row: the stack row (f32 per image and channel), saturation flags, the band's
     // solution, the rows being decoded (at most one image per thread at a time, 16 bytes a
     // pixel covers RGBA float) and, when the outputs are written band by band, the band's
@@ -396,6 +528,21 @@ fn plan_for(
         + threads * o.width as u64 * 16
         + outputs * o.width as u64;
     let in_memory = count as u64 * o.channels as u64 * win.len() as u64 * 4;
+    let fits = |c: &Config| {
+        let (bands, finish) = phases_of(c);
+        bands + MIN_BAND_ROWS as u64 * row_bytes <= options.max_memory
+            && finish <= options.max_memory
+    };
+    if finish > options.max_memory {
+        return Err(over_budget(
+            options,
+            config,
+            (o.width, o.height),
+            ("the normals and integration", finish),
+            None,
+            &fits,
+        ));
+    }
     let available = options.max_memory.saturating_sub(resident);
     let fit = (available / row_bytes.max(1)) as usize;
     if fit < MIN_BAND_ROWS {
@@ -403,8 +550,9 @@ fn plan_for(
             options,
             config,
             (o.width, o.height),
-            resident,
+            ("the outputs", resident),
             Some((row_bytes, count)),
+            &fits,
         ));
     }
     let rows = win.height().max(1);
@@ -430,6 +578,7 @@ fn plan_for(
         bands: rows.div_ceil(band_rows),
         band_bytes: row_bytes * band_rows as u64,
         resident_bytes: resident,
+        finish_bytes: finish,
         in_memory_stack_bytes: in_memory,
         sample_rows,
         max_memory: options.max_memory,
@@ -957,6 +1106,7 @@ pub fn reconstruct_and_write_streamed(
     )?;
     let t = Instant::now();
     let written = sink.finish(&mut out)?;
+    release_freed_memory();
     let facts = run.facts(files);
     let t_normals = Instant::now();
     let integ = integrability_of(&written.normals, &written.solved, config);
@@ -983,7 +1133,7 @@ pub fn reconstruct_and_write_streamed(
         &written.normals,
         &written.solved,
         &source,
-        config,
+        &capped(config, options, &run.plan),
         progress,
         |out| {
             out.stage_exr(
@@ -1025,23 +1175,25 @@ pub fn reconstruct_and_write_streamed(
 
 impl Integrator {
     /// Bytes of working memory this integrator needs on a `width`×`height` image with `masked`
-    /// pixels in the domain: an estimate from its arrays, checked against the peak memory of
-    /// streamed 4000×3000 runs (Poisson 340 MB measured, 32 B a pixel; masked least squares
-    /// by conjugate gradients on 5.7 M unknowns 1.21 GB measured, 1.22 GB estimated). The
-    /// sparse direct factorisation is taken as 40 non-zeros a row, the fill-in seen on square
-    /// masks.
+    /// pixels in the domain, whose bounding box is `window`. Each figure is a line fitted to
+    /// the peak resident memory of `integrate_normals` alone (the growth of the process's peak
+    /// over the call) on a 1732×1732 rendered normal map under discs of radius 400, 600 and 800
+    /// px, rounded up by about 10%: the gradients, domain, depth and residual maps over the
+    /// image, plus the solver's arrays over the unknowns or the window's cells.
     pub fn working_bytes(
         self,
         width: usize,
         height: usize,
         masked: usize,
+        window: Window,
         solver: crate::integrate::LinearSolver,
     ) -> u64 {
-        let (n, m) = ((width * height) as u64, masked as u64);
+        use crate::integrate::LinearSolver;
+        let (n, m, cells) = ((width * height) as u64, masked as u64, window.len() as u64);
         match self {
-            // Gradients, depth and the transform buffers.
-            Integrator::Poisson | Integrator::FrankotChellappa => 32 * n,
-            Integrator::Path => 40 * n,
+            // The gradients, depth and the transform buffers over the image: 46 B measured.
+            Integrator::Poisson | Integrator::FrankotChellappa => 50 * n,
+            Integrator::Path => 50 * n,
             // The bilateral integrator (and `auto`, which may run it) holds per unknown its
             // equation coefficients and weights, the reweighting system, the multigrid
             // hierarchy and the re-integration's edge list besides the masked arrays: measured
@@ -1049,13 +1201,19 @@ impl Integrator {
             // squares by conjugate gradients, about 640 B an unknown in all.
             Integrator::Bilateral | Integrator::Auto => 48 * n + 640 * m,
             Integrator::MaskedLs => {
-                let index = 4 * n + 48 * m;
-                let system = if solver.direct_for(masked) {
-                    m * 40 * 12
+                if solver.direct_for(masked) {
+                    // 26 B a pixel and 850 B an unknown measured (0.5 M unknowns; the
+                    // factor's fill-in grows like n log n).
+                    28 * n + 900 * m
+                } else if solver == LinearSolver::ConjugateGradient {
+                    // The DCT preconditioner works on the whole image: 53 B a pixel and 80 B
+                    // an unknown measured.
+                    58 * n + 88 * m
                 } else {
-                    m * 5 * 12 + 8 * 8 * m
-                };
-                index + system + 16 * n
+                    // Multigrid on the window's grid: 14.3 B a pixel and 29.2 B a cell
+                    // measured.
+                    16 * n + crate::integrate::GRID_BYTES_PER_CELL * cells
+                }
             }
         }
     }
@@ -1171,7 +1329,7 @@ mod tests {
         assert_eq!(p.sample_rows, 0, "threshold needs no model");
         assert_eq!(
             p.resident_bytes,
-            resident_bytes(40, 40, 1, mask.count(), &config)
+            resident_bytes(40, 40, 1, mask.count(), win, &config)
         );
         assert_eq!(
             p.in_memory_stack_bytes,
@@ -1222,19 +1380,32 @@ mod tests {
             let mut last = 0;
             for size in [16, 64, 256, 1024] {
                 let masked = size * size / 2;
-                let grey = resident_bytes(size, size, 1, masked, &config);
-                let rgb = resident_bytes(size, size, 3, masked, &config);
+                let window = Window {
+                    x0: 0,
+                    y0: size / 4,
+                    x1: size,
+                    y1: size / 4 + size / 2,
+                };
+                let grey = resident_bytes(size, size, 1, masked, window, &config);
+                let rgb = resident_bytes(size, size, 3, masked, window, &config);
                 assert!(grey > last && rgb > grey, "{size}: {last} {grey} {rgb}");
                 last = rgb;
             }
         }
         let (w, h) = (300, 200);
+        let window = Window {
+            x0: 10,
+            y0: 10,
+            x1: 60,
+            y1: 30,
+        };
         assert_eq!(
-            resident_bytes(w, h, 1, 1000, &none),
+            resident_bytes(w, h, 1, 1000, window, &none),
             BASE_BYTES + RESIDENT_BYTES_PER_PIXEL * (w * h) as u64
         );
         assert_eq!(
-            resident_bytes(w, h, 3, 1000, &none) - resident_bytes(w, h, 1, 1000, &none),
+            resident_bytes(w, h, 3, 1000, window, &none)
+                - resident_bytes(w, h, 1, 1000, window, &none),
             2 * RESIDENT_BYTES_PER_EXTRA_CHANNEL * (w * h) as u64
         );
     }

@@ -31,6 +31,8 @@ use super::sparse::{NONE, Stencil, Unknowns};
 use faer::linalg::solvers::{Llt, Solve};
 use faer::{Mat, MatMut, Side};
 
+pub(crate) mod grid;
+
 /// A coupling is strong when its weight is at least this fraction of the node's strongest
 /// coupling (Notay 2010 uses 0.25 for the same test).
 pub(crate) const STRONG: f64 = 0.25;
@@ -40,17 +42,17 @@ pub(crate) const COARSEST: usize = 64;
 const STALL: f64 = 0.8;
 /// The K-cycle's second inner step is skipped when the first leaves at most this fraction of
 /// the residual (Notay 2010).
-const KCYCLE_T: f64 = 0.25;
+pub(super) const KCYCLE_T: f64 = 0.25;
 /// The K-cycle's second inner step is taken only on levels at least this many times larger
 /// than the next (a second visit doubles the work below; with four-node aggregates the ratio is
 /// near 4, and where coarsening slows down the cycle falls back to one step).
-const KCYCLE_MIN_RATIO: f64 = 2.5;
+pub(super) const KCYCLE_MIN_RATIO: f64 = 2.5;
 /// Symmetric Gauss–Seidel sweeps on a stalled coarsest level too large for a dense solve.
-const STALLED_SWEEPS: usize = 8;
+pub(super) const STALLED_SWEEPS: usize = 8;
 
 /// A symmetric matrix in compressed rows: the diagonal, and the off-diagonal entries of each
 /// row (columns and values; the values of a graph Laplacian are −ω ≤ 0).
-struct Csr {
+pub(super) struct Csr {
     diag: Vec<f64>,
     /// 1/diag where the diagonal is positive, 0 elsewhere (a node without couplings).
     inv_diag: Vec<f64>,
@@ -60,7 +62,7 @@ struct Csr {
 }
 
 impl Csr {
-    fn new(diag: Vec<f64>, start: Vec<usize>, col: Vec<u32>, val: Vec<f64>) -> Self {
+    pub(super) fn new(diag: Vec<f64>, start: Vec<usize>, col: Vec<u32>, val: Vec<f64>) -> Self {
         let inv_diag = diag
             .iter()
             .map(|&d| if d > 0.0 { 1.0 / d } else { 0.0 })
@@ -274,7 +276,7 @@ impl Csr {
 }
 
 /// The solve on the coarsest level.
-enum Coarsest {
+pub(super) enum Coarsest {
     /// Dense Cholesky factor of the matrix with one node per connected part pinned.
     Dense(Llt<f64>),
     /// Coarsening stalled above a size worth factorising: symmetric Gauss–Seidel sweeps.
@@ -431,7 +433,7 @@ const DENSE_MAX: usize = 2048;
 
 /// The dense Cholesky factor of `a` with one node per connected part pinned (its diagonal
 /// doubled), or sweeps when `a` is too large or the factorisation fails.
-fn dense_factor(a: &Csr) -> Coarsest {
+pub(super) fn dense_factor(a: &Csr) -> Coarsest {
     let n = a.len();
     if n > DENSE_MAX {
         return Coarsest::Sweeps;
