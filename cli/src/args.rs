@@ -692,7 +692,7 @@ pub struct IntegrationArgs {
     #[arg(long, value_name = "K.txt")]
     pub camera: Option<PathBuf>,
     /// Linear solver of `masked-ls` (auto: direct up to 100 000 pixels, conjugate gradients
-    /// preconditioned with multigrid on the pixel grid beyond, in about 32 bytes a pixel of the
+    /// preconditioned with multigrid on the pixel grid beyond, in at most 56 bytes a pixel of the
     /// mask's bounding box) and `bilateral` (auto: each reweighting step by
     /// multigrid-preconditioned conjugate gradients to the published tolerance; cg: Jacobi, as
     /// published; direct: exact steps, a different fixed point).

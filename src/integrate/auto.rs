@@ -34,7 +34,7 @@
 //! scene's hemisphere; `docs/integration.md`); exact synthetic normals have no noise to compare
 //! with, and their discretisation error at high curvature reads as jumps.
 
-use super::{Censoring, Integrator, edge_differences};
+use super::{Censoring, Integrator, window_edge_differences};
 use crate::grid::{Mask, ScalarMap};
 use serde::Serialize;
 
@@ -134,8 +134,13 @@ pub(crate) fn two_sided_quantile(p: f64) -> f64 {
 /// [`Integrator::Bilateral`] chosen when the circulation shows depth jumps and
 /// [`Integrator::MaskedLs`] otherwise.
 pub(crate) fn decide(p: &ScalarMap, q: &ScalarMap, a: &[f64], domain: &Mask) -> AutoDecision {
-    let (w, h) = (p.width(), p.height());
-    let (right, down) = edge_differences(p, q, domain, &Censoring::None);
+    let image_w = p.width();
+    // Every loop lies in the domain's bounding box: the differences are taken there.
+    let (win, right, down) = match window_edge_differences(p, q, domain, &Censoring::None) {
+        Some((win, _, right, down)) => (win, right, down),
+        None => (crate::grid::Window::full(0, 0), Vec::new(), Vec::new()),
+    };
+    let (w, h) = (win.width(), win.height());
     // Circulation around the 2×2 loop with top-left pixel i, in units of its noise: the
     // smallest a² of its four pixels is the weight (the noisiest gradient dominates).
     let mut loops = Vec::new();
@@ -146,7 +151,8 @@ pub(crate) fn decide(p: &ScalarMap, q: &ScalarMap, a: &[f64], domain: &Mask) -> 
             if !c.is_finite() {
                 continue;
             }
-            let a2 = [i, i + 1, i + w, i + w + 1]
+            let k = (win.y0 + y) * image_w + win.x0 + x;
+            let a2 = [k, k + 1, k + image_w, k + image_w + 1]
                 .iter()
                 .map(|&k| a[k] * a[k])
                 .fold(f64::INFINITY, f64::min);

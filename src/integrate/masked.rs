@@ -12,22 +12,20 @@
 //! tens of iterations for compact masks), or — the default beyond the direct limit — by
 //! conjugate gradients preconditioned with multigrid on the pixel grid of the mask's bounding
 //! box (`multigrid/grid.rs`): linear time, about a dozen iterations at any size, and about
-//! 32 bytes per pixel of that box (measured), against 80–900 bytes per unknown for the other two.
+//! at most 56 bytes per pixel of that box, against 80–900 bytes per unknown for
+//! the other two.
 //!
 //! Assumes a continuous surface inside each part: a depth jump inside the mask is smeared over
 //! its neighbourhood (see the bilateral integrator for that case).
 
 use super::multigrid::grid::{self, GridLaplacian, GridMultigrid};
 use super::sparse::{LinearSolver, NONE, SolveMethod, Stencil, Unknowns, solve};
-use super::{Censoring, edge_differences};
+use super::{Censoring, edge_differences, window_edge_differences};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, ScalarMap};
 
 /// Relative residual at which conjugate gradients stop.
 const CG_TOL: f64 = 1e-8;
-/// Relative residual at which conjugate gradients on the grid hierarchy stop: near the
-/// precision of its `f32` vectors.
-const GRID_CG_TOL: f64 = 1e-8;
 /// Iteration limit of conjugate gradients.
 const CG_MAX_ITER: usize = 2000;
 
@@ -106,14 +104,12 @@ fn integrate_on_grid(
     censoring: &Censoring,
     domain: &Mask,
 ) -> Result<(ScalarMap, SolveInfo)> {
-    let win = domain.bounding_box().ok_or_else(|| Error::Mask {
-        path: "<integration domain>".into(),
-        reason: "no pixel to integrate".into(),
-    })?;
+    let (win, inside, right, down) =
+        window_edge_differences(p, q, domain, censoring).ok_or_else(|| Error::Mask {
+            path: "<integration domain>".into(),
+            reason: "no pixel to integrate".into(),
+        })?;
     let (w, h) = (win.width(), win.height());
-    let crop = |m: &ScalarMap| Grid::from_fn(w, h, |x, y| *m.at(win.x0 + x, win.y0 + y));
-    let inside = Grid::from_fn(w, h, |x, y| *domain.at(win.x0 + x, win.y0 + y));
-    let (right, down) = edge_differences(&crop(p), &crop(q), &inside, censoring);
     let mut b = vec![0f64; w * h];
     let unit = |d: &[f64], step: usize, b: &mut [f64]| -> Vec<f32> {
         d.iter()
@@ -132,7 +128,7 @@ fn integrate_on_grid(
     let wd = unit(&down, w, &mut b);
     drop((right, down));
     let mg = GridMultigrid::new(GridLaplacian::new(w, h, wr, wd));
-    let (z, iterations) = grid::solve(&mg, b, GRID_CG_TOL, CG_MAX_ITER);
+    let (z, iterations) = grid::solve(&mg, b, CG_TOL, CG_MAX_ITER);
     // Zero-mean per part; the labels are found again rather than held through the solve.
     let (label, parts) = grid::parts(mg.finest());
     drop(mg);
@@ -145,7 +141,7 @@ fn integrate_on_grid(
                 // A domain pixel without edges is a part of its own: depth 0.
                 let v = match label[i] {
                     NONE => 0.0,
-                    l => f64::from(z[i]) - means[l as usize],
+                    l => z[i] - means[l as usize],
                 };
                 *out.at_mut(win.x0 + x, win.y0 + y) = v as f32;
             }

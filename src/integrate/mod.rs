@@ -456,14 +456,15 @@ pub fn integration_residual(
 ) -> ScalarMap {
     let (w, h) = (z.width(), z.height());
     let mut out = Grid::new(w, h, f32::NAN);
+    if !(z.same_size(p) && z.same_size(q) && z.same_size(domain)) {
+        return out;
+    }
     // Only the domain's bounding box holds edges: the differences are taken there.
-    let Some(win) = domain.bounding_box() else {
+    let Some((win, inside, right, down)) = window_edge_differences(p, q, domain, &Censoring::None)
+    else {
         return out;
     };
     let (bw, bh) = (win.width(), win.height());
-    let crop = |m: &ScalarMap| Grid::from_fn(bw, bh, |x, y| *m.at(win.x0 + x, win.y0 + y));
-    let inside = Grid::from_fn(bw, bh, |x, y| *domain.at(win.x0 + x, win.y0 + y));
-    let (right, down) = edge_differences(&crop(p), &crop(q), &inside, &Censoring::None);
     let zd = z.data();
     let depth = |x: usize, y: usize| f64::from(zd[(win.y0 + y) * w + win.x0 + x]);
     out.data_mut()
@@ -506,6 +507,23 @@ pub fn integration_residual(
             }
         });
     out
+}
+
+/// [`edge_differences`] on the bounding box of `domain`, where all its edges are: the box,
+/// the domain within it, and the differences along rows and columns (indexed in the box);
+/// `None` for an empty domain.
+pub(crate) fn window_edge_differences(
+    p: &ScalarMap,
+    q: &ScalarMap,
+    domain: &Mask,
+    censoring: &Censoring,
+) -> Option<(crate::grid::Window, Mask, Vec<f64>, Vec<f64>)> {
+    let win = domain.bounding_box()?;
+    let (w, h) = (win.width(), win.height());
+    let crop = |m: &ScalarMap| Grid::from_fn(w, h, |x, y| *m.at(win.x0 + x, win.y0 + y));
+    let inside = Grid::from_fn(w, h, |x, y| *domain.at(win.x0 + x, win.y0 + y));
+    let (right, down) = edge_differences(&crop(p), &crop(q), &inside, censoring);
+    Some((win, inside, right, down))
 }
 
 /// ∫ between the centres of the middle two of four equally spaced derivative samples, exact for

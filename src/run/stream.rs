@@ -16,8 +16,9 @@
 //! need no such model take one pass.
 //!
 //! The band height comes from a memory budget ([`StreamOptions::max_memory`]): the resident
-//! maps and the integrator's working memory ([`resident_bytes`]) are taken off first, the rest
-//! holds the band (with, when writing, its rows in flight to the writers). The plan is reported ([`StreamPlan`]).
+//! maps are taken off first, the rest holds the band (with, when writing, its rows in flight to
+//! the writers). A written run's finishing stage (integration) comes after the bands and must
+//! fit in the budget on its own. The plan is reported ([`StreamPlan`]).
 
 use crate::capture::dataset::CaptureFiles;
 use crate::capture::lights::{Lights, MAX_LIGHT_CONDITION};
@@ -122,10 +123,11 @@ pub struct StreamPlan {
     pub max_memory: u64,
 }
 
-/// Bytes held for a whole run that writes its outputs band by band
-/// ([`reconstruct_and_write_streamed`]) on a `width`×`height` image with `channels` solved
-/// channels and `masked` pixels in the mask: resident maps plus the integrator's working
-/// memory (its [`Integrator::working_bytes`]).
+/// Bytes a run that holds everything at once needs besides its stack, on a `width`×`height`
+/// image with `channels` solved channels and `masked` pixels in the mask spanning `window`:
+/// the resident maps of a written run plus the integrator's working memory (its
+/// [`Integrator::working_bytes`]; `auto` as the bilateral integrator it may run). A streamed
+/// run needs less: its integration comes after the bands ([`StreamPlan::finish_bytes`]).
 pub fn resident_bytes(
     width: usize,
     height: usize,
@@ -155,8 +157,7 @@ fn maps_bytes(keep: Keep, width: usize, height: usize, channels: usize) -> u64 {
 }
 
 /// [`maps_bytes`] plus the integrator's working memory on the mask (`masked` pixels spanning
-/// `window`). `auto` is counted as masked least squares: under a budget it keeps that
-/// integrator where bilateral integration would not fit ([`capped`]).
+/// `window`); `auto` is counted as the bilateral integrator it may run (no cap applies).
 fn resident_for(
     keep: Keep,
     width: usize,
@@ -166,13 +167,32 @@ fn resident_for(
     config: &Config,
 ) -> u64 {
     let integration = config.integration.as_ref().map_or(0, |o| {
-        let method = match o.method {
-            Integrator::Auto => Integrator::MaskedLs,
-            m => m,
-        };
-        method.working_bytes(width, height, masked, window, o.solver)
+        o.method
+            .working_bytes(width, height, masked, window, o.solver)
     });
     maps_bytes(keep, width, height, channels) + integration
+}
+
+/// The integrator's working memory in a written streamed run, where integration is capped
+/// ([`capped`]): `auto` then keeps masked least squares where bilateral integration would not
+/// fit, so it needs the larger of its decision (the gradients, 8 B, and the normal factor, 8 B,
+/// a pixel; the loops' edge differences, 16 B a cell of the mask's window; the loops and their
+/// sorted copy, 16 B a mask pixel) and masked least squares.
+fn capped_integration_bytes(
+    width: usize,
+    height: usize,
+    (masked, window): (usize, Window),
+    config: &Config,
+) -> u64 {
+    config.integration.as_ref().map_or(0, |o| match o.method {
+        Integrator::Auto => {
+            let decision =
+                16 * (width * height) as u64 + 16 * window.len() as u64 + 16 * masked as u64;
+            decision
+                .max(Integrator::MaskedLs.working_bytes(width, height, masked, window, o.solver))
+        }
+        m => m.working_bytes(width, height, masked, window, o.solver),
+    })
 }
 
 /// Hands the memory the bands freed back to the system before the finishing stage, whose
@@ -213,14 +233,12 @@ fn phases(
     config: &Config,
 ) -> (u64, u64) {
     match keep {
-        Keep::Written => {
-            let integration = resident_for(keep, width, height, channels, domain, config)
-                - maps_bytes(keep, width, height, channels);
-            (
-                maps_bytes(keep, width, height, channels),
-                BASE_BYTES + FINISH_BYTES_PER_PIXEL * (width * height) as u64 + integration,
-            )
-        }
+        Keep::Written => (
+            maps_bytes(keep, width, height, channels),
+            BASE_BYTES
+                + FINISH_BYTES_PER_PIXEL * (width * height) as u64
+                + capped_integration_bytes(width, height, domain, config),
+        ),
         Keep::Assembled => (
             resident_for(keep, width, height, channels, domain, config),
             0,
@@ -538,7 +556,14 @@ fn plan_for(
             options,
             config,
             (o.width, o.height),
-            ("the normals and integration", finish),
+            (
+                if config.integration.is_some() {
+                    "the normals and integration"
+                } else {
+                    "the normals"
+                },
+                finish,
+            ),
             None,
             &fits,
         ));
@@ -1210,8 +1235,8 @@ impl Integrator {
                     // an unknown measured.
                     58 * n + 88 * m
                 } else {
-                    // Multigrid on the window's grid: 14.3 B a pixel and 29.2 B a cell
-                    // measured.
+                    // Multigrid on the window's grid: at most 16 B a pixel measured, and its
+                    // counted bytes a cell (an upper bound on the 26–46 B measured).
                     16 * n + crate::integrate::GRID_BYTES_PER_CELL * cells
                 }
             }

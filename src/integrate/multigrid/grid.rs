@@ -29,19 +29,22 @@
 //! in `f64`, so the residual the solve carries stays the true one (a 1024² test grid reaches a
 //! relative residual of 1e-8 in 11 iterations, within 1e-7 of the solution's range).
 
-use super::{COARSEST, Coarsest, Csr, KCYCLE_MIN_RATIO, KCYCLE_T, STALLED_SWEEPS, dense_factor};
+use super::{COARSEST, Coarsest, Csr, KCYCLE_MIN_RATIO, STALLED_SWEEPS, dense_factor, kcycle};
 use crate::integrate::sparse::NONE;
 use faer::MatMut;
 use faer::linalg::solvers::Solve;
 use rayon::prelude::*;
 
 /// Bytes of working memory a cell of the grid costs at the peak of masked least squares on it
-/// (`masked.rs`), besides the maps over the whole image: measured 29.2 B (the growth of the peak
-/// with the window on a 1732×1732 normal map), about 10% added. What a cell holds: the finest
-/// level's weights and diagonal (12), the solve's residual (8) and its iterate, direction and
-/// preconditioned residual (12), the finest level's cycle scratch (4), and the coarse levels,
-/// a third as many cells with their K-cycle vectors, which come and go.
-pub const BYTES_PER_CELL: u64 = 32;
+/// (`masked.rs`), besides the maps over the whole image, as counted for the solve's first
+/// cycle, when most is held at once: the finest level's weights and diagonal (12), the coarse
+/// levels' (4), the domain (1), the solve's iterate and residual (16), direction and
+/// preconditioned residual (8), the finest level's cycle scratch (4), the restricted residual
+/// and correction (2), the first coarse level's K-cycle vectors (5) and the deeper levels'
+/// (about 4). The measured growth of the peak with the window is lower, 26–46 B a cell
+/// (1732×1732 normal maps under discs of radius 400, 600 and 800 px), so this is an upper
+/// bound.
+pub const BYTES_PER_CELL: u64 = 56;
 
 /// Elements summed per chunk of [`dot`]: a fixed partition, so the sum does not depend on the
 /// thread count.
@@ -241,7 +244,12 @@ impl GridLaplacian {
             .for_each(|(row, out)| {
                 for (col, o) in out.iter_mut().enumerate() {
                     let i = row * w + col;
-                    *o = b[i].single() - (self.diag[i] * x[i] - self.neighbours(x, i, col, row));
+                    // Inactive cells carry no equation: their right-hand side is not restricted.
+                    *o = if self.diag[i] > 0.0 {
+                        b[i].single() - (self.diag[i] * x[i] - self.neighbours(x, i, col, row))
+                    } else {
+                        0.0
+                    };
                 }
             });
     }
@@ -404,6 +412,9 @@ impl GridLaplacian {
 pub(crate) struct GridMultigrid {
     /// Levels, finest first.
     levels: Vec<GridLaplacian>,
+    /// Active cells of each level: the K-cycle's second step is judged on how fast they
+    /// coarsen (a grid one cell wide halves, not quarters, its cells).
+    active: Vec<usize>,
     coarsest: Coarsest,
     /// Index of each cell of the coarsest level in the dense solve (or [`NONE`]).
     coarsest_index: Vec<u32>,
@@ -413,19 +424,22 @@ impl GridMultigrid {
     /// The hierarchy of `finest`, coarsened in 2×2 blocks until at most [`COARSEST`] cells are
     /// active.
     pub fn new(finest: GridLaplacian) -> Self {
+        let mut active = vec![finest.active()];
         let mut levels = vec![finest];
         loop {
             let last = levels.last().expect("at least the finest level");
-            if last.active() <= COARSEST || last.len() <= 1 {
+            if active[active.len() - 1] <= COARSEST || last.len() <= 1 {
                 break;
             }
             let next = last.coarsen();
+            active.push(next.active());
             levels.push(next);
         }
         let (csr, coarsest_index) = levels.last().expect("at least one level").to_csr();
         GridMultigrid {
             coarsest: dense_factor(&csr),
             levels,
+            active,
             coarsest_index,
         }
     }
@@ -447,45 +461,15 @@ impl GridMultigrid {
             return;
         }
         let a = &self.levels[level];
-        let n = a.len();
-        let mut c1 = vec![0f32; n];
-        self.cycle(level, b, &mut c1);
-        let mut v1 = vec![0f32; n];
-        a.multiply(&c1, &mut v1);
-        let rho1 = dot(&c1, &v1);
-        let alpha1 = dot(&c1, b);
-        if rho1.is_nan() || rho1 <= 0.0 {
-            x.copy_from_slice(&c1);
-            return;
-        }
-        let s1 = (alpha1 / rho1) as f32;
-        let r2: Vec<f32> = b.iter().zip(&v1).map(|(b, v)| b - s1 * v).collect();
-        let ratio = n as f64 / self.levels[level + 1].len() as f64;
-        if ratio < KCYCLE_MIN_RATIO || dot(&r2, &r2) <= KCYCLE_T * KCYCLE_T * dot(b, b) {
-            x.iter_mut().zip(&c1).for_each(|(x, c)| *x = s1 * c);
-            return;
-        }
-        let mut c2 = vec![0f32; n];
-        self.cycle(level, &r2, &mut c2);
-        let mut v2 = v1.clone();
-        a.multiply(&c2, &mut v2);
-        let gamma = dot(&c2, &v1);
-        let beta = dot(&c2, &v2);
-        let alpha2 = dot(&c2, &r2);
-        let rho2 = beta - gamma * gamma / rho1;
-        if rho2.is_nan() || rho2 <= 0.0 {
-            x.iter_mut().zip(&c1).for_each(|(x, c)| *x = s1 * c);
-            return;
-        }
-        let (k1, k2) = (
-            (alpha1 / rho1 - gamma * alpha2 / (rho1 * rho2)) as f32,
-            (alpha2 / rho2) as f32,
+        let ratio = self.active[level] as f64 / self.active[level + 1].max(1) as f64;
+        kcycle(
+            b,
+            x,
+            |b, x| self.cycle(level, b, x),
+            |x, y| a.multiply(x, y),
+            dot,
+            ratio >= KCYCLE_MIN_RATIO,
         );
-        x.par_iter_mut()
-            .zip(&c1)
-            .zip(&c2)
-            .with_min_len(CELLS_PER_TASK)
-            .for_each(|((x, c1), c2)| *x = k1 * c1 + k2 * c2);
     }
 
     fn cycle<B: Rhs>(&self, level: usize, b: &[B], x: &mut [f32]) {
@@ -597,16 +581,18 @@ pub(crate) fn part_means<T: Copy + Into<f64>>(v: &[T], label: &[u32], parts: usi
 /// from x = 0 until |r| ≤ tol·|b| or `max_iter` iterations; returns x (zero on inactive cells)
 /// and the iterations used.
 ///
-/// The residual is `f64`, the iterate, direction and preconditioned residual `f32`, and A p is
-/// recomputed in `f64` where it is needed ([`GridLaplacian::wide`]): the residual's updates are
-/// then exact to `f64` for the (rounded) direction the iterate moves along, so it stays the
-/// true residual. 28 bytes a cell, besides the hierarchy.
+/// The iterate and the residual are `f64`, the direction and preconditioned residual `f32`, and
+/// A p is recomputed in `f64` where it is needed ([`GridLaplacian::wide`]): the residual's
+/// updates are then exact to `f64` for the (rounded) direction the iterate moves along, so it
+/// stays the true residual. (An `f32` iterate gathers rounding noise at every step: on a 5000²
+/// sphere of depth range 2000 px it raised the mean integration residual from 9.1e-4 to
+/// 1.2e-3.) 24 bytes a cell, besides the hierarchy.
 pub(crate) fn solve(
     mg: &GridMultigrid,
     mut b: Vec<f64>,
     tol: f64,
     max_iter: usize,
-) -> (Vec<f32>, usize) {
+) -> (Vec<f64>, usize) {
     let a = mg.finest();
     let n = a.len();
     {
@@ -620,7 +606,7 @@ pub(crate) fn solve(
             };
         });
     }
-    let mut x = vec![0f32; n];
+    let mut x = vec![0f64; n];
     let bn = dot(&b, &b).sqrt();
     if bn == 0.0 {
         return (x, 0);
@@ -649,7 +635,7 @@ pub(crate) fn solve(
             .for_each(|(row, (x, r))| {
                 for col in 0..w {
                     let i = row * w + col;
-                    x[col] = (f64::from(x[col]) + alpha * f64::from(dir[i])) as f32;
+                    x[col] += alpha * f64::from(dir[i]);
                     r[col] -= alpha * a.wide(dir, i, col, row);
                 }
             });
@@ -738,7 +724,7 @@ mod tests {
             .zip(&truth)
             .zip(&label)
             .filter(|(_, l)| **l != NONE)
-            .map(|((&p, q), &l)| (f64::from(p) - means[l as usize] - q).abs())
+            .map(|((&p, q), &l)| (p - means[l as usize] - q).abs())
             .fold(0.0, f64::max);
         (its, err / 10.0)
     }

@@ -42,7 +42,7 @@ pub(crate) const COARSEST: usize = 64;
 const STALL: f64 = 0.8;
 /// The K-cycle's second inner step is skipped when the first leaves at most this fraction of
 /// the residual (Notay 2010).
-pub(super) const KCYCLE_T: f64 = 0.25;
+const KCYCLE_T: f64 = 0.25;
 /// The K-cycle's second inner step is taken only on levels at least this many times larger
 /// than the next (a second visit doubles the work below; with four-node aggregates the ratio is
 /// near 4, and where coarsening slows down the cycle falls back to one step).
@@ -343,53 +343,18 @@ impl Multigrid {
             return;
         }
         let a = &self.levels[level];
-        let n = a.len();
         let dot = |p: &[f64], q: &[f64]| p.iter().zip(q).map(|(a, b)| a * b).sum::<f64>();
-        let mut c1 = vec![0f64; n];
-        self.cycle(level, b, &mut c1);
-        let mut v1 = vec![0f64; n];
-        a.multiply(&c1, &mut v1);
-        let rho1 = dot(&c1, &v1);
-        let alpha1 = dot(&c1, b);
-        if rho1.is_nan() || rho1 <= 0.0 {
-            x.copy_from_slice(&c1);
-            return;
-        }
-        let r2: Vec<f64> = b
-            .iter()
-            .zip(&v1)
-            .map(|(b, v)| b - alpha1 / rho1 * v)
-            .collect();
-        // The second step doubles the visits of every coarser level: affordable only where
-        // coarsening is fast enough for the work to stay linear.
-        let ratio = n as f64 / self.levels[level + 1].len() as f64;
-        if ratio < KCYCLE_MIN_RATIO || dot(&r2, &r2) <= KCYCLE_T * KCYCLE_T * dot(b, b) {
-            x.iter_mut()
-                .zip(&c1)
-                .for_each(|(x, c)| *x = alpha1 / rho1 * c);
-            return;
-        }
-        let mut c2 = vec![0f64; n];
-        self.cycle(level, &r2, &mut c2);
-        let mut v2 = vec![0f64; n];
-        a.multiply(&c2, &mut v2);
-        let gamma = dot(&c2, &v1);
-        let beta = dot(&c2, &v2);
-        let alpha2 = dot(&c2, &r2);
-        let rho2 = beta - gamma * gamma / rho1;
-        if rho2.is_nan() || rho2 <= 0.0 {
-            x.iter_mut()
-                .zip(&c1)
-                .for_each(|(x, c)| *x = alpha1 / rho1 * c);
-            return;
-        }
-        let (k1, k2) = (
-            alpha1 / rho1 - gamma * alpha2 / (rho1 * rho2),
-            alpha2 / rho2,
+        // The second inner step doubles the visits of every coarser level: affordable only
+        // where coarsening is fast enough for the work to stay linear.
+        let ratio = a.len() as f64 / self.levels[level + 1].len() as f64;
+        kcycle(
+            b,
+            x,
+            |b, x| self.cycle(level, b, x),
+            |x, y| a.multiply(x, y),
+            dot,
+            ratio >= KCYCLE_MIN_RATIO,
         );
-        for ((x, c1), c2) in x.iter_mut().zip(&c1).zip(&c2) {
-            *x = k1 * c1 + k2 * c2;
-        }
     }
 
     fn cycle(&self, level: usize, b: &[f64], x: &mut [f64]) {
@@ -425,6 +390,85 @@ impl Multigrid {
             x[i] += xc[c as usize];
         }
         a.sweep(b, x, false);
+    }
+}
+
+/// A vector element of a hierarchy's levels: `f64` for the aggregation hierarchy, `f32` for
+/// the grid's (`grid.rs`).
+pub(super) trait Element: Copy + Default + Into<f64> {
+    /// The element nearest to `v`.
+    fn of(v: f64) -> Self;
+}
+
+impl Element for f64 {
+    fn of(v: f64) -> Self {
+        v
+    }
+}
+
+impl Element for f32 {
+    fn of(v: f64) -> Self {
+        v as f32
+    }
+}
+
+/// Notay's K-cycle coarse correction on a level above the coarsest, for both hierarchies: up
+/// to two steps of flexible conjugate gradients on A x = b preconditioned by the level's
+/// `cycle` (from zero), with the level's matrix `multiply` and `dot`; the second step only
+/// when `second` allows it and the first leaves more than [`KCYCLE_T`] of the residual.
+/// Coefficients are computed in `f64` and each element is rounded once.
+pub(super) fn kcycle<T: Element>(
+    b: &[T],
+    x: &mut [T],
+    cycle: impl Fn(&[T], &mut [T]),
+    multiply: impl Fn(&[T], &mut [T]),
+    dot: impl Fn(&[T], &[T]) -> f64,
+    second: bool,
+) {
+    let n = b.len();
+    let mut c1 = vec![T::default(); n];
+    cycle(b, &mut c1);
+    let mut v1 = vec![T::default(); n];
+    multiply(&c1, &mut v1);
+    let rho1 = dot(&c1, &v1);
+    let alpha1 = dot(&c1, b);
+    if rho1.is_nan() || rho1 <= 0.0 {
+        x.copy_from_slice(&c1);
+        return;
+    }
+    let s1 = alpha1 / rho1;
+    let first_only = |x: &mut [T]| {
+        for (x, &c) in x.iter_mut().zip(&c1) {
+            *x = T::of(s1 * c.into());
+        }
+    };
+    let r2: Vec<T> = b
+        .iter()
+        .zip(&v1)
+        .map(|(&b, &v)| T::of(b.into() - s1 * v.into()))
+        .collect();
+    if !second || dot(&r2, &r2) <= KCYCLE_T * KCYCLE_T * dot(b, b) {
+        first_only(x);
+        return;
+    }
+    let mut c2 = vec![T::default(); n];
+    cycle(&r2, &mut c2);
+    let mut v2 = vec![T::default(); n];
+    multiply(&c2, &mut v2);
+    let gamma = dot(&c2, &v1);
+    let beta = dot(&c2, &v2);
+    let alpha2 = dot(&c2, &r2);
+    let rho2 = beta - gamma * gamma / rho1;
+    if rho2.is_nan() || rho2 <= 0.0 {
+        first_only(x);
+        return;
+    }
+    let (k1, k2) = (
+        alpha1 / rho1 - gamma * alpha2 / (rho1 * rho2),
+        alpha2 / rho2,
+    );
+    for ((x, &c1), &c2) in x.iter_mut().zip(&c1).zip(&c2) {
+        *x = T::of(k1 * c1.into() + k2 * c2.into());
     }
 }
 
