@@ -535,6 +535,21 @@ fn noisy(normals: &NormalMap, sigma: f32, seed: u64) -> NormalMap {
     })
 }
 
+/// Normals of a depth jump: a ball of radius 28 floating 25 px above a ground tilted at slope
+/// 0.3, so that the jump's height varies along the ball's occluding contour.
+fn floating_ball(w: usize, h: usize) -> NormalMap {
+    let r = 28.0;
+    field(w, h, |x, y| {
+        if x * x + y * y < r * r {
+            let s = (r * r - x * x - y * y).sqrt().max(1e-3);
+            (25.0 + s, -x / s, -y / s)
+        } else {
+            (0.3 * x, 0.3, 0.0)
+        }
+    })
+    .3
+}
+
 /// `auto` keeps masked least squares on a smooth surface (its depth, bit for bit: a smooth
 /// object pays nothing for discontinuities) and switches to bilateral integration where a ball
 /// floats above a tilted ground, a depth jump whose height varies along the ball's occluding
@@ -552,17 +567,7 @@ fn auto_chooses_from_the_residual() {
             -2.0 * y / 600.0 * g,
         )
     });
-    // A jump: a ball of radius 28 floating 25 px above a ground tilted at slope 0.3, so that
-    // the jump's height varies along the ball's occluding contour.
-    let r = 28.0;
-    let (_, _, _, jump) = field(w, h, |x, y| {
-        if x * x + y * y < r * r {
-            let s = (r * r - x * x - y * y).sqrt().max(1e-3);
-            (25.0 + s, -x / s, -y / s)
-        } else {
-            (0.3 * x, 0.3, 0.0)
-        }
-    });
+    let jump = floating_ball(w, h);
     for (name, normals, expect) in [
         ("bump", noisy(&smooth, 0.01, 1), Integrator::MaskedLs),
         (
@@ -591,15 +596,7 @@ fn auto_chooses_from_the_residual() {
 fn auto_keeps_the_smooth_integrator_where_bilateral_would_not_fit() {
     let (w, h) = (96, 96);
     let mask = Grid::new(w, h, true);
-    let r = 28.0;
-    let (_, _, _, jump) = field(w, h, |x, y| {
-        if x * x + y * y < r * r {
-            let s = (r * r - x * x - y * y).sqrt().max(1e-3);
-            (25.0 + s, -x / s, -y / s)
-        } else {
-            (0.3 * x, 0.3, 0.0)
-        }
-    });
+    let jump = floating_ball(w, h);
     let normals = noisy(&jump, 0.01, 2);
     let capped = |bytes: u64| IntegrationOptions {
         max_memory: Some(bytes),

@@ -11,9 +11,8 @@
 //! by conjugate gradients preconditioned with the DCT solve of the enclosing rectangle (a few
 //! tens of iterations for compact masks), or — the default beyond the direct limit — by
 //! conjugate gradients preconditioned with multigrid on the pixel grid of the mask's bounding
-//! box (`multigrid/grid.rs`): linear time, about a dozen iterations at any size, and about
-//! at most 56 bytes per pixel of that box, against 80–900 bytes per unknown for
-//! the other two.
+//! box (`multigrid/grid.rs`): linear time, about a dozen iterations at any size, and at most
+//! 56 bytes per pixel of that box, against 80–900 bytes per unknown for the other two.
 //!
 //! Assumes a continuous surface inside each part: a depth jump inside the mask is smeared over
 //! its neighbourhood (see the bilateral integrator for that case).

@@ -502,11 +502,25 @@ const DOT_CHUNK: usize = 1 << 14;
 /// the result does not depend on the thread count or on how rayon's work stealing split the
 /// work (a plain parallel sum does, and made the depth of every solve by conjugate gradients
 /// change in its last bits from run to run).
-fn dot(p: &[f64], q: &[f64]) -> f64 {
+pub(crate) fn dot<P, Q>(p: &[P], q: &[Q]) -> f64
+where
+    P: Copy + Into<f64> + Sync,
+    Q: Copy + Into<f64> + Sync,
+{
+    // One chunk: the same sum, without the parallel machinery (the grid multigrid's coarse
+    // levels call this often on short vectors).
+    if p.len() <= DOT_CHUNK {
+        return p.iter().zip(q).map(|(&x, &y)| x.into() * y.into()).sum();
+    }
     let partial: Vec<f64> = p
         .par_chunks(DOT_CHUNK)
         .zip(q.par_chunks(DOT_CHUNK))
-        .map(|(a, b)| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>())
+        .map(|(a, b)| {
+            a.iter()
+                .zip(b)
+                .map(|(&x, &y)| x.into() * y.into())
+                .sum::<f64>()
+        })
         .collect();
     partial.iter().sum()
 }

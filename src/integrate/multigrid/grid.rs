@@ -30,7 +30,7 @@
 //! relative residual of 1e-8 in 11 iterations, within 1e-7 of the solution's range).
 
 use super::{COARSEST, Coarsest, Csr, KCYCLE_MIN_RATIO, STALLED_SWEEPS, dense_factor, kcycle};
-use crate::integrate::sparse::NONE;
+use crate::integrate::sparse::{NONE, dot};
 use faer::MatMut;
 use faer::linalg::solvers::Solve;
 use rayon::prelude::*;
@@ -45,29 +45,6 @@ use rayon::prelude::*;
 /// (1732×1732 normal maps under discs of radius 400, 600 and 800 px), so this is an upper
 /// bound.
 pub const BYTES_PER_CELL: u64 = 56;
-
-/// Elements summed per chunk of [`dot`]: a fixed partition, so the sum does not depend on the
-/// thread count.
-const DOT_CHUNK: usize = 1 << 14;
-
-/// Σ pᵢqᵢ in `f64`, summed over fixed chunks in order (the result is the same on any number
-/// of threads).
-fn dot<P: Copy + Into<f64> + Sync, Q: Copy + Into<f64> + Sync>(p: &[P], q: &[Q]) -> f64 {
-    if p.len() <= DOT_CHUNK {
-        return p.iter().zip(q).map(|(&x, &y)| x.into() * y.into()).sum();
-    }
-    let partial: Vec<f64> = p
-        .par_chunks(DOT_CHUNK)
-        .zip(q.par_chunks(DOT_CHUNK))
-        .map(|(a, b)| {
-            a.iter()
-                .zip(b)
-                .map(|(&x, &y)| x.into() * y.into())
-                .sum::<f64>()
-        })
-        .collect();
-    partial.iter().sum()
-}
 
 /// A right-hand side's element: the outer solve's residual is `f64`, the coarse levels' `f32`.
 pub(crate) trait Rhs: Copy + Send + Sync + Into<f64> {
