@@ -58,7 +58,7 @@ use crate::progress::Progress;
 use highlight::{Highlight, HighlightOptions, Missing, find_highlight};
 use nalgebra::Vector3;
 use serde::Serialize;
-use sphere::{CircleFit, circle_from_mask, detect_circle};
+use sphere::{Candidate, CircleFit, circle_from_mask, detect_circles};
 use std::path::{Path, PathBuf};
 
 /// Options of [`calibrate_chrome`].
@@ -198,13 +198,22 @@ pub fn calibrate_chrome(
             sphere.std_err[0], sphere.std_err[1], sphere.std_err[2]
         ));
     }
+    // Each highlight is sought in the image's excess over the per-pixel median, which holds
+    // what every image shares (the environment reflected by the ball, the wall) but no
+    // highlight, as long as no pixel is lit in half the images (three or more images).
+    let median = (grey.len() >= 3).then(|| evidence(&grey, w, h, 0.5));
     let lights = grey
         .iter()
         .enumerate()
         .map(|(index, plane)| LightOutcome {
             index,
             image: stack.info()[index].path.clone(),
-            result: match find_highlight(plane, w, &sphere, &options.highlight) {
+            result: match find_highlight(
+                &excess(plane, median.as_ref()),
+                w,
+                &sphere,
+                &options.highlight,
+            ) {
                 Ok(hl) => HighlightResult::Found(hl),
                 Err(m) => HighlightResult::Missing(m),
             },
@@ -236,31 +245,234 @@ fn find_sphere_in(
     h: usize,
     mask: Option<(&ScalarMap, &Path)>,
 ) -> Result<(CircleFit, SphereSource)> {
-    Ok(match mask {
-        Some((m, path)) => {
-            Grid::new(w, h, ()).check_same_size(m, "sphere mask vs images")?;
-            (circle_from_mask(m, path)?, SphereSource::Mask)
+    if let Some((m, path)) = mask {
+        Grid::new(w, h, ()).check_same_size(m, "sphere mask vs images")?;
+        return Ok((circle_from_mask(m, path)?, SphereSource::Mask));
+    }
+    // The median suits a mirror ball (it drops every highlight), the upper quartile a matte
+    // one (its rim stays lit). Circles from both are verified against the images.
+    let median = evidence(grey, w, h, 0.5);
+    let quartile = evidence(grey, w, h, 0.75);
+    let mut candidates: Vec<Candidate> = Vec::new();
+    for c in detect_circles(&median, CANDIDATES)
+        .into_iter()
+        .chain(detect_circles(&quartile, CANDIDATES))
+    {
+        let same = |o: &Candidate| same_circle(&o.fit.circle, &c.fit.circle);
+        if !candidates.iter().any(same) {
+            candidates.push(c);
         }
-        None => {
-            // The median suits a mirror ball (it drops every highlight), the upper quartile a
-            // matte one (its rim stays lit); the outline that more of a circle supports wins.
-            let fits = [0.5, 0.75].map(|q| detect_circle(&evidence(grey, w, h, q)));
-            let best = fits
-                .iter()
-                .filter_map(|f| f.as_ref().ok())
-                .max_by(|a, b| {
-                    a.coverage
-                        .total_cmp(&b.coverage)
-                        .then(b.rms_px.total_cmp(&a.rms_px))
-                })
-                .copied();
-            match (best, fits) {
-                (Some(fit), _) => (fit, SphereSource::Detected),
-                (None, [Err(e), _]) => return Err(e),
-                (None, _) => unreachable!("no fit implies the first failed"),
+    }
+    if candidates.is_empty() {
+        return Err(Error::SphereNotFound {
+            reason: "no circle of radius ≥ 8 px has edges over half its outline in the images"
+                .into(),
+        });
+    }
+    let transients = Transients::new(grey, &median);
+    let checks: Vec<(Candidate, Verification)> = candidates
+        .into_iter()
+        .map(|c| (c, verify(&c, grey, &median, &transients, w, h)))
+        .collect();
+    let mut passed: Vec<&(Candidate, Verification)> =
+        checks.iter().filter(|(_, v)| v.passed()).collect();
+    passed.sort_by(|a, b| b.0.support.total_cmp(&a.0.support));
+    match passed.as_slice() {
+        [] => {
+            let why: Vec<String> = checks.iter().take(3).map(|(c, v)| v.describe(c)).collect();
+            Err(Error::SphereNotFound {
+                reason: format!(
+                    "no circle in the images passes the checks of a calibration sphere ({})",
+                    why.join("; ")
+                ),
+            })
+        }
+        [(best, _)] => Ok((best.fit, SphereSource::Detected)),
+        // Overlapping circles compete for the same outline: the one that holds clearly more of
+        // it wins (a circle grazing the true one holds an arc of it).
+        [(a, _), (b, _), ..]
+            if overlap(&a.fit.circle, &b.fit.circle)
+                && a.support >= b.support + CLEAR_SUPPORT
+                && passed[2..].iter().all(|(c, _)| {
+                    !overlap(&a.fit.circle, &c.fit.circle) || a.support >= c.support + CLEAR_SUPPORT
+                }) =>
+        {
+            Ok((a.fit, SphereSource::Detected))
+        }
+        [(a, _), (b, _), ..] => {
+            let (ca, cb) = (a.fit.circle, b.fit.circle);
+            let apart = (ca.cx - cb.cx).hypot(ca.cy - cb.cy) > ca.radius + cb.radius;
+            Err(Error::SphereNotFound {
+                reason: format!(
+                    "{} circles pass the checks of a calibration sphere, e.g. centre ({:.1}, {:.1}) radius {:.1} px and centre ({:.1}, {:.1}) radius {:.1} px{}",
+                    passed.len(),
+                    ca.cx,
+                    ca.cy,
+                    ca.radius,
+                    cb.cx,
+                    cb.cy,
+                    cb.radius,
+                    if apart {
+                        " (two spheres?)"
+                    } else {
+                        " (one inside the other)"
+                    }
+                ),
+            })
+        }
+    }
+}
+
+/// How much more of its outline (fraction of the in-frame circumference) a circle must hold
+/// than one overlapping it to be taken instead of it.
+const CLEAR_SUPPORT: f64 = 0.15;
+
+/// Whether two circles overlap.
+fn overlap(a: &sphere::Circle, b: &sphere::Circle) -> bool {
+    (a.cx - b.cx).hypot(a.cy - b.cy) < a.radius + b.radius
+}
+
+/// Circles sought in each evidence image.
+const CANDIDATES: usize = 6;
+
+/// Whether two detected circles are the same one (within 2 px in centre and radius).
+fn same_circle(a: &sphere::Circle, b: &sphere::Circle) -> bool {
+    (a.cx - b.cx).hypot(a.cy - b.cy) < 2.0 && (a.radius - b.radius).abs() < 2.0
+}
+
+/// Highlight evidence (noise σ above which each image's excess over the median is a
+/// highlight): each image minus the per-pixel median, with its robust noise σ.
+struct Transients {
+    sigma: Vec<f64>,
+}
+
+impl Transients {
+    fn new(grey: &[Vec<f32>], median: &ScalarMap) -> Self {
+        let sigma = grey
+            .iter()
+            .map(|img| {
+                let mut dev: Vec<f32> = img
+                    .iter()
+                    .zip(median.data())
+                    .map(|(v, m)| (v - m).abs())
+                    .filter(|d| d.is_finite())
+                    .collect();
+                let s = 1.4826 * f64::from(crate::stats::median_by(&mut dev, f32::total_cmp).unwrap_or(0.0));
+                s.max(1e-6)
+            })
+            .collect();
+        Transients { sigma }
+    }
+}
+
+/// What the images say of a candidate circle.
+#[derive(Debug, Clone, Copy)]
+struct Verification {
+    /// Images whose excess over the median peaks inside the circle at ≥ `LIT_SIGMAS` σ
+    /// (a highlight on a mirror ball, the lit side of a matte one).
+    lit: usize,
+    /// Images whose own edge across the circle is significant, with the sign of the median's.
+    edged: usize,
+    /// Images.
+    images: usize,
+}
+
+/// An image's excess over the median must reach this many noise σ inside a circle for the
+/// image to count as lighting what is in it.
+const LIT_SIGMAS: f64 = 10.0;
+/// An image's mean step across the outline must reach this many standard errors.
+const EDGE_SIGMAS: f64 = 3.0;
+
+impl Verification {
+    fn passed(&self) -> bool {
+        // Most images light the sphere (some lights may be behind it), and nearly every image
+        // shows its outline.
+        2 * self.lit >= self.images && 10 * self.edged >= 9 * self.images
+    }
+
+    fn describe(&self, c: &Candidate) -> String {
+        let k = c.fit.circle;
+        format!(
+            "centre ({:.1}, {:.1}) radius {:.1} px: edges over {:.0}% of its outline in the frame, lit in {} of {} images, outline seen in {}",
+            k.cx,
+            k.cy,
+            k.radius,
+            c.support * 100.0,
+            self.lit,
+            self.images,
+            self.edged
+        )
+    }
+}
+
+/// Checks a candidate against every image: is something inside it lit differently by each
+/// light (a highlight, shading), and does each image show its outline?
+fn verify(
+    c: &Candidate,
+    grey: &[Vec<f32>],
+    median: &ScalarMap,
+    transients: &Transients,
+    w: usize,
+    h: usize,
+) -> Verification {
+    let k = c.fit.circle;
+    let inner = k.radius * 0.97;
+    let x0 = (k.cx - inner).floor().max(0.0) as usize;
+    let x1 = ((k.cx + inner).ceil().max(0.0) as usize).min(w.saturating_sub(1));
+    let y0 = (k.cy - inner).floor().max(0.0) as usize;
+    let y1 = ((k.cy + inner).ceil().max(0.0) as usize).min(h.saturating_sub(1));
+    // Points just inside and outside the outline, in the frame.
+    let samples = (2.0 * std::f64::consts::PI * k.radius).ceil().max(16.0) as usize;
+    let pairs: Vec<(usize, usize)> = (0..samples)
+        .filter_map(|i| {
+            let a = i as f64 / samples as f64 * std::f64::consts::TAU;
+            let at = |r: f64| {
+                let (x, y) = ((k.cx + r * a.cos()).round(), (k.cy + r * a.sin()).round());
+                (x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64)
+                    .then(|| y as usize * w + x as usize)
+            };
+            Some((at(k.radius - 2.5)?, at(k.radius + 2.5)?))
+        })
+        .collect();
+    let step = |img: &[f32]| {
+        let d: Vec<f64> = pairs
+            .iter()
+            .map(|&(i, o)| f64::from(img[o]) - f64::from(img[i]))
+            .filter(|v| v.is_finite())
+            .collect();
+        d.iter().sum::<f64>() / d.len().max(1) as f64
+    };
+    let reference = step(median.data());
+    let mut lit = 0;
+    let mut edged = 0;
+    for (img, sigma) in grey.iter().zip(&transients.sigma) {
+        let mut peak = f64::MIN;
+        for y in y0..=y1 {
+            for x in x0..=x1 {
+                if (x as f64 - k.cx).hypot(y as f64 - k.cy) < inner {
+                    let i = y * w + x;
+                    let d = f64::from(img[i] - median.data()[i]);
+                    if d > peak {
+                        peak = d;
+                    }
+                }
             }
         }
-    })
+        if peak >= LIT_SIGMAS * sigma {
+            lit += 1;
+        }
+        // The step's standard error: two noisy samples a pair, independent pairs.
+        let se = sigma * (2.0 / pairs.len().max(1) as f64).sqrt();
+        let s = step(img);
+        if s.abs() >= EDGE_SIGMAS * se && s * reference > 0.0 {
+            edged += 1;
+        }
+    }
+    Verification {
+        lit,
+        edged,
+        images: grey.len(),
+    }
 }
 
 /// How the intensities were measured, for the calibration report.
@@ -321,6 +533,14 @@ pub fn lights_file_json(
     });
     // Serialising numbers, strings and derived structs cannot fail.
     serde_json::to_string_pretty(&doc).unwrap_or_default()
+}
+
+/// `plane` minus `median` (the plane itself without one).
+fn excess(plane: &[f32], median: Option<&ScalarMap>) -> Vec<f32> {
+    match median {
+        Some(m) => plane.iter().zip(m.data()).map(|(v, m)| v - m).collect(),
+        None => plane.to_vec(),
+    }
 }
 
 /// Full-image grey planes of a stack ([`ImageStack::grey_mix`]; NaN outside its window).

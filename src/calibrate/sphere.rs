@@ -9,7 +9,6 @@ use crate::error::{Error, Result};
 use crate::grid::ScalarMap;
 use crate::stats::median_by;
 use nalgebra::{Matrix3, Vector3};
-use rand::{RngExt, SeedableRng};
 use serde::Serialize;
 
 /// Gauss–Newton iterations of the geometric circle fit (it converges in 3–5 from Kåsa's).
@@ -24,15 +23,13 @@ const OUTLIER_FLOOR_PX: f64 = 0.75;
 const COVERAGE_BINS: usize = 72;
 /// Least fraction of the circumference a detected circle's edge points must cover.
 pub const MIN_COVERAGE: f64 = 0.5;
-/// RANSAC hypotheses tried by [`detect_circle`].
-const RANSAC_ITERATIONS: usize = 4000;
-/// Distance (pixels) within which an edge point supports a RANSAC circle.
-const RANSAC_TOLERANCE_PX: f64 = 1.5;
+/// Distance (pixels) within which an edge point supports a circle.
+const SUPPORT_TOLERANCE_PX: f64 = 1.5;
 /// An edge point supports a circle only if its gradient is within this angle of radial
 /// (cosine).
 const RADIAL_COSINE: f64 = 0.9;
-/// Edge points: gradient magnitude above this fraction of the 99.5th percentile magnitude.
-const EDGE_FRACTION: f32 = 0.15;
+/// Noise-only pixels expected to pass the edge threshold in a whole image.
+const FALSE_EDGES: f64 = 10.0;
 /// Smallest radius [`detect_circle`] looks for, in pixels.
 const MIN_RADIUS_PX: f64 = 8.0;
 
@@ -294,62 +291,233 @@ struct Edge {
     gy: f64,
 }
 
-/// Finds the sphere in `evidence` (an image in which the sphere's outline shows, e.g. the mean
-/// of the calibration images): Sobel gradients, non-maximum suppression with a parabolic
-/// sub-pixel peak, then RANSAC (Fischler & Bolles 1981) over circles through three edge points
-/// whose support counts the edge points within 1.5 px whose gradient is radial, and finally
-/// [`fit_circle`] on the best circle's support. Deterministic (seeded).
-///
-/// # Errors
-/// [`Error::SphereNotFound`] when no circle of radius ≥ 8 px whose edge covers at least half
-/// its circumference is found.
-pub fn detect_circle(evidence: &ScalarMap) -> Result<CircleFit> {
-    let edges = edge_points(evidence);
-    let not_found = |why: String| Error::SphereNotFound { reason: why };
-    if edges.len() < 3 {
-        return Err(not_found(format!("{} edge points", edges.len())));
-    }
-    let (w, h) = (evidence.width() as f64, evidence.height() as f64);
-    let max_radius = 0.5 * w.max(h);
-    let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(0x5EED);
-    let mut best: Option<(usize, Circle)> = None;
-    for _ in 0..RANSAC_ITERATIONS {
-        let pick = [
-            edges[rng.random_range(0..edges.len())],
-            edges[rng.random_range(0..edges.len())],
-            edges[rng.random_range(0..edges.len())],
-        ];
-        let Ok(c) = kasa(&pick.map(|e| [e.x, e.y])) else {
-            continue;
-        };
-        if c.radius < MIN_RADIUS_PX || c.radius > max_radius || !radial_all(&pick, &c) {
-            continue;
-        }
-        let support = edges.iter().filter(|e| supports(e, &c)).count();
-        if best.is_none_or(|(s, _)| support > s) {
-            best = Some((support, c));
-        }
-    }
-    let Some((_, c)) = best else {
-        return Err(not_found("no three edge points lie on a circle".into()));
-    };
-    let inliers: Vec<[f64; 2]> = edges
-        .iter()
-        .filter(|e| supports(e, &c))
-        .map(|e| [e.x, e.y])
-        .collect();
-    let fit = fit_circle(&inliers)?;
-    if fit.coverage < MIN_COVERAGE {
-        return Err(not_found(format!(
-            "the best circle's edge covers {:.0}% of it",
-            fit.coverage * 100.0
-        )));
-    }
-    Ok(fit)
+/// A circle found in an image, with how well the image supports it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Candidate {
+    /// The circle fitted to its supporting edge points.
+    pub fit: CircleFit,
+    /// Fraction of the circumference inside the image (1: the whole circle is in the frame).
+    pub in_frame: f64,
+    /// Fraction of the in-frame circumference covered by supporting edge points.
+    pub support: f64,
 }
 
-fn radial_all(edges: &[Edge], c: &Circle) -> bool {
-    edges.iter().all(|e| radial_cos(e, c) >= RADIAL_COSINE)
+/// Circles in `evidence` (an image in which the sphere's outline shows, e.g. the median of the
+/// calibration images), best supported first: up to `max` of them, each of radius ≥ 8 px with
+/// supporting edge points over at least half its in-frame circumference.
+///
+/// Edge points are Sobel gradient maxima along the gradient direction, located to sub-pixel by
+/// a parabola, whose magnitude is beyond what noise reaches: above √(2 ln(N/10)) robust
+/// standard deviations of the gradient components (1.4826 × their median absolute value), the
+/// level that N pixels of pure noise pass about ten times. Circles are sought by the gradient
+/// Hough transform (Kimme, Ballard & Sklansky 1975): each edge point votes for centres along its
+/// gradient line on both sides (a ball may be brighter or darker than its background); at each
+/// strong centre the distances of the edge points whose gradient is radial give the radius.
+/// Each candidate is then refined by [`fit_circle`] on its support (the edge points within
+/// 1.5 px whose gradient is within 26° of radial), twice.
+pub fn detect_circles(evidence: &ScalarMap, max: usize) -> Vec<Candidate> {
+    let edges = edge_points(evidence);
+    let (w, h) = (evidence.width(), evidence.height());
+    if edges.len() < 3 || max == 0 {
+        return Vec::new();
+    }
+    let max_radius = 0.75 * w.max(h) as f64;
+    // Centre votes, on the image grid.
+    let mut acc = vec![0.0f32; w * h];
+    for e in &edges {
+        for side in [-1.0, 1.0] {
+            let mut t = MIN_RADIUS_PX;
+            while t <= max_radius {
+                let (x, y) = (e.x + side * t * e.gx, e.y + side * t * e.gy);
+                if x < -0.5 || y < -0.5 || x >= w as f64 - 0.5 || y >= h as f64 - 0.5 {
+                    break;
+                }
+                acc[(y.round() as usize) * w + x.round() as usize] += 1.0;
+                t += 1.0;
+            }
+        }
+    }
+    let smooth = box3(&acc, w, h);
+    // Local maxima (5×5), strongest first.
+    let mut peaks: Vec<(f32, usize, usize)> = Vec::new();
+    for y in 0..h {
+        for x in 0..w {
+            let v = smooth[y * w + x];
+            if v < 3.0 {
+                continue;
+            }
+            let mut top = true;
+            'n: for dy in -2isize..=2 {
+                for dx in -2isize..=2 {
+                    let (qx, qy) = (x as isize + dx, y as isize + dy);
+                    if (dx, dy) == (0, 0) || qx < 0 || qy < 0 || qx >= w as isize || qy >= h as isize {
+                        continue;
+                    }
+                    let q = smooth[qy as usize * w + qx as usize];
+                    if q > v || (q == v && (dy, dx) < (0, 0)) {
+                        top = false;
+                        break 'n;
+                    }
+                }
+            }
+            if top {
+                peaks.push((v, x, y));
+            }
+        }
+    }
+    peaks.sort_by(|a, b| b.0.total_cmp(&a.0));
+    peaks.truncate(4 * max.max(4));
+    let mut found: Vec<Candidate> = Vec::new();
+    for &(_, px, py) in &peaks {
+        for radius in radius_peaks(&edges, px as f64, py as f64, max_radius, w, h) {
+            let start = Circle {
+                cx: px as f64,
+                cy: py as f64,
+                radius,
+            };
+            let Some(c) = refine(&edges, start, w, h) else {
+                continue;
+            };
+            let same = |o: &Candidate| {
+                (o.fit.circle.cx - c.fit.circle.cx).hypot(o.fit.circle.cy - c.fit.circle.cy) < 2.0
+                    && (o.fit.circle.radius - c.fit.circle.radius).abs() < 2.0
+            };
+            if c.support >= MIN_COVERAGE && c.in_frame >= MIN_COVERAGE && !found.iter().any(same) {
+                found.push(c);
+            }
+        }
+    }
+    found.sort_by(|a, b| {
+        (b.support * b.in_frame)
+            .total_cmp(&(a.support * a.in_frame))
+            .then(b.fit.points.cmp(&a.fit.points))
+    });
+    found.truncate(max);
+    found
+}
+
+/// The best circle of [`detect_circles`].
+///
+/// # Errors
+/// [`Error::SphereNotFound`] when there is none.
+pub fn detect_circle(evidence: &ScalarMap) -> Result<CircleFit> {
+    detect_circles(evidence, 1)
+        .first()
+        .map(|c| c.fit)
+        .ok_or_else(|| Error::SphereNotFound {
+            reason: "no circle of radius ≥ 8 px has edges over half its outline".into(),
+        })
+}
+
+/// 3×3 box filter (edges clamped).
+fn box3(v: &[f32], w: usize, h: usize) -> Vec<f32> {
+    let mut out = vec![0.0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let mut s = 0.0;
+            for qy in y.saturating_sub(1)..=(y + 1).min(h - 1) {
+                for qx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
+                    s += v[qy * w + qx];
+                }
+            }
+            out[y * w + x] = s;
+        }
+    }
+    out
+}
+
+/// Radii at which the edge points with radial gradients about (cx, cy) cluster: peaks of their
+/// distance histogram holding at least a third of the in-frame circumference (up to two).
+fn radius_peaks(edges: &[Edge], cx: f64, cy: f64, max_radius: f64, w: usize, h: usize) -> Vec<f64> {
+    let bins = max_radius.ceil() as usize + 2;
+    let mut hist = vec![0.0f64; bins];
+    let centre = Circle { cx, cy, radius: 1.0 };
+    for e in edges {
+        let d = (e.x - cx).hypot(e.y - cy);
+        // A loose radial test: the centre is only known to a pixel or two.
+        if d >= MIN_RADIUS_PX && d < max_radius && radial_cos(e, &centre) >= 0.8 {
+            hist[d.round() as usize] += 1.0;
+        }
+    }
+    let smooth: Vec<f64> = (0..bins)
+        .map(|i| {
+            let at = |j: isize| if j < 0 || j as usize >= bins { 0.0 } else { hist[j as usize] };
+            at(i as isize - 1) + at(i as isize) + at(i as isize + 1)
+        })
+        .collect();
+    let mut out: Vec<(f64, f64)> = Vec::new();
+    for r in (MIN_RADIUS_PX as usize + 1)..bins.saturating_sub(1) {
+        let v = smooth[r];
+        if v <= smooth[r - 1] || v < smooth[r + 1] {
+            continue;
+        }
+        let circle = Circle { cx, cy, radius: r as f64 };
+        let visible = in_frame_fraction(&circle, w, h) * std::f64::consts::TAU * r as f64;
+        if v >= visible / 3.0 && visible > 0.0 {
+            out.push((v / visible, r as f64));
+        }
+    }
+    out.sort_by(|a, b| b.0.total_cmp(&a.0));
+    out.into_iter().take(2).map(|(_, r)| r).collect()
+}
+
+/// Fraction of the circle's circumference inside the image (more than a pixel from its border).
+pub fn in_frame_fraction(c: &Circle, w: usize, h: usize) -> f64 {
+    let inside = (0..COVERAGE_BINS)
+        .filter(|&b| {
+            let a = (b as f64 + 0.5) / COVERAGE_BINS as f64 * std::f64::consts::TAU;
+            let (x, y) = (c.cx + c.radius * a.cos(), c.cy + c.radius * a.sin());
+            x >= 1.0 && y >= 1.0 && x <= w as f64 - 2.0 && y <= h as f64 - 2.0
+        })
+        .count();
+    inside as f64 / COVERAGE_BINS as f64
+}
+
+/// Refits `start` to its supporting edge points, twice; `None` if it has too few.
+fn refine(edges: &[Edge], start: Circle, w: usize, h: usize) -> Option<Candidate> {
+    let mut c = start;
+    let mut fit = None;
+    for tolerance in [2.5, SUPPORT_TOLERANCE_PX, SUPPORT_TOLERANCE_PX] {
+        let points: Vec<[f64; 2]> = edges
+            .iter()
+            .filter(|e| c.distance(e.x, e.y).abs() <= tolerance && radial_cos(e, &c) >= RADIAL_COSINE)
+            .map(|e| [e.x, e.y])
+            .collect();
+        let f = fit_circle(&points).ok()?;
+        if f.circle.radius < MIN_RADIUS_PX {
+            return None;
+        }
+        c = f.circle;
+        fit = Some(f);
+    }
+    let fit = fit?;
+    let c = fit.circle;
+    // Support on one-pixel arcs of the circumference: the arcs inside the frame, and those
+    // of them holding a supporting edge point.
+    let arcs = (std::f64::consts::TAU * c.radius).ceil().max(8.0) as usize;
+    let mut held = vec![false; arcs];
+    for e in edges {
+        if c.distance(e.x, e.y).abs() <= SUPPORT_TOLERANCE_PX && radial_cos(e, &c) >= RADIAL_COSINE {
+            let a = (e.y - c.cy).atan2(e.x - c.cx).rem_euclid(std::f64::consts::TAU);
+            held[((a / std::f64::consts::TAU * arcs as f64) as usize).min(arcs - 1)] = true;
+        }
+    }
+    let mut visible = 0usize;
+    let mut supported = 0usize;
+    for (b, held) in held.iter().enumerate() {
+        let a = (b as f64 + 0.5) / arcs as f64 * std::f64::consts::TAU;
+        let (x, y) = (c.cx + c.radius * a.cos(), c.cy + c.radius * a.sin());
+        // Edge points are found two pixels or more from the border.
+        if x >= 2.0 && y >= 2.0 && x <= w as f64 - 3.0 && y <= h as f64 - 3.0 {
+            visible += 1;
+            supported += usize::from(*held);
+        }
+    }
+    Some(Candidate {
+        fit,
+        in_frame: visible as f64 / arcs as f64,
+        support: supported as f64 / visible.max(1) as f64,
+    })
 }
 
 fn radial_cos(e: &Edge, c: &Circle) -> f64 {
@@ -358,21 +526,45 @@ fn radial_cos(e: &Edge, c: &Circle) -> f64 {
     ((dx * e.gx + dy * e.gy) / d).abs()
 }
 
-fn supports(e: &Edge, c: &Circle) -> bool {
-    c.distance(e.x, e.y).abs() <= RANSAC_TOLERANCE_PX && radial_cos(e, c) >= RADIAL_COSINE
+/// `img` blurred by a Gaussian of σ = 1 px (a 7-tap kernel, separable, edges clamped; non-finite
+/// values read as 0): it takes the noise down by a factor of about 3.5 while a step edge keeps its
+/// height, and moves a circle's edge inwards by only σ²/(2R) (0.02 px at R = 30).
+fn gaussian_blur(img: &ScalarMap) -> Vec<f32> {
+    let (w, h) = (img.width(), img.height());
+    let taps: [f32; 7] = [0.004_433, 0.054_006, 0.242_036, 0.399_050, 0.242_036, 0.054_006, 0.004_433];
+    let value = |x: usize, y: usize| {
+        let s = *img.at(x, y);
+        if s.is_finite() { s } else { 0.0 }
+    };
+    let clamp = |i: isize, n: usize| i.clamp(0, n as isize - 1) as usize;
+    let mut rows = vec![0.0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            rows[y * w + x] = (0..7)
+                .map(|t| taps[t] * value(clamp(x as isize + t as isize - 3, w), y))
+                .sum();
+        }
+    }
+    let mut out = vec![0.0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            out[y * w + x] = (0..7)
+                .map(|t| taps[t] * rows[clamp(y as isize + t as isize - 3, h) * w + x])
+                .sum();
+        }
+    }
+    out
 }
 
-/// Edge points: Sobel gradient maxima along the gradient direction, above
-/// [`EDGE_FRACTION`] of the 99.5th-percentile magnitude, located to sub-pixel by a parabola.
+/// Edge points: Sobel gradient maxima along the gradient direction, above the noise level
+/// (see [`detect_circles`]), located to sub-pixel by a parabola.
 fn edge_points(img: &ScalarMap) -> Vec<Edge> {
     let (w, h) = (img.width(), img.height());
     if w < 3 || h < 3 {
         return Vec::new();
     }
-    let v = |x: usize, y: usize| {
-        let s = *img.at(x, y);
-        if s.is_finite() { s } else { 0.0 }
-    };
+    let smooth = gaussian_blur(img);
+    let v = |x: usize, y: usize| smooth[y * w + x];
     let mut gx = vec![0.0f32; w * h];
     let mut gy = vec![0.0f32; w * h];
     let mut mag = vec![0.0f32; w * h];
@@ -388,13 +580,21 @@ fn edge_points(img: &ScalarMap) -> Vec<Edge> {
             mag[i] = sx.hypot(sy);
         }
     }
-    let mut sorted: Vec<f32> = mag.iter().copied().filter(|m| *m > 0.0).collect();
-    if sorted.is_empty() {
+    // Gradient components of pure noise are normal with one σ; most pixels are flat, so the
+    // median absolute component measures it. The magnitude of noise exceeds kσ with
+    // probability exp(−k²/2): k = √(2 ln(N / FALSE_EDGES)) lets about FALSE_EDGES through.
+    let mut comps: Vec<f32> = (1..h - 1)
+        .flat_map(|y| (1..w - 1).map(move |x| y * w + x))
+        .flat_map(|i| [gx[i].abs(), gy[i].abs()])
+        .collect();
+    let sigma = 1.4826 * f64::from(median_by(&mut comps, f32::total_cmp).unwrap_or(0.0));
+    let peak = mag.iter().copied().fold(0.0f32, f32::max);
+    if peak <= 0.0 {
         return Vec::new();
     }
-    let k = ((sorted.len() as f64 * 0.995) as usize).min(sorted.len() - 1);
-    let (_, top, _) = sorted.select_nth_unstable_by(k, f32::total_cmp);
-    let threshold = EDGE_FRACTION * *top;
+    let k = (2.0 * ((w * h) as f64 / FALSE_EDGES).max(1.0).ln()).sqrt();
+    // A noise-free image still has rounding: nothing below a millionth of the strongest edge.
+    let threshold = ((k * sigma) as f32).max(1e-6 * peak);
     let mut edges = Vec::new();
     for y in 2..h - 2 {
         for x in 2..w - 2 {

@@ -5,6 +5,7 @@
 //! rendered here; `data-synth` writes them as data sets.
 
 pub mod area_light;
+pub mod chrome;
 pub mod interreflection;
 pub mod light_sets;
 pub mod raymarch;
