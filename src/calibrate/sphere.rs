@@ -28,6 +28,9 @@ const SUPPORT_TOLERANCE_PX: f64 = 1.5;
 /// An edge point supports a circle only if its gradient is within this angle of radial
 /// (cosine).
 const RADIAL_COSINE: f64 = 0.9;
+/// Length (pixels) of outline over which a detected circle's edge points share their errors:
+/// the σ = 1 px blur and the 3×3 Sobel stencil make about three neighbours move together.
+const EDGE_CORRELATION_PX: f64 = 3.0;
 /// Noise-only pixels expected to pass the edge threshold in a whole image.
 const FALSE_EDGES: f64 = 10.0;
 /// Smallest radius [`detect_circle`] looks for, in pixels.
@@ -314,7 +317,10 @@ pub struct Candidate {
 /// gradient line on both sides (a ball may be brighter or darker than its background); at each
 /// strong centre the distances of the edge points whose gradient is radial give the radius.
 /// Each candidate is then refined by [`fit_circle`] on its support (the edge points within
-/// 1.5 px whose gradient is within 26° of radial), twice.
+/// 1.5 px whose gradient is within 26° of radial), twice. The candidate's standard errors
+/// allow for correlated edge points and a deformed outline: they are the larger of the fit's
+/// (for points correlated over three pixels) and a block jackknife's over eight sectors of
+/// the outline.
 pub fn detect_circles(evidence: &ScalarMap, max: usize) -> Vec<Candidate> {
     let edges = edge_points(evidence);
     let (w, h) = (evidence.width(), evidence.height());
@@ -461,6 +467,46 @@ fn radius_peaks(edges: &[Edge], cx: f64, cy: f64, max_radius: f64, w: usize, h: 
     out.into_iter().take(2).map(|(_, r)| r).collect()
 }
 
+/// Standard error (pixels) of each parameter of a detected mirror ball's outline that no fit
+/// statistic shows: the environment reflected at the rim moves the edge of one side in and of
+/// the other out, a shift of the whole circle. On rendered balls whose environment is brighter
+/// above, 0.3–1 of the balls' environment contrast (`tests/chrome_captures.rs`, seeds
+/// 1000–1059), the centre moved by 0.12 px rms and at most 0.34 px.
+const OUTLINE_FLOOR_PX: f64 = 0.15;
+
+/// Sectors of the block jackknife of a detected circle.
+const JACKKNIFE_SECTORS: usize = 8;
+
+/// Block-jackknife standard errors of (cx, cy, R) from `points` about `circle`: the geometric
+/// fit without each of [`JACKKNIFE_SECTORS`] angular sectors in turn, var = (n − 1)/n Σ(θᵢ − θ̄)²
+/// over the n sectors holding points (Efron & Stein 1981; Künsch 1989 for blocks).
+fn sector_jackknife(points: &[[f64; 2]], circle: Circle) -> [f64; 3] {
+    let sector = |p: &[f64; 2]| {
+        let a = (p[1] - circle.cy).atan2(p[0] - circle.cx).rem_euclid(std::f64::consts::TAU);
+        ((a / std::f64::consts::TAU * JACKKNIFE_SECTORS as f64) as usize).min(JACKKNIFE_SECTORS - 1)
+    };
+    let mut fits: Vec<[f64; 3]> = Vec::new();
+    for s in 0..JACKKNIFE_SECTORS {
+        let rest: Vec<[f64; 2]> = points.iter().copied().filter(|p| sector(p) != s).collect();
+        if rest.len() == points.len() || rest.len() < 3 {
+            continue;
+        }
+        let c = geometric(&rest, circle);
+        fits.push([c.cx, c.cy, c.radius]);
+    }
+    let n = fits.len();
+    if n < 2 {
+        return [0.0; 3];
+    }
+    let mut out = [0.0; 3];
+    for (k, o) in out.iter_mut().enumerate() {
+        let mean = fits.iter().map(|f| f[k]).sum::<f64>() / n as f64;
+        let ss: f64 = fits.iter().map(|f| (f[k] - mean).powi(2)).sum();
+        *o = ((n - 1) as f64 / n as f64 * ss).sqrt();
+    }
+    out
+}
+
 /// Fraction of the circle's circumference inside the image (more than a pixel from its border).
 pub fn in_frame_fraction(c: &Circle, w: usize, h: usize) -> f64 {
     let inside = (0..COVERAGE_BINS)
@@ -477,8 +523,9 @@ pub fn in_frame_fraction(c: &Circle, w: usize, h: usize) -> f64 {
 fn refine(edges: &[Edge], start: Circle, w: usize, h: usize) -> Option<Candidate> {
     let mut c = start;
     let mut fit = None;
+    let mut points = Vec::new();
     for tolerance in [2.5, SUPPORT_TOLERANCE_PX, SUPPORT_TOLERANCE_PX] {
-        let points: Vec<[f64; 2]> = edges
+        points = edges
             .iter()
             .filter(|e| c.distance(e.x, e.y).abs() <= tolerance && radial_cos(e, &c) >= RADIAL_COSINE)
             .map(|e| [e.x, e.y])
@@ -490,7 +537,19 @@ fn refine(edges: &[Edge], start: Circle, w: usize, h: usize) -> Option<Candidate
         c = f.circle;
         fit = Some(f);
     }
-    let fit = fit?;
+    let mut fit = fit?;
+    // The fit's standard errors assume independent edge points, but neighbouring ones share
+    // the blur and the gradient stencil, and a ball's outline is never exactly a circle of
+    // uniform contrast: a mirror ball's rim reflects the grazing environment, whose gradient
+    // pulls the edge in on one side and out on another, which moves the centre. A block
+    // jackknife over sectors of the outline measures both (each sector's points leave the fit
+    // in turn; the spread of the fits is the error that errors shared within sectors make).
+    // A shift of the whole outline deforms nothing, so neither sees it: that part is the floor
+    // measured on rendered balls ([`OUTLINE_FLOOR_PX`]).
+    let jack = sector_jackknife(&points, fit.circle);
+    for (se, j) in fit.std_err.iter_mut().zip(jack) {
+        *se = (EDGE_CORRELATION_PX.sqrt() * *se).max(j).hypot(OUTLINE_FLOOR_PX);
+    }
     let c = fit.circle;
     // Support on one-pixel arcs of the circumference: the arcs inside the frame, and those
     // of them holding a supporting edge point.
