@@ -1008,6 +1008,16 @@ pub struct CalibrateArgs {
     /// intensities, hardly for the directions.
     #[arg(long)]
     pub linear: bool,
+    /// Stored value (0–1 after scaling integers) at or above which a sample is saturated:
+    /// saturated samples are left out of the matte ball's or card's intensity fit. Default:
+    /// the maximum code of integer images, no limit for float ones.
+    #[arg(long, value_name = "LEVEL")]
+    pub saturation: Option<f32>,
+    /// Write the lights file even when some lights are in doubt (an ambiguous highlight,
+    /// one at the rim, or an uncertainty above the accepted one); they keep their
+    /// uncertainty and `"accepted": false` in the file.
+    #[arg(long)]
+    pub keep_doubtful: bool,
     /// Output lights file (JSON), written atomically.
     #[arg(long, short, value_name = "FILE")]
     pub output: PathBuf,

@@ -63,7 +63,12 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
     };
     let (chrome_paths, list_mask) = expand(&a.images)?;
     let chrome_mask = a.mask.clone().or(list_mask);
-    let stack = load_reference_images(&chrome_paths, transfer, progress)?;
+    if let Some(level) = a.saturation
+        && !(level > 0.0 && level.is_finite())
+    {
+        bail!("--saturation {level}: must be a positive level");
+    }
+    let stack = load_reference_images(&chrome_paths, transfer, a.saturation, progress)?;
     let mask = chrome_mask.as_deref().map(read_grey_mask).transpose()?;
     let cal = calibrate_chrome(
         &stack,
@@ -95,7 +100,7 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
         match &o.result {
             HighlightResult::Found(h) => {
                 say!(
-                    "  {:>3} {}: l = ({:+.4}, {:+.4}, {:+.4}), highlight ({:.2}, {:.2}), {} px, ±{:.2}°, confidence {:.2}",
+                    "  {:>3} {}: l = ({:+.4}, {:+.4}, {:+.4}), highlight ({:.2}, {:.2}), {} px, ±{:.2}°, confidence {:.2}{}",
                     o.index,
                     file_name(&o.image),
                     h.direction.x,
@@ -105,7 +110,8 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
                     h.centroid[1],
                     h.pixels,
                     h.uncertainty_deg,
-                    h.confidence
+                    h.confidence,
+                    if h.accepted { "" } else { ", in doubt" }
                 );
                 for w in &h.warnings {
                     eprintln!("warning: image {} ({}): {w}", o.index, file_name(&o.image));
@@ -121,7 +127,16 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
             }
         }
     }
-    let lights = cal.lights()?;
+    let lights = if a.keep_doubtful {
+        cal.all_lights()?
+    } else {
+        cal.lights().map_err(|e| match e {
+            photostereo::Error::BadImage { ref reason, .. } if reason.contains("in doubt") => {
+                anyhow::anyhow!("{e}; --keep-doubtful writes them anyway")
+            }
+            e => e.into(),
+        })?
+    };
     let directions = lights.directions();
     let (lights, intensity) =
         measure_intensities(&a, &stack, lights, &directions, transfer, progress)?;
@@ -155,16 +170,20 @@ fn measure_intensities(
             );
         }
         (
-            Some(load_reference_images(&paths, transfer, progress)?),
+            Some(load_reference_images(&paths, transfer, a.saturation, progress)?),
             mask,
         )
     };
     let stack = matte_stack.as_ref().unwrap_or(chrome);
+    let matte_options = MatteOptions {
+        saturation: a.saturation.unwrap_or(MatteOptions::default().saturation),
+        ..MatteOptions::default()
+    };
     let (intensities, report) = if let Some(card) = &a.card_mask {
         let m = read_mask(card)?;
         let n = Vector3::from(a.card_normal);
         let e =
-            intensities_from_card(stack, &m, n, directions, MatteOptions::default().saturation)?;
+            intensities_from_card(stack, &m, n, directions, matte_options.saturation)?;
         (
             e,
             IntensityCalibration::GreyCard {
@@ -178,7 +197,7 @@ fn measure_intensities(
         let (sphere, sphere_source) = find_sphere(stack, mask.as_ref().zip(mask_path.as_deref()))
             .map_err(|e| mask_hint(e, "--matte-mask"))?;
         let fits =
-            intensities_from_sphere(stack, &sphere.circle, directions, &MatteOptions::default())?;
+            intensities_from_sphere(stack, &sphere.circle, directions, &matte_options)?;
         let c = sphere.circle;
         say!(
             "matte sphere: centre ({:.2}, {:.2}) px, radius {:.2} px",

@@ -152,8 +152,17 @@ fn mirror_spheres_give_the_lights_within_a_fifth_of_a_degree() {
             assert!(off < 0.3, "circle off by {off} px");
             assert!(mean(&e) <= 0.2, "mean error {:.3}°", mean(&e));
             assert!(max <= 0.6, "max error {max:.3}°");
-            // The stated uncertainty is of the size of the errors made.
-            assert!(unc > mean(&e) / 4.0 && unc < 4.0 * mean(&e).max(0.02));
+            if detect {
+                // A detected outline's uncertainty allows for the shift a mirror ball's rim
+                // reflections make (0.15 px, absent from these renders): it covers every
+                // error twice over.
+                for (h, e) in cal.highlights().iter().zip(&e) {
+                    assert!(*e <= 2.0 * h.unwrap().uncertainty_deg, "{e}° off, {h:?}");
+                }
+            } else {
+                // The stated uncertainty is of the size of the errors made.
+                assert!(unc > mean(&e) / 4.0 && unc < 4.0 * mean(&e).max(0.02));
+            }
         }
     }
 }
@@ -368,7 +377,7 @@ fn mean_residual(r: &Reconstruction) -> f64 {
 fn psm_chrome_calibration_explains_the_objects_better_than_the_reference() {
     let psm = require_shared!("psm");
     let chrome = read_image_list(&psm.join("chrome.txt")).unwrap();
-    let stack = load_reference_images(&chrome.images, Transfer::Linear, &Silent).unwrap();
+    let stack = load_reference_images(&chrome.images, Transfer::Linear, None, &Silent).unwrap();
     let mask_path = chrome.mask.unwrap();
     let mask = read_grey_mask(&mask_path).unwrap();
     let cal = calibrate_chrome(
@@ -407,7 +416,7 @@ fn psm_chrome_calibration_explains_the_objects_better_than_the_reference() {
     let gray = read_image_list(&psm.join("gray.txt")).unwrap();
     let gmask = read_grey_mask(gray.mask.as_ref().unwrap()).unwrap();
     let (gfit, _) = {
-        let gstack = load_reference_images(&gray.images, Transfer::Linear, &Silent).unwrap();
+        let gstack = load_reference_images(&gray.images, Transfer::Linear, None, &Silent).unwrap();
         find_sphere(&gstack, Some((&gmask, Path::new("gray mask")))).unwrap()
     };
     let truth_normals = sphere_normals(&gfit.circle, gmask.width(), gmask.height());
@@ -556,3 +565,4 @@ fn calibrate_command_writes_a_lights_file_the_main_command_reads() {
     );
     assert!(recon.join("normal.exr").is_file());
 }
+

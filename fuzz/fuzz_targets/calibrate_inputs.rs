@@ -32,7 +32,7 @@ fuzz_target!(|data: &[u8]| {
         photostereo::io::output::write_png8(&path, w, h, 1, &px).expect("write a PNG");
         paths.push(path);
     }
-    let Ok(stack) = load_reference_images(&paths, Transfer::Linear, &Silent) else {
+    let Ok(stack) = load_reference_images(&paths, Transfer::Linear, None, &Silent) else {
         return;
     };
     let mask_path = dir.join("mask.png");

@@ -31,8 +31,8 @@ pub struct HighlightOptions {
     pub ambiguous_share: f64,
     /// A light whose uncertainty (rms, degrees) exceeds this is not accepted.
     pub max_uncertainty_deg: f64,
-    /// A highlight longer than this times its width (in reflected directions) is not
-    /// accepted: two reflections merged into one blob.
+    /// A highlight longer than this times its width (in reflected directions) is warned
+    /// about: two reflections merged into one blob, or a lamp that is not round.
     pub max_elongation: f64,
 }
 
@@ -44,7 +44,7 @@ impl Default for HighlightOptions {
             min_snr: 10.0,
             ambiguous_share: 0.8,
             max_uncertainty_deg: 0.5,
-            max_elongation: 1.5,
+            max_elongation: 2.5,
         }
     }
 }
@@ -79,7 +79,7 @@ pub struct Highlight {
     /// of [`Highlight::uncertainty_deg`] (1 − exp(−(1°/u)²)), times the blob's energy share
     /// when the highlight is in doubt.
     pub confidence: f64,
-    /// Whether the light can be used: one clear, round highlight away from the rim, with an
+    /// Whether the light can be used: one clear highlight away from the rim, with an
     /// uncertainty within [`HighlightOptions::max_uncertainty_deg`]. When false, the
     /// warnings say why.
     pub accepted: bool,
@@ -266,11 +266,6 @@ pub fn find_highlight(
             rim * 100.0
         ));
     }
-    if best.pixels >= MIN_SHAPE_PIXELS && elongation > options.max_elongation {
-        warnings.push(format!(
-            "the highlight is {elongation:.1} times longer than wide: two reflections merged, or a lamp that is not round"
-        ));
-    }
     if uncertainty_deg > options.max_uncertainty_deg {
         warnings.push(format!(
             "the direction is uncertain: ±{uncertainty_deg:.2}° (rms), more than the {:.2}° accepted",
@@ -278,6 +273,12 @@ pub fn find_highlight(
         ));
     }
     let accepted = warnings.is_empty();
+    // Lamps are often not round (a panel, a reflector), so shape alone does not reject.
+    if best.pixels >= MIN_SHAPE_PIXELS && elongation > options.max_elongation {
+        warnings.push(format!(
+            "the highlight is {elongation:.1} times longer than wide: two reflections merged, or a lamp that is not round"
+        ));
+    }
     if best.pixels < 3 {
         warnings.push(format!(
             "the highlight covers only {} pixel(s): its position is not sub-pixel",

@@ -138,13 +138,13 @@ pub fn intensities_from_sphere(
         let mut intensity = [0.0; 3];
         for (c, slot) in intensity.iter_mut().enumerate().take(channels) {
             let plane = stack.plane(k, c);
-            let (sol, _, _) = fit_channel(&|p| value(stack, plane, p))?;
+            let (sol, _, _) = fit_channel(&|p| value(stack, k, plane, p))?;
             *slot = sol.norm();
         }
         if channels == 1 {
             intensity = [intensity[0]; 3];
         }
-        let (grey, used, rel) = fit_channel(&|p| value(&mixed, mixed.plane(k, 0), p))?;
+        let (grey, used, rel) = fit_channel(&|p| value(&mixed, k, mixed.plane(k, 0), p))?;
         let b = grey;
         if b.norm() <= 0.0 {
             return Err(bad(stack, k, "the matte sphere is not lit".into()));
@@ -205,7 +205,7 @@ pub fn intensities_from_card(
             let plane = stack.plane(k, c);
             let vals: Vec<f64> = pixels
                 .iter()
-                .map(|p| value(stack, plane, *p))
+                .map(|p| value(stack, k, plane, *p))
                 .filter(|v| v.is_finite() && *v < saturation)
                 .map(f64::from)
                 .collect();
@@ -253,7 +253,11 @@ fn check_count(stack: &ImageStack, directions: &[Vector3<f64>]) -> Result<()> {
     Ok(())
 }
 
-fn value(stack: &ImageStack, plane: &[f32], pixel: usize) -> f32 {
+/// Pixel `pixel` of image `image` (its `plane`), NaN where the stack flags it saturated.
+fn value(stack: &ImageStack, image: usize, plane: &[f32], pixel: usize) -> f32 {
+    if stack.is_saturated(image, pixel) {
+        return f32::NAN;
+    }
     stack.local(pixel).map_or(f32::NAN, |i| plane[i])
 }
 

@@ -114,12 +114,52 @@ pub struct ChromeCalibration {
 }
 
 impl ChromeCalibration {
-    /// The light directions, one per image, with unit intensity.
+    /// The light directions, one per image, with unit intensity, when every light is
+    /// accepted ([`Highlight::accepted`]).
+    ///
+    /// # Errors
+    /// As [`ChromeCalibration::all_lights`]; and [`Error::BadImage`] naming the first image
+    /// whose light is in doubt (the message lists them all, with why).
+    pub fn lights(&self) -> Result<Lights> {
+        let doubtful: Vec<(&LightOutcome, &Highlight)> = self
+            .lights
+            .iter()
+            .filter_map(|o| match &o.result {
+                HighlightResult::Found(h) if !h.accepted => Some((o, h)),
+                _ => None,
+            })
+            .collect();
+        if let (Some((first, _)), false) = (doubtful.first(), self.has_missing()) {
+            let all: Vec<String> = doubtful
+                .iter()
+                .map(|(o, h)| format!("image {}: {}", o.index, h.warnings.join("; ")))
+                .collect();
+            return Err(Error::BadImage {
+                path: first.image.clone(),
+                index: first.index,
+                reason: format!(
+                    "{} of {} lights are in doubt ({}); photograph them again, or keep them as they are with their uncertainty",
+                    doubtful.len(),
+                    self.lights.len(),
+                    all.join(" | ")
+                ),
+            });
+        }
+        self.all_lights()
+    }
+
+    fn has_missing(&self) -> bool {
+        self.lights
+            .iter()
+            .any(|o| matches!(o.result, HighlightResult::Missing(_)))
+    }
+
+    /// The light directions, one per image, with unit intensity, whether accepted or in doubt.
     ///
     /// # Errors
     /// [`Error::BadImage`] naming the first image without a highlight (the message lists them
     /// all): a lights file must have one light per image.
-    pub fn lights(&self) -> Result<Lights> {
+    pub fn all_lights(&self) -> Result<Lights> {
         let missing: Vec<&LightOutcome> = self
             .lights
             .iter()
@@ -252,15 +292,21 @@ fn find_sphere_in(
     // The median suits a mirror ball (it drops every highlight), the upper quartile a matte
     // one (its rim stays lit). Circles from both are verified against the images.
     let median = evidence(grey, w, h, 0.5);
-    let quartile = evidence(grey, w, h, 0.75);
     let mut candidates: Vec<Candidate> = Vec::new();
     for c in detect_circles(&median, CANDIDATES)
         .into_iter()
-        .chain(detect_circles(&quartile, CANDIDATES))
+        .chain(detect_circles(&evidence(grey, w, h, 0.75), CANDIDATES))
+        .chain(detect_circles(&evidence(grey, w, h, 1.0), CANDIDATES))
     {
-        let same = |o: &Candidate| same_circle(&o.fit.circle, &c.fit.circle);
-        if !candidates.iter().any(same) {
-            candidates.push(c);
+        // Of two fits of one circle, keep the one with the smaller errors.
+        let spread = |c: &Candidate| c.fit.std_err.iter().map(|e| e * e).sum::<f64>();
+        match candidates
+            .iter_mut()
+            .find(|o| same_circle(&o.fit.circle, &c.fit.circle))
+        {
+            Some(o) if spread(&c) < spread(o) => *o = c,
+            Some(_) => {}
+            None => candidates.push(c),
         }
     }
     if candidates.is_empty() {
@@ -290,33 +336,55 @@ fn find_sphere_in(
         [(best, _)] => Ok((best.fit, SphereSource::Detected)),
         // Overlapping circles compete for the same outline: the one that holds clearly more of
         // it wins (a circle grazing the true one holds an arc of it).
-        [(a, _), (b, _), ..]
-            if overlap(&a.fit.circle, &b.fit.circle)
-                && a.support >= b.support + CLEAR_SUPPORT
-                && passed[2..].iter().all(|(c, _)| {
-                    !overlap(&a.fit.circle, &c.fit.circle) || a.support >= c.support + CLEAR_SUPPORT
-                }) =>
+        // A circle a few pixels off the best one is a worse fit of the same outline.
+        [(a, _), rest @ ..]
+            if rest.iter().all(|(c, _)| {
+                near(&a.fit.circle, &c.fit.circle)
+                    || (overlap(&a.fit.circle, &c.fit.circle)
+                        && a.support >= c.support + CLEAR_SUPPORT)
+            }) =>
         {
-            Ok((a.fit, SphereSource::Detected))
+            // Of the fits of that outline, the one with the smallest errors: the evidence in
+            // which it is most nearly a circle (the median for a mirror ball; the upper
+            // quartile for a matte one, whose unlit side the median darkens to its rim).
+            let spread = |c: &Candidate| c.fit.std_err.iter().map(|e| e * e).sum::<f64>();
+            let best = std::iter::once(a)
+                .chain(
+                    rest.iter()
+                        .map(|(c, _)| c)
+                        .filter(|c| near(&a.fit.circle, &c.fit.circle)),
+                )
+                .min_by(|x, y| spread(x).total_cmp(&spread(y)))
+                .unwrap_or(a);
+            Ok((best.fit, SphereSource::Detected))
         }
         [(a, _), (b, _), ..] => {
             let (ca, cb) = (a.fit.circle, b.fit.circle);
             let apart = (ca.cx - cb.cx).hypot(ca.cy - cb.cy) > ca.radius + cb.radius;
+            let listed: Vec<String> = passed
+                .iter()
+                .take(4)
+                .map(|(c, _)| {
+                    let k = c.fit.circle;
+                    format!(
+                        "centre ({:.1}, {:.1}) radius {:.1} px with edges over {:.0}% of it",
+                        k.cx,
+                        k.cy,
+                        k.radius,
+                        c.support * 100.0
+                    )
+                })
+                .collect();
             Err(Error::SphereNotFound {
                 reason: format!(
-                    "{} circles pass the checks of a calibration sphere, e.g. centre ({:.1}, {:.1}) radius {:.1} px and centre ({:.1}, {:.1}) radius {:.1} px{}",
+                    "{} circles pass the checks of a calibration sphere{}: {}",
                     passed.len(),
-                    ca.cx,
-                    ca.cy,
-                    ca.radius,
-                    cb.cx,
-                    cb.cy,
-                    cb.radius,
                     if apart {
                         " (two spheres?)"
                     } else {
-                        " (one inside the other)"
-                    }
+                        ", one overlapping another"
+                    },
+                    listed.join("; ")
                 ),
             })
         }
@@ -326,6 +394,12 @@ fn find_sphere_in(
 /// How much more of its outline (fraction of the in-frame circumference) a circle must hold
 /// than one overlapping it to be taken instead of it.
 const CLEAR_SUPPORT: f64 = 0.15;
+
+/// Whether two circles are within a few pixels of each other everywhere (4 px or 5% of the
+/// radius, whichever is more).
+fn near(a: &sphere::Circle, b: &sphere::Circle) -> bool {
+    (a.cx - b.cx).hypot(a.cy - b.cy) + (a.radius - b.radius).abs() <= (0.05 * a.radius).max(4.0)
+}
 
 /// Whether two circles overlap.
 fn overlap(a: &sphere::Circle, b: &sphere::Circle) -> bool {
@@ -519,6 +593,7 @@ pub fn lights_file_json(
             if let Some(h) = h {
                 v["confidence"] = serde_json::json!(h.confidence);
                 v["uncertainty_deg"] = serde_json::json!(h.uncertainty_deg);
+                v["accepted"] = serde_json::json!(h.accepted);
             }
             v
         })
@@ -583,13 +658,15 @@ fn evidence(grey: &[Vec<f32>], w: usize, h: usize, q: f64) -> ScalarMap {
 }
 
 /// Reads reference images as they are stored (no intensity division), grey or RGB as the
-/// files are, with the given transfer function.
+/// files are, with the given transfer function and saturation level (see
+/// [`LoadOptions::saturation`]).
 ///
 /// # Errors
 /// As [`load_stack`].
 pub fn load_reference_images(
     paths: &[PathBuf],
     transfer: Transfer,
+    saturation: Option<f32>,
     progress: &dyn Progress,
 ) -> Result<ImageStack> {
     let Some(first) = paths.first() else {
@@ -607,7 +684,7 @@ pub fn load_reference_images(
         &LoadOptions {
             color,
             transfer,
-            saturation: None,
+            saturation,
             window: None,
         },
         progress,

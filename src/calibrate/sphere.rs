@@ -31,6 +31,8 @@ const RADIAL_COSINE: f64 = 0.9;
 /// Length (pixels) of outline over which a detected circle's edge points share their errors:
 /// the σ = 1 px blur and the 3×3 Sobel stencil make about three neighbours move together.
 const EDGE_CORRELATION_PX: f64 = 3.0;
+/// Side (pixels) of the tiles over which the gradient noise is measured.
+const NOISE_TILE: usize = 16;
 /// Noise-only pixels expected to pass the edge threshold in a whole image.
 const FALSE_EDGES: f64 = 10.0;
 /// Smallest radius [`detect_circle`] looks for, in pixels.
@@ -622,7 +624,7 @@ fn edge_points(img: &ScalarMap) -> Vec<Edge> {
     if w < 3 || h < 3 {
         return Vec::new();
     }
-    let smooth = gaussian_blur(img);
+    let smooth: Vec<f32> = img.data().iter().map(|v| if v.is_finite() { *v } else { 0.0 }).collect();
     let v = |x: usize, y: usize| smooth[y * w + x];
     let mut gx = vec![0.0f32; w * h];
     let mut gy = vec![0.0f32; w * h];
@@ -639,27 +641,41 @@ fn edge_points(img: &ScalarMap) -> Vec<Edge> {
             mag[i] = sx.hypot(sy);
         }
     }
-    // Gradient components of pure noise are normal with one σ; most pixels are flat, so the
-    // median absolute component measures it. The magnitude of noise exceeds kσ with
-    // probability exp(−k²/2): k = √(2 ln(N / FALSE_EDGES)) lets about FALSE_EDGES through.
-    let mut comps: Vec<f32> = (1..h - 1)
-        .flat_map(|y| (1..w - 1).map(move |x| y * w + x))
-        .flat_map(|i| [gx[i].abs(), gy[i].abs()])
-        .collect();
-    let sigma = 1.4826 * f64::from(median_by(&mut comps, f32::total_cmp).unwrap_or(0.0));
+    // Gradient components of pure noise are normal with one σ; most pixels of a tile are flat,
+    // so the median absolute component measures it there (tile by tile: the noise of a bright
+    // ball is not that of a dark or clipped background). The magnitude of noise exceeds kσ
+    // with probability exp(−k²/2): k = √(2 ln(N / FALSE_EDGES)) lets about FALSE_EDGES
+    // through in the whole image.
     let peak = mag.iter().copied().fold(0.0f32, f32::max);
     if peak <= 0.0 {
         return Vec::new();
     }
-    let k = (2.0 * ((w * h) as f64 / FALSE_EDGES).max(1.0).ln()).sqrt();
-    // A noise-free image still has rounding: nothing below a millionth of the strongest edge.
-    let threshold = ((k * sigma) as f32).max(1e-6 * peak);
+    let k = (2.0 * ((w * h) as f64 / FALSE_EDGES).max(1.0).ln()).sqrt() as f32;
+    let (tw, th) = (w.div_ceil(NOISE_TILE), h.div_ceil(NOISE_TILE));
+    let mut tile_threshold = vec![0.0f32; tw * th];
+    let mut comps: Vec<f32> = Vec::with_capacity(2 * NOISE_TILE * NOISE_TILE);
+    for ty in 0..th {
+        for tx in 0..tw {
+            comps.clear();
+            for y in (ty * NOISE_TILE).max(1)..((ty + 1) * NOISE_TILE).min(h - 1) {
+                for x in (tx * NOISE_TILE).max(1)..((tx + 1) * NOISE_TILE).min(w - 1) {
+                    comps.push(gx[y * w + x].abs());
+                    comps.push(gy[y * w + x].abs());
+                }
+            }
+            let sigma = 1.4826 * median_by(&mut comps, f32::total_cmp).unwrap_or(0.0);
+            // A noise-free image still has rounding: nothing below a millionth of the
+            // strongest edge.
+            tile_threshold[ty * tw + tx] = (k * sigma).max(1e-6 * peak);
+        }
+    }
+    let threshold_at = |x: usize, y: usize| tile_threshold[(y / NOISE_TILE) * tw + x / NOISE_TILE];
     let mut edges = Vec::new();
     for y in 2..h - 2 {
         for x in 2..w - 2 {
             let i = y * w + x;
             let m = mag[i];
-            if m <= threshold {
+            if m <= threshold_at(x, y) {
                 continue;
             }
             let (ux, uy) = (f64::from(gx[i] / m), f64::from(gy[i] / m));

@@ -58,6 +58,9 @@ struct JsonLight {
     /// Written by `photostereo calibrate` (informational).
     #[serde(default, rename = "uncertainty_deg")]
     _uncertainty_deg: Option<f64>,
+    /// Written by `photostereo calibrate` (informational).
+    #[serde(default, rename = "accepted")]
+    _accepted: Option<bool>,
 }
 
 #[derive(Deserialize, Serialize, Clone, Copy)]
