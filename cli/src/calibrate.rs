@@ -170,7 +170,12 @@ fn measure_intensities(
             );
         }
         (
-            Some(load_reference_images(&paths, transfer, a.saturation, progress)?),
+            Some(load_reference_images(
+                &paths,
+                transfer,
+                a.saturation,
+                progress,
+            )?),
             mask,
         )
     };
@@ -182,8 +187,7 @@ fn measure_intensities(
     let (intensities, report) = if let Some(card) = &a.card_mask {
         let m = read_mask(card)?;
         let n = Vector3::from(a.card_normal);
-        let e =
-            intensities_from_card(stack, &m, n, directions, matte_options.saturation)?;
+        let e = intensities_from_card(stack, &m, n, directions, matte_options.saturation)?;
         (
             e,
             IntensityCalibration::GreyCard {
@@ -196,8 +200,7 @@ fn measure_intensities(
         let mask = mask_path.as_deref().map(read_grey_mask).transpose()?;
         let (sphere, sphere_source) = find_sphere(stack, mask.as_ref().zip(mask_path.as_deref()))
             .map_err(|e| mask_hint(e, "--matte-mask"))?;
-        let fits =
-            intensities_from_sphere(stack, &sphere.circle, directions, &matte_options)?;
+        let fits = intensities_from_sphere(stack, &sphere.circle, directions, &matte_options)?;
         let c = sphere.circle;
         say!(
             "matte sphere: centre ({:.2}, {:.2}) px, radius {:.2} px",

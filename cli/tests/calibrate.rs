@@ -565,4 +565,3 @@ fn calibrate_command_writes_a_lights_file_the_main_command_reads() {
     );
     assert!(recon.join("normal.exr").is_file());
 }
-

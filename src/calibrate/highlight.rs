@@ -336,7 +336,6 @@ fn circle_sensitivity(sphere: &CircleFit, centroid: [f64; 2]) -> f64 {
     sum.sqrt().to_degrees()
 }
 
-
 /// Running sums of one blob.
 #[derive(Debug, Default)]
 struct Blob {
@@ -368,7 +367,13 @@ impl Blob {
     /// their mean `m`. A round lamp gives about 1.
     fn elongation(&self, m: &Vector3<f64>) -> f64 {
         let c = self.sum_wrr / self.energy;
-        let e1 = m.cross(&if m.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() }).normalize();
+        let e1 = m
+            .cross(&if m.x.abs() < 0.9 {
+                Vector3::x()
+            } else {
+                Vector3::y()
+            })
+            .normalize();
         let e2 = m.cross(&e1);
         let (a, b, d) = (e1.dot(&(c * e1)), e1.dot(&(c * e2)), e2.dot(&(c * e2)));
         let mean = 0.5 * (a + d);

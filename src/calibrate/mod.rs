@@ -431,7 +431,8 @@ impl Transients {
                     .map(|(v, m)| (v - m).abs())
                     .filter(|d| d.is_finite())
                     .collect();
-                let s = 1.4826 * f64::from(crate::stats::median_by(&mut dev, f32::total_cmp).unwrap_or(0.0));
+                let s = 1.4826
+                    * f64::from(crate::stats::median_by(&mut dev, f32::total_cmp).unwrap_or(0.0));
                 s.max(1e-6)
             })
             .collect();

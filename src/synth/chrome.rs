@@ -222,7 +222,9 @@ impl ChromeCapture {
     fn radiance(&self, k: usize, x: f64, y: f64) -> f64 {
         let view = match &self.camera {
             None => Vector3::z(),
-            Some((kk, _)) => Vector3::new(-(x - kk.cx) / kk.fx, (y - kk.cy) / kk.fy, 1.0).normalize(),
+            Some((kk, _)) => {
+                Vector3::new(-(x - kk.cx) / kk.fx, (y - kk.cy) / kk.fy, 1.0).normalize()
+            }
         };
         for (b, c) in self.balls.iter().enumerate() {
             let Some(point) = self.hit(b, c, x, y, &view) else {
@@ -239,7 +241,9 @@ impl ChromeCapture {
             if self.table_reflection > 0.0 {
                 let mirrored = Lamp {
                     place: match lamp.place {
-                        LampPlace::Direction(d) => LampPlace::Direction(Vector3::new(d.x, -d.y, d.z)),
+                        LampPlace::Direction(d) => {
+                            LampPlace::Direction(Vector3::new(d.x, -d.y, d.z))
+                        }
                         LampPlace::Position(p) => LampPlace::Position(Vector3::new(p.x, -p.y, p.z)),
                     },
                     ..*lamp
@@ -254,7 +258,14 @@ impl ChromeCapture {
     }
 
     /// Where the ray of image point (x, y) meets ball `b` (camera frame), if it does.
-    fn hit(&self, b: usize, c: &Circle, x: f64, y: f64, view: &Vector3<f64>) -> Option<Vector3<f64>> {
+    fn hit(
+        &self,
+        b: usize,
+        c: &Circle,
+        x: f64,
+        y: f64,
+        view: &Vector3<f64>,
+    ) -> Option<Vector3<f64>> {
         match &self.camera {
             None => {
                 let (dx, dy) = (x - c.cx, -(y - c.cy));
