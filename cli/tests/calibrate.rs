@@ -435,7 +435,7 @@ fn psm_chrome_calibration_explains_the_objects_better_than_the_reference() {
     assert!(gray_err[0].mean_deg < gray_err[1].mean_deg);
     assert!(gray_err[0].median_deg < gray_err[1].median_deg);
 
-    for object in ["cat", "buddha"] {
+    for object in ["buddha", "cat", "gray", "horse", "owl", "rock"] {
         let list = psm.join(format!("{object}.txt"));
         let ours = reconstruct_psm(&list, &calibrated);
         let theirs = reconstruct_psm(&list, &reference);
@@ -564,4 +564,139 @@ fn calibrate_command_writes_a_lights_file_the_main_command_reads() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(recon.join("normal.exr").is_file());
+}
+
+/// What `photostereo calibrate` says of inputs it cannot use: a mask that is not a disc, a mask
+/// of another size, a light behind the ball, a highlight at the rim (in doubt: refused unless
+/// `--keep-doubtful`), and a saturation level that is not one.
+#[test]
+fn calibrate_names_bad_inputs() {
+    use photostereo::synth::chrome::{ChromeCapture, Depth, Lamp, LampPlace, Wall};
+    let dir = tempfile::tempdir().unwrap();
+    let lamp = |d: Vector3<f64>| Lamp {
+        place: LampPlace::Direction(d.normalize()),
+        radius_deg: 3.0,
+        radiance: 4.0,
+    };
+    let capture = |lamps: Vec<Lamp>| ChromeCapture {
+        width: 160,
+        height: 150,
+        balls: vec![Circle {
+            cx: 80.3,
+            cy: 74.6,
+            radius: 60.0,
+        }],
+        reflectance: 0.8,
+        environment: 0.3,
+        environment_slope: 0.05,
+        wall: Wall::Plain {
+            level: 0.6,
+            slope: 0.0,
+        },
+        lamps,
+        table_reflection: 0.0,
+        noise: 0.005,
+        supersampling: 3,
+        camera: None,
+        depth: Depth::Linear16,
+        seed: 5,
+    };
+    let write = |name: &str, cap: &ChromeCapture| -> Vec<std::path::PathBuf> {
+        let imgs = cap.render();
+        imgs.to_u16()
+            .into_iter()
+            .enumerate()
+            .map(|(k, codes)| {
+                let p = dir.path().join(format!("{name}{k}.png"));
+                image::ImageBuffer::<image::Luma<u16>, _>::from_raw(160, 150, codes)
+                    .unwrap()
+                    .save(&p)
+                    .unwrap();
+                p
+            })
+            .collect()
+    };
+    let good = [
+        Vector3::new(0.3, 0.2, 0.93),
+        Vector3::new(-0.4, 0.3, 0.87),
+        Vector3::new(0.1, -0.5, 0.86),
+    ];
+    let images = write("good", &capture(good.iter().map(|d| lamp(*d)).collect()));
+    let save_mask = |name: &str, w: u32, h: u32, inside: &dyn Fn(f64, f64) -> bool| {
+        let p = dir.path().join(name);
+        image::GrayImage::from_fn(w, h, |x, y| {
+            image::Luma([if inside(f64::from(x), f64::from(y)) {
+                255
+            } else {
+                0
+            }])
+        })
+        .save(&p)
+        .unwrap();
+        p
+    };
+    let square = save_mask("square.png", 160, 150, &|x, y| {
+        (x - 80.3).abs() < 55.0 && (y - 74.6).abs() < 55.0
+    });
+    let small = save_mask("small.png", 120, 150, &|x, y| {
+        (x - 80.3).hypot(y - 74.6) < 60.0
+    });
+    let out = dir.path().join("lights.json");
+    let calibrate = |images: &[std::path::PathBuf], extra: &[&str]| {
+        let mut args: Vec<&std::ffi::OsStr> = vec![common::os("calibrate")];
+        args.extend(images.iter().map(|p| p.as_os_str()));
+        args.extend(extra.iter().map(common::os));
+        args.extend([common::os("-o"), out.as_os_str(), common::os("--force")]);
+        let o = common::run(&args);
+        (
+            o.status.success(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        )
+    };
+    // The good capture calibrates, detected and with a disc mask.
+    let (ok, err) = calibrate(&images, &[]);
+    assert!(ok, "{err}");
+    let (ok, err) = calibrate(&images, &["--mask", square.to_str().unwrap()]);
+    assert!(
+        !ok && err.contains("square.png") && err.contains("not a circle"),
+        "{err}"
+    );
+    let (ok, err) = calibrate(&images, &["--mask", small.to_str().unwrap()]);
+    assert!(!ok && err.contains("120") && err.contains("160"), "{err}");
+    let (ok, err) = calibrate(&images, &["--saturation", "0"]);
+    assert!(!ok && err.contains("--saturation"), "{err}");
+    // A light behind the ball: no highlight, named.
+    let behind = write(
+        "behind",
+        &capture(vec![
+            lamp(good[0]),
+            lamp(Vector3::new(0.1, 0.0, -1.0)),
+            lamp(good[1]),
+        ]),
+    );
+    let (ok, err) = calibrate(&behind, &[]);
+    assert!(
+        !ok && err.contains("image 1") && err.contains("no highlight"),
+        "{err}"
+    );
+    // A light 84° from the view: its highlight is at the rim, in doubt.
+    let rim = write(
+        "rim",
+        &capture(vec![
+            lamp(good[0]),
+            lamp(good[1]),
+            lamp(Vector3::new(0.0, 0.995, 0.1)),
+        ]),
+    );
+    let (ok, err) = calibrate(&rim, &[]);
+    assert!(
+        !ok && err.contains("image 2") && err.contains("rim") && err.contains("--keep-doubtful"),
+        "{err}"
+    );
+    let (ok, err) = calibrate(&rim, &["--keep-doubtful"]);
+    assert!(ok, "{err}");
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(json["lights"][2]["accepted"], false);
+    assert_eq!(json["lights"][0]["accepted"], true);
 }

@@ -416,9 +416,11 @@ def reflectance_map(
 def calibrate(images: np.ndarray, mask: Optional[np.ndarray] = None) -> Dict[str, Any]:
     """Light directions from images of a chrome sphere (N x H x W[ x C]), one per light.
 
-    Returns ``{"lights": N x 3 or None (when some image has no usable highlight),
-    "report": dict}``: the sphere fitted, and per image the highlight, its light and its
-    uncertainty, or why there is none.
+    Returns ``{"lights": N x 3 or None (when some image has no highlight or its light is in
+    doubt: ambiguous, at the rim, or more uncertain than 0.5 degrees rms), "report": dict}``:
+    the sphere fitted (from ``mask``, or detected and verified against the images), and per
+    image the highlight, its light, its uncertainty, confidence and whether it is accepted, or
+    why there is none.
     """
     images = _check_array(images, "images")
     lights, report = _native.calibrate(images, _mask(mask))

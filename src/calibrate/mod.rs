@@ -204,14 +204,18 @@ impl ChromeCalibration {
 }
 
 /// Calibrates one light per image from a mirror sphere: the sphere's circle from `mask` (a
-/// grey mask, with its file for errors) or, without one, detected in the per-pixel median or
-/// upper quartile of the images;
-/// then each image's highlight (see [`highlight::find_highlight`]).
+/// grey mask, with its file for errors) or, without one, detected in the images and verified
+/// against them (see [`sphere::detect_circles`] and `docs/calibration.md`: something inside it
+/// must be lit differently by the lights, and the images must show its outline; of several
+/// balls apart, the largest is used and the others are named in the warnings); then each
+/// image's highlight (see [`highlight::find_highlight`]) in its excess over the per-pixel
+/// median of the images.
 ///
 /// # Errors
 /// [`Error::DimensionMismatch`] when the mask's size differs from the images';
 /// [`Error::Mask`] when the mask's outline is not a circle; [`Error::SphereNotFound`] when no
-/// sphere is detected; [`Error::TooFewImages`] for an empty stack.
+/// circle passes the checks, or overlapping ones do and none is clearly the ball (the message
+/// lists them); [`Error::TooFewImages`] for an empty stack.
 pub fn calibrate_chrome(
     stack: &ImageStack,
     mask: Option<(&ScalarMap, &Path)>,
@@ -222,8 +226,14 @@ pub fn calibrate_chrome(
     }
     let grey = grey_images(stack);
     let (w, h) = (stack.width(), stack.height());
-    let (sphere, source) = find_sphere_in(&grey, w, h, mask)?;
+    let (sphere, source, others) = find_sphere_in(&grey, w, h, mask)?;
     let mut warnings = Vec::new();
+    for o in others {
+        warnings.push(format!(
+            "another sphere is in the images, centre ({:.1}, {:.1}) radius {:.1} px: the largest is used (give a mask to choose)",
+            o.cx, o.cy, o.radius
+        ));
+    }
     let c = sphere.circle;
     if c.cx - c.radius < 0.0
         || c.cy - c.radius < 0.0
@@ -276,7 +286,9 @@ pub fn find_sphere(
     stack: &ImageStack,
     mask: Option<(&ScalarMap, &Path)>,
 ) -> Result<(CircleFit, SphereSource)> {
-    find_sphere_in(&grey_images(stack), stack.width(), stack.height(), mask)
+    let (fit, source, _) =
+        find_sphere_in(&grey_images(stack), stack.width(), stack.height(), mask)?;
+    Ok((fit, source))
 }
 
 fn find_sphere_in(
@@ -284,10 +296,10 @@ fn find_sphere_in(
     w: usize,
     h: usize,
     mask: Option<(&ScalarMap, &Path)>,
-) -> Result<(CircleFit, SphereSource)> {
+) -> Result<(CircleFit, SphereSource, Vec<sphere::Circle>)> {
     if let Some((m, path)) = mask {
         Grid::new(w, h, ()).check_same_size(m, "sphere mask vs images")?;
-        return Ok((circle_from_mask(m, path)?, SphereSource::Mask));
+        return Ok((circle_from_mask(m, path)?, SphereSource::Mask, Vec::new()));
     }
     // The median suits a mirror ball (it drops every highlight), the upper quartile a matte
     // one (its rim stays lit). Circles from both are verified against the images.
@@ -320,75 +332,81 @@ fn find_sphere_in(
         .into_iter()
         .map(|c| (c, verify(&c, grey, &median, &transients, w, h)))
         .collect();
-    let mut passed: Vec<&(Candidate, Verification)> =
-        checks.iter().filter(|(_, v)| v.passed()).collect();
-    passed.sort_by(|a, b| b.0.support.total_cmp(&a.0.support));
-    match passed.as_slice() {
-        [] => {
-            let why: Vec<String> = checks.iter().take(3).map(|(c, v)| v.describe(c)).collect();
-            Err(Error::SphereNotFound {
-                reason: format!(
-                    "no circle in the images passes the checks of a calibration sphere ({})",
-                    why.join("; ")
-                ),
-            })
-        }
-        [(best, _)] => Ok((best.fit, SphereSource::Detected)),
-        // Overlapping circles compete for the same outline: the one that holds clearly more of
-        // it wins (a circle grazing the true one holds an arc of it).
-        // A circle a few pixels off the best one is a worse fit of the same outline.
-        [(a, _), rest @ ..]
-            if rest.iter().all(|(c, _)| {
-                near(&a.fit.circle, &c.fit.circle)
-                    || (overlap(&a.fit.circle, &c.fit.circle)
-                        && a.support >= c.support + CLEAR_SUPPORT)
-            }) =>
-        {
-            // Of the fits of that outline, the one with the smallest errors: the evidence in
-            // which it is most nearly a circle (the median for a mirror ball; the upper
-            // quartile for a matte one, whose unlit side the median darkens to its rim).
-            let spread = |c: &Candidate| c.fit.std_err.iter().map(|e| e * e).sum::<f64>();
-            let best = std::iter::once(a)
-                .chain(
-                    rest.iter()
-                        .map(|(c, _)| c)
-                        .filter(|c| near(&a.fit.circle, &c.fit.circle)),
-                )
-                .min_by(|x, y| spread(x).total_cmp(&spread(y)))
-                .unwrap_or(a);
-            Ok((best.fit, SphereSource::Detected))
-        }
-        [(a, _), (b, _), ..] => {
-            let (ca, cb) = (a.fit.circle, b.fit.circle);
-            let apart = (ca.cx - cb.cx).hypot(ca.cy - cb.cy) > ca.radius + cb.radius;
-            let listed: Vec<String> = passed
-                .iter()
-                .take(4)
-                .map(|(c, _)| {
-                    let k = c.fit.circle;
-                    format!(
-                        "centre ({:.1}, {:.1}) radius {:.1} px with edges over {:.0}% of it",
-                        k.cx,
-                        k.cy,
-                        k.radius,
-                        c.support * 100.0
-                    )
-                })
-                .collect();
-            Err(Error::SphereNotFound {
-                reason: format!(
-                    "{} circles pass the checks of a calibration sphere{}: {}",
-                    passed.len(),
-                    if apart {
-                        " (two spheres?)"
-                    } else {
-                        ", one overlapping another"
-                    },
-                    listed.join("; ")
-                ),
-            })
-        }
+    let mut passed: Vec<&Candidate> = checks
+        .iter()
+        .filter(|(_, v)| v.passed())
+        .map(|(c, _)| c)
+        .collect();
+    if passed.is_empty() {
+        let why: Vec<String> = checks.iter().take(3).map(|(c, v)| v.describe(c)).collect();
+        return Err(Error::SphereNotFound {
+            reason: format!(
+                "no circle in the images passes the checks of a calibration sphere ({})",
+                why.join("; ")
+            ),
+        });
     }
+    passed.sort_by(|a, b| b.support.total_cmp(&a.support));
+    // Circles that overlap compete for one outline; circles apart are different balls.
+    let mut balls: Vec<Candidate> = Vec::new();
+    while let Some(&lead) = passed.first() {
+        let group: Vec<&Candidate> = passed
+            .iter()
+            .copied()
+            .filter(|c| overlap(&lead.fit.circle, &c.fit.circle))
+            .collect();
+        passed.retain(|c| !overlap(&lead.fit.circle, &c.fit.circle));
+        balls.push(resolve(&group)?);
+    }
+    balls.sort_by(|a, b| b.fit.circle.radius.total_cmp(&a.fit.circle.radius));
+    let others = balls[1..].iter().map(|b| b.fit.circle).collect();
+    Ok((balls[0].fit, SphereSource::Detected, others))
+}
+
+/// The circle among `group` (overlapping circles that passed the checks, best supported
+/// first): the leader when every other is a worse fit of its outline (within a few pixels of
+/// it) or holds clearly less of an outline; of the fits of that outline, the one with the
+/// smallest errors, i.e. the evidence in which it is most nearly a circle (the median for a
+/// mirror ball; the upper quartile for a matte one, whose unlit side the median darkens).
+fn resolve(group: &[&Candidate]) -> Result<Candidate> {
+    let (&lead, rest) = group.split_first().ok_or_else(|| Error::SphereNotFound {
+        reason: "no candidate".into(),
+    })?;
+    let clear = rest.iter().all(|c| {
+        near(&lead.fit.circle, &c.fit.circle) || lead.support >= c.support + CLEAR_SUPPORT
+    });
+    if !clear {
+        let listed: Vec<String> = group
+            .iter()
+            .take(4)
+            .map(|c| {
+                let k = c.fit.circle;
+                format!(
+                    "centre ({:.1}, {:.1}) radius {:.1} px with edges over {:.0}% of it",
+                    k.cx,
+                    k.cy,
+                    k.radius,
+                    c.support * 100.0
+                )
+            })
+            .collect();
+        return Err(Error::SphereNotFound {
+            reason: format!(
+                "{} overlapping circles pass the checks of a calibration sphere and none holds clearly more of its outline: {}",
+                group.len(),
+                listed.join("; ")
+            ),
+        });
+    }
+    let spread = |c: &Candidate| c.fit.std_err.iter().map(|e| e * e).sum::<f64>();
+    Ok(*std::iter::once(lead)
+        .chain(
+            rest.iter()
+                .copied()
+                .filter(|c| near(&lead.fit.circle, &c.fit.circle)),
+        )
+        .min_by(|x, y| spread(x).total_cmp(&spread(y)))
+        .unwrap_or(lead))
 }
 
 /// How much more of its outline (fraction of the in-frame circumference) a circle must hold

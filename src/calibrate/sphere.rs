@@ -19,6 +19,8 @@ const ROBUST_ROUNDS: usize = 4;
 const OUTLIER_SIGMAS: f64 = 3.0;
 /// Floor of the outlier cut in pixels (a mask edge is never better than this).
 const OUTLIER_FLOOR_PX: f64 = 0.75;
+/// A mask's edge points may lie this far (rms, pixels) from its circle, plus 1% of the radius.
+const MAX_MASK_RMS_PX: f64 = 1.0;
 /// Angular bins used to measure how much of the circumference the edge points cover.
 const COVERAGE_BINS: usize = 72;
 /// Least fraction of the circumference a detected circle's edge points must cover.
@@ -267,7 +269,8 @@ pub fn mask_edge_points(mask: &ScalarMap) -> Vec<[f64; 2]> {
 ///
 /// # Errors
 /// [`Error::Mask`] (naming `source`) when the mask has no edge or its edge is not a circle
-/// (covers less than [`MIN_COVERAGE`] of one).
+/// (covers less than [`MIN_COVERAGE`] of one, or its points lie more than 1 px + 1% of the
+/// radius from it, rms, or most of them are outliers).
 pub fn circle_from_mask(mask: &ScalarMap, source: &std::path::Path) -> Result<CircleFit> {
     let points = mask_edge_points(mask);
     let fit = fit_circle(&points).map_err(|e| Error::Mask {
@@ -281,6 +284,20 @@ pub fn circle_from_mask(mask: &ScalarMap, source: &std::path::Path) -> Result<Ci
                 "the outline covers {:.0}% of a circle (at least {:.0}% is needed): is this a sphere's mask?",
                 fit.coverage * 100.0,
                 MIN_COVERAGE * 100.0
+            ),
+        });
+    }
+    // A disc's edge lies within a pixel of its circle (a binary mask's staircase is ±0.5 px);
+    // a square's or an ellipse's does not.
+    let limit = MAX_MASK_RMS_PX + 0.01 * fit.circle.radius;
+    if fit.rms_px > limit || fit.outliers > fit.points {
+        return Err(Error::Mask {
+            path: source.to_path_buf(),
+            reason: format!(
+                "its outline is not a circle: the best circle leaves {} of {} edge points out and the rest {:.2} px from it on average (at most {limit:.2} px for a disc)",
+                fit.outliers,
+                fit.points + fit.outliers,
+                fit.rms_px
             ),
         });
     }
