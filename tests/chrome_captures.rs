@@ -340,3 +340,42 @@ fn varied_captures_are_calibrated_or_refused_never_wrong_with_confidence() {
         lights.len()
     );
 }
+
+#[test]
+#[ignore]
+fn one_seed() {
+    let seed: u64 = std::env::var("SEED")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1);
+    let cap = varied(seed);
+    println!(
+        "{:?} {}x{} tab {}",
+        cap.balls, cap.width, cap.height, cap.table_reflection
+    );
+    let c = calibrate_chrome(&stack_of(&cap), None, &ChromeOptions::default()).unwrap();
+    println!("{:?} {:?}", c.sphere, c.warnings);
+    for (k, h) in c.highlights().iter().enumerate() {
+        if let Some(h) = h {
+            let l = cap.light_direction(k, 0);
+            let n = (l + Vector3::z()).normalize();
+            let b = cap.balls[0];
+            println!(
+                "   expected at ({:.1}, {:.1}) lamp {:?}",
+                b.cx + b.radius * n.x,
+                b.cy - b.radius * n.y,
+                cap.lamps[k]
+            );
+            println!(
+                "{k}: {:.2}° ±{:.3} share {:.2} sec {} px {} centroid {:?} acc {}",
+                h.direction.angle(&cap.light_direction(k, 0)).to_degrees(),
+                h.uncertainty_deg,
+                h.share,
+                h.secondary,
+                h.pixels,
+                h.centroid,
+                h.accepted
+            );
+        }
+    }
+}

@@ -104,14 +104,20 @@ pub struct Missing {
 /// blobs; the blob with the largest energy Σ(I − threshold) is the highlight, the others are
 /// secondary reflections.
 ///
+/// `clipped` flags the pixels that are saturated (empty: none known). Saturated blobs are
+/// as bright as each other whatever the lamp's brightness, so when the chosen blob and another
+/// both hold saturated pixels the highlight is ambiguous, whatever its energy share.
+///
 /// Returns `Err(Missing)` when the peak is not [`HighlightOptions::min_snr`] σ above the
 /// background (no highlight, e.g. a light behind the sphere).
 pub fn find_highlight(
     plane: &[f32],
+    clipped: &[bool],
     width: usize,
     sphere: &CircleFit,
     options: &HighlightOptions,
 ) -> Result<Highlight, Missing> {
+    let is_clipped = |i: usize| clipped.get(i).copied().unwrap_or(false);
     let c = sphere.circle;
     let inner = c.radius * (1.0 - options.rim_margin);
     let height = plane.len() / width.max(1);
@@ -180,6 +186,7 @@ pub fn find_highlight(
                     let r = reflect(&Vector3::z(), &n);
                     blob.add(px as f64, py as f64, r, wgt.max(f64::MIN_POSITIVE));
                 }
+                blob.clipped += usize::from(is_clipped(py * width + px));
                 for dy in -1isize..=1 {
                     for dx in -1isize..=1 {
                         let (qx, qy) = (px as isize + dx, py as isize + dy);
@@ -272,6 +279,15 @@ pub fn find_highlight(
             options.max_uncertainty_deg
         ));
     }
+    let clipped_rivals = blobs
+        .iter()
+        .filter(|b| !std::ptr::eq(*b, best) && b.clipped > 0)
+        .count();
+    if best.clipped > 0 && clipped_rivals > 0 {
+        warnings.push(format!(
+            "ambiguous highlight: it and {clipped_rivals} other blob(s) on the sphere are saturated, so their brightness cannot tell the lamp from a reflection of it"
+        ));
+    }
     let accepted = warnings.is_empty();
     // Lamps are often not round (a panel, a reflector), so shape alone does not reject.
     if best.pixels >= MIN_SHAPE_PIXELS && elongation > options.max_elongation {
@@ -348,6 +364,8 @@ struct Blob {
     sum_wrr: Matrix3<f64>,
     /// Σ r rᵀ, unweighted: how noise in the weights moves the mean.
     sum_rr: Matrix3<f64>,
+    /// Saturated pixels.
+    clipped: usize,
 }
 
 impl Blob {

@@ -260,6 +260,7 @@ pub fn calibrate_chrome(
             image: stack.info()[index].path.clone(),
             result: match find_highlight(
                 &excess(plane, median.as_ref()),
+                &clipped(stack, index, plane),
                 w,
                 &sphere,
                 &options.highlight,
@@ -627,6 +628,23 @@ pub fn lights_file_json(
     });
     // Serialising numbers, strings and derived structs cannot fail.
     serde_json::to_string_pretty(&doc).unwrap_or_default()
+}
+
+/// The saturated pixels of image `index` (its grey `plane`): those the stack flags, and, where
+/// two or more pixels share the image's maximum, those at it (float data clipped at a level of
+/// its own).
+fn clipped(stack: &ImageStack, index: usize, plane: &[f32]) -> Vec<bool> {
+    let top = plane
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .fold(f32::MIN, f32::max);
+    let at_top = plane.iter().filter(|v| **v >= top).count();
+    plane
+        .iter()
+        .enumerate()
+        .map(|(p, v)| stack.is_saturated(index, p) || (at_top >= 2 && *v >= top))
+        .collect()
 }
 
 /// `plane` minus `median` (the plane itself without one).
