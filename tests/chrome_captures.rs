@@ -61,7 +61,7 @@ fn a_dark_ball_on_a_lighter_wall_is_found() {
     assert!(off < 0.3, "{:?}", c.sphere);
     let lights = c.lights().unwrap();
     for (k, (l, h)) in lights.directions().iter().zip(c.highlights()).enumerate() {
-        let e = l.angle(&cap.light_direction(k, 0)).to_degrees();
+        let e = l.angle(&cap.light_direction(k, 0).unwrap()).to_degrees();
         let u = h.unwrap().uncertainty_deg;
         println!("light {k}: {e:.3}° off, ±{u:.3}°");
         assert!(e <= 0.3 && e <= 2.0 * u, "light {k}: {e:.3}° off, ±{u:.3}°");
@@ -247,7 +247,7 @@ fn varied_captures_are_calibrated_or_refused_never_wrong_with_confidence() {
                         Some(h) => Outcome::Accepted {
                             error: h
                                 .direction
-                                .angle(&cap.light_direction(k, ball))
+                                .angle(&cap.light_direction(k, ball).unwrap())
                                 .to_degrees(),
                             uncertainty: h.uncertainty_deg,
                             confidence: h.confidence,

@@ -1008,9 +1008,11 @@ pub struct CalibrateArgs {
     /// intensities, hardly for the directions.
     #[arg(long)]
     pub linear: bool,
-    /// Stored value (0–1 after scaling integers) at or above which a sample is saturated:
-    /// saturated samples are left out of the matte ball's or card's intensity fit. Default:
-    /// the maximum code of integer images, no limit for float ones.
+    /// Stored value (0–1 after scaling integers) at or above which a sample is saturated
+    /// (default: the maximum code of integer images; for float images, a maximum shared by
+    /// several pixels). Saturated samples are left out of the matte ball's or card's intensity
+    /// fit (as are linear values from 0.98 up), and a saturated highlight with another
+    /// saturated blob beside it is ambiguous.
     #[arg(long, value_name = "LEVEL")]
     pub saturation: Option<f32>,
     /// Write the lights file even when some lights are in doubt (an ambiguous highlight,

@@ -180,10 +180,9 @@ fn measure_intensities(
         )
     };
     let stack = matte_stack.as_ref().unwrap_or(chrome);
-    let matte_options = MatteOptions {
-        saturation: a.saturation.unwrap_or(MatteOptions::default().saturation),
-        ..MatteOptions::default()
-    };
+    // Samples the loader flags saturated (at --saturation, or the maximum code) are skipped by
+    // the fits, besides those at 0.98 of full scale once linear.
+    let matte_options = MatteOptions::default();
     let (intensities, report) = if let Some(card) = &a.card_mask {
         let m = read_mask(card)?;
         let n = Vector3::from(a.card_normal);

@@ -99,12 +99,14 @@ pub struct Missing {
 /// Finds the light's highlight on the sphere in one grey image (`plane`, `width` columns,
 /// row-major) and the light direction l = 2(n·v)n − v it gives (see the module doc).
 ///
-/// Steps: the sphere's pixels (inside the rim margin) give a background level (median) and a
-/// noise σ (1.4826 × MAD); pixels above background + level × (peak − background) form 8-connected
+/// Steps: the sphere's pixels (inside the rim margin) give a background level (median) and,
+/// unless `noise` is given, a noise σ (1.4826 × MAD); pixels above background + level × (peak − background) form 8-connected
 /// blobs; the blob with the largest energy Σ(I − threshold) is the highlight, the others are
 /// secondary reflections.
 ///
-/// `clipped` flags the pixels that are saturated (empty: none known). Saturated blobs are
+/// `noise` is the image's noise standard deviation when known (else the robust spread of the
+/// sphere's pixels stands in for it). `clipped` flags the pixels that are saturated (empty:
+/// none known). Saturated blobs are
 /// as bright as each other whatever the lamp's brightness, so when the chosen blob and another
 /// both hold saturated pixels the highlight is ambiguous, whatever its energy share.
 ///
@@ -112,6 +114,7 @@ pub struct Missing {
 /// background (no highlight, e.g. a light behind the sphere).
 pub fn find_highlight(
     plane: &[f32],
+    noise: Option<f64>,
     clipped: &[bool],
     width: usize,
     sphere: &CircleFit,
@@ -121,6 +124,12 @@ pub fn find_highlight(
     let c = sphere.circle;
     let inner = c.radius * (1.0 - options.rim_margin);
     let height = plane.len() / width.max(1);
+    if width == 0 || height == 0 || inner.is_nan() || inner <= 0.0 {
+        return Err(Missing {
+            snr: 0.0,
+            reason: "the sphere lies outside the image".into(),
+        });
+    }
     let x0 = ((c.cx - inner).floor().max(0.0)) as usize;
     let x1 = ((c.cx + inner).ceil().max(0.0) as usize).min(width.saturating_sub(1));
     let y0 = ((c.cy - inner).floor().max(0.0)) as usize;
@@ -143,11 +152,15 @@ pub fn find_highlight(
     }
     let peak = values.iter().copied().fold(f64::MIN, f64::max);
     let background = median_by(&mut values.clone(), f64::total_cmp).unwrap_or(0.0);
-    let mut dev: Vec<f64> = values.iter().map(|v| (v - background).abs()).collect();
+    let sigma = match noise {
+        Some(s) if s.is_finite() => s,
+        _ => {
+            let mut dev: Vec<f64> = values.iter().map(|v| (v - background).abs()).collect();
+            1.4826 * median_by(&mut dev, f64::total_cmp).unwrap_or(0.0)
+        }
+    };
     // Floor σ so that noise-free images do not divide by zero.
-    let sigma = (1.4826 * median_by(&mut dev, f64::total_cmp).unwrap_or(0.0))
-        .max(1e-6 * peak.abs())
-        .max(f64::MIN_POSITIVE);
+    let sigma = sigma.max(1e-6 * peak.abs()).max(f64::MIN_POSITIVE);
     let snr = (peak - background) / sigma;
     if snr.is_nan() || snr < options.min_snr {
         return Err(Missing {
@@ -273,7 +286,7 @@ pub fn find_highlight(
             rim * 100.0
         ));
     }
-    if uncertainty_deg > options.max_uncertainty_deg {
+    if uncertainty_deg.is_nan() || uncertainty_deg > options.max_uncertainty_deg {
         warnings.push(format!(
             "the direction is uncertain: ±{uncertainty_deg:.2}° (rms), more than the {:.2}° accepted",
             options.max_uncertainty_deg
@@ -311,7 +324,11 @@ pub fn find_highlight(
         uncertainty_deg,
         elongation,
         confidence: {
-            let p = 1.0 - (-(1.0 / uncertainty_deg.max(1e-9)).powi(2)).exp();
+            let p = if uncertainty_deg.is_finite() {
+                1.0 - (-(1.0 / uncertainty_deg.max(1e-9)).powi(2)).exp()
+            } else {
+                0.0
+            };
             if accepted { p } else { p * share }
         },
         accepted,
@@ -336,7 +353,10 @@ fn circle_sensitivity(sphere: &CircleFit, centroid: [f64; 2]) -> f64 {
     for k in 0..3 {
         let mut c = sphere.circle;
         let d = sphere.std_err[k];
-        if !d.is_finite() || d == 0.0 {
+        if !d.is_finite() {
+            return f64::INFINITY;
+        }
+        if d == 0.0 {
             continue;
         }
         match k {

@@ -2,7 +2,8 @@
 //! mirror (chrome) sphere, relative intensities from a matte sphere or a grey card.
 //!
 //! The chrome sphere's outline comes from its mask ([`sphere::circle_from_mask`], sub-pixel) or
-//! is detected in the images ([`sphere::detect_circle`]); each image's highlight gives its
+//! is detected in the images ([`sphere::detect_circles`], then verified against them); each
+//! image's highlight gives its
 //! light by reflecting the view direction about the sphere's normal, l = 2(n·v)n − v with
 //! v = (0, 0, 1) ([`highlight::find_highlight`]). [`intensity`] then reads relative intensities
 //! off a Lambertian reference. The result is a [`Lights`] set for the main pipeline, and a
@@ -252,6 +253,7 @@ pub fn calibrate_chrome(
     // what every image shares (the environment reflected by the ball, the wall) but no
     // highlight, as long as no pixel is lit in half the images (three or more images).
     let median = (grey.len() >= 3).then(|| evidence(&grey, w, h, 0.5));
+    let noise = disc_noise(&grey, w, h, &sphere.circle);
     let lights = grey
         .iter()
         .enumerate()
@@ -260,6 +262,7 @@ pub fn calibrate_chrome(
             image: stack.info()[index].path.clone(),
             result: match find_highlight(
                 &excess(plane, median.as_ref()),
+                Some(noise[index]),
                 &clipped(stack, index, plane),
                 w,
                 &sphere,
@@ -279,7 +282,8 @@ pub fn calibrate_chrome(
 }
 
 /// The outline of a sphere in `stack`: fitted to `mask` (a grey mask, with its file for
-/// errors) or, without one, detected in the per-pixel median or upper quartile of the images.
+/// errors) or, without one, detected and verified as in [`calibrate_chrome`] (in the
+/// per-pixel median, upper quartile and maximum of three or more images).
 ///
 /// # Errors
 /// As [`calibrate_chrome`].
@@ -302,8 +306,17 @@ fn find_sphere_in(
         Grid::new(w, h, ()).check_same_size(m, "sphere mask vs images")?;
         return Ok((circle_from_mask(m, path)?, SphereSource::Mask, Vec::new()));
     }
-    // The median suits a mirror ball (it drops every highlight), the upper quartile a matte
-    // one (its rim stays lit). Circles from both are verified against the images.
+    if grey.len() < 3 {
+        return Err(Error::SphereNotFound {
+            reason: format!(
+                "{} image(s): finding the sphere needs three or more, whose median shows it without its highlights",
+                grey.len()
+            ),
+        });
+    }
+    // The median suits a mirror ball (it drops every highlight), the upper quartile and the
+    // maximum a matte one (its rim stays lit). Circles from all three are verified against
+    // the images.
     let median = evidence(grey, w, h, 0.5);
     let mut candidates: Vec<Candidate> = Vec::new();
     for c in detect_circles(&median, CANDIDATES)
@@ -328,10 +341,9 @@ fn find_sphere_in(
                 .into(),
         });
     }
-    let transients = Transients::new(grey, &median);
     let checks: Vec<(Candidate, Verification)> = candidates
         .into_iter()
-        .map(|c| (c, verify(&c, grey, &median, &transients, w, h)))
+        .map(|c| (c, verify(&c, grey, &median, w, h)))
         .collect();
     let mut passed: Vec<&Candidate> = checks
         .iter()
@@ -350,13 +362,16 @@ fn find_sphere_in(
     passed.sort_by(|a, b| b.support.total_cmp(&a.support));
     // Circles that overlap compete for one outline; circles apart are different balls.
     let mut balls: Vec<Candidate> = Vec::new();
-    while let Some(&lead) = passed.first() {
-        let group: Vec<&Candidate> = passed
+    while !passed.is_empty() {
+        // The best supported circle and every circle linked to it by a chain of overlaps.
+        let mut group: Vec<&Candidate> = vec![passed.remove(0)];
+        while let Some(i) = passed
             .iter()
-            .copied()
-            .filter(|c| overlap(&lead.fit.circle, &c.fit.circle))
-            .collect();
-        passed.retain(|c| !overlap(&lead.fit.circle, &c.fit.circle));
+            .position(|c| group.iter().any(|g| overlap(&g.fit.circle, &c.fit.circle)))
+        {
+            group.push(passed.remove(i));
+        }
+        group.sort_by(|a, b| b.support.total_cmp(&a.support));
         balls.push(resolve(&group)?);
     }
     balls.sort_by(|a, b| b.fit.circle.radius.total_cmp(&a.fit.circle.radius));
@@ -433,30 +448,19 @@ fn same_circle(a: &sphere::Circle, b: &sphere::Circle) -> bool {
     (a.cx - b.cx).hypot(a.cy - b.cy) < 2.0 && (a.radius - b.radius).abs() < 2.0
 }
 
-/// Highlight evidence (noise σ above which each image's excess over the median is a
-/// highlight): each image minus the per-pixel median, with its robust noise σ.
-struct Transients {
-    sigma: Vec<f64>,
-}
-
-impl Transients {
-    fn new(grey: &[Vec<f32>], median: &ScalarMap) -> Self {
-        let sigma = grey
-            .iter()
-            .map(|img| {
-                let mut dev: Vec<f32> = img
-                    .iter()
-                    .zip(median.data())
-                    .map(|(v, m)| (v - m).abs())
-                    .filter(|d| d.is_finite())
-                    .collect();
-                let s = 1.4826
-                    * f64::from(crate::stats::median_by(&mut dev, f32::total_cmp).unwrap_or(0.0));
-                s.max(1e-6)
-            })
-            .collect();
-        Transients { sigma }
-    }
+/// Each image's noise standard deviation inside `circle` (Immerkær 1996, on the pixels of the
+/// disc; see [`crate::ps::noise::image_noise`]): the sphere's own noise, which a dark or
+/// clipped background would understate. A millionth of full scale where it cannot be told.
+fn disc_noise(grey: &[Vec<f32>], w: usize, h: usize, circle: &sphere::Circle) -> Vec<f64> {
+    let disc = Grid::from_fn(w, h, |x, y| {
+        (x as f64 - circle.cx).hypot(y as f64 - circle.cy) < 0.97 * circle.radius
+    });
+    grey.iter()
+        .map(|img| {
+            let s = f64::from(crate::ps::noise::image_noise(img, w, &disc).sigma);
+            if s.is_finite() { s.max(1e-6) } else { 1e-6 }
+        })
+        .collect()
 }
 
 /// What the images say of a candidate circle.
@@ -505,10 +509,10 @@ fn verify(
     c: &Candidate,
     grey: &[Vec<f32>],
     median: &ScalarMap,
-    transients: &Transients,
     w: usize,
     h: usize,
 ) -> Verification {
+    let noise = disc_noise(grey, w, h, &c.fit.circle);
     let k = c.fit.circle;
     let inner = k.radius * 0.97;
     let x0 = (k.cx - inner).floor().max(0.0) as usize;
@@ -539,7 +543,7 @@ fn verify(
     let reference = step(median.data());
     let mut lit = 0;
     let mut edged = 0;
-    for (img, sigma) in grey.iter().zip(&transients.sigma) {
+    for (img, sigma) in grey.iter().zip(&noise) {
         let mut peak = f64::MIN;
         for y in y0..=y1 {
             for x in x0..=x1 {
@@ -630,9 +634,9 @@ pub fn lights_file_json(
     serde_json::to_string_pretty(&doc).unwrap_or_default()
 }
 
-/// The saturated pixels of image `index` (its grey `plane`): those the stack flags, and, where
-/// two or more pixels share the image's maximum, those at it (float data clipped at a level of
-/// its own).
+/// The saturated pixels of image `index` (its grey `plane`): those the stack flags when it
+/// knows a saturation level (integer files, or a level given); otherwise (float data), where
+/// two or more pixels share the image's maximum, those at it (clipped at a level of its own).
 fn clipped(stack: &ImageStack, index: usize, plane: &[f32]) -> Vec<bool> {
     let top = plane
         .iter()
@@ -643,7 +647,10 @@ fn clipped(stack: &ImageStack, index: usize, plane: &[f32]) -> Vec<bool> {
     plane
         .iter()
         .enumerate()
-        .map(|(p, v)| stack.is_saturated(index, p) || (at_top >= 2 && *v >= top))
+        .map(|(p, v)| match stack.saturation_bits(index) {
+            Some(_) => stack.is_saturated(index, p),
+            None => at_top >= 2 && *v >= top,
+        })
         .collect()
 }
 

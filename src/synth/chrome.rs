@@ -146,26 +146,28 @@ impl ChromeImages {
 
 impl ChromeCapture {
     /// The unit direction from ball `ball`'s centre towards lamp `k` (the lamp's direction for a
-    /// distant lamp): the light a calibration from that ball should find.
-    pub fn light_direction(&self, k: usize, ball: usize) -> Vector3<f64> {
-        match self.lamps[k].place {
+    /// distant lamp): the light a calibration from that ball should find. `None` for a lamp or
+    /// ball that is not there.
+    pub fn light_direction(&self, k: usize, ball: usize) -> Option<Vector3<f64>> {
+        Some(match self.lamps.get(k)?.place {
             LampPlace::Direction(d) => d.normalize(),
-            LampPlace::Position(p) => (p - self.ball_centre(ball)).normalize(),
-        }
+            LampPlace::Position(p) => (p - self.ball_centre(ball)?).normalize(),
+        })
     }
 
     /// Ball `ball`'s centre in the camera frame (pixels; x right, y up, depth 0 orthographic or
     /// −distance along the axis under a pinhole, the camera at the origin looking down −z).
-    pub fn ball_centre(&self, ball: usize) -> Vector3<f64> {
-        let c = self.balls[ball];
-        match &self.camera {
+    /// `None` for a ball that is not there.
+    pub fn ball_centre(&self, ball: usize) -> Option<Vector3<f64>> {
+        let c = self.balls.get(ball)?;
+        Some(match &self.camera {
             None => Vector3::new(c.cx, -c.cy, 0.0),
             Some((k, distance)) => {
                 let x = (c.cx - k.cx) / k.fx * distance;
                 let y = -(c.cy - k.cy) / k.fy * distance;
                 Vector3::new(x, y, -distance)
             }
-        }
+        })
     }
 
     /// Renders the images.
@@ -230,7 +232,9 @@ impl ChromeCapture {
             let Some(point) = self.hit(b, c, x, y, &view) else {
                 continue;
             };
-            let centre = self.ball_centre(b);
+            let Some(centre) = self.ball_centre(b) else {
+                continue;
+            };
             let n = (point - centre).normalize();
             let r = 2.0 * n.dot(&view) * n - view;
             let lamp = &self.lamps[k];
@@ -275,7 +279,7 @@ impl ChromeCapture {
             Some(_) => {
                 // The ray from the camera at the origin along −view; the ball's radius in
                 // the scene is its image radius at its centre's depth.
-                let centre = self.ball_centre(b);
+                let centre = self.ball_centre(b)?;
                 let (kk, distance) = self.camera.as_ref()?;
                 let radius = c.radius / kk.fx * distance;
                 let d = -view;
