@@ -325,7 +325,6 @@ fn find_sphere_in(
         .chain(detect_circles(&evidence(grey, w, h, 1.0), CANDIDATES))
     {
         // Of two fits of one circle, keep the one with the smaller errors.
-        let spread = |c: &Candidate| c.fit.std_err.iter().map(|e| e * e).sum::<f64>();
         match candidates
             .iter_mut()
             .find(|o| same_circle(&o.fit.circle, &c.fit.circle))
@@ -414,7 +413,6 @@ fn resolve(group: &[&Candidate]) -> Result<Candidate> {
             ),
         });
     }
-    let spread = |c: &Candidate| c.fit.std_err.iter().map(|e| e * e).sum::<f64>();
     Ok(*std::iter::once(lead)
         .chain(
             rest.iter()
@@ -423,6 +421,12 @@ fn resolve(group: &[&Candidate]) -> Result<Candidate> {
         )
         .min_by(|x, y| spread(x).total_cmp(&spread(y)))
         .unwrap_or(lead))
+}
+
+/// The sum of a candidate's squared standard errors: of two fits of one outline, the smaller
+/// is the better.
+fn spread(c: &Candidate) -> f64 {
+    c.fit.std_err.iter().map(|e| e * e).sum()
 }
 
 /// How much more of its outline (fraction of the in-frame circumference) a circle must hold
