@@ -51,6 +51,7 @@ fn lights_with(intensities: &[[f64; 3]]) -> Lights {
                 direction: *d,
                 intensity: *i,
                 file: None,
+                position: None,
             })
             .collect(),
     )

@@ -197,6 +197,7 @@ fn coloured_lights_divide_out() {
             direction: *d,
             intensity: [1.0 + 0.1 * k as f64, 0.7, 0.4],
             file: None,
+            position: None,
         });
     }
     let lights = Lights::new(lights).unwrap();

@@ -1015,6 +1015,19 @@ pub struct CalibrateArgs {
     /// saturated blob beside it is ambiguous.
     #[arg(long, value_name = "LEVEL")]
     pub saturation: Option<f32>,
+    /// The camera's intrinsics K, a text file of 9 numbers (three rows of three, as
+    /// numpy.savetxt writes them): a perspective calibration, in which the ball's outline is
+    /// fitted as the cone of rays it subtends and each of its pixels reflects its own view ray.
+    /// Default: an orthographic camera.
+    #[arg(long, value_name = "FILE")]
+    pub camera: Option<PathBuf>,
+    /// The mirror balls' radius, in the unit the light positions are wanted in (12.7 for a
+    /// one-inch ball in millimetres): with two balls in the images, each light's position is
+    /// where the rays it reflects off them meet, written as `position` with its uncertainty
+    /// (and `direction` from the balls' midpoint). Needs --camera; a mask must then outline
+    /// both balls.
+    #[arg(long, value_name = "LENGTH", requires = "camera")]
+    pub ball_radius: Option<f64>,
     /// Write the lights file even when some lights are in doubt (an ambiguous highlight,
     /// one at the rim, or an uncertainty above the accepted one); they keep their
     /// uncertainty and `"accepted": false` in the file.

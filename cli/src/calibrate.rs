@@ -5,10 +5,12 @@ use anyhow::{Result, bail};
 use photostereo::calibrate::intensity::{
     MatteOptions, intensities_from_card, intensities_from_sphere,
 };
+use photostereo::calibrate::near::{NearOptions, calibrate_two_balls, near_lights_file_json};
 use photostereo::calibrate::{
     ChromeOptions, HighlightResult, IntensityCalibration, calibrate_chrome, find_sphere,
     lights_file_json, load_reference_images, read_grey_mask,
 };
+use photostereo::camera::Intrinsics;
 use photostereo::capture::dataset::{is_image_list, read_image_list};
 use photostereo::capture::lights::{Light, Lights};
 use photostereo::capture::stack::Transfer;
@@ -47,7 +49,7 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
     let mut inputs: Vec<&std::path::Path> = a.images.iter().map(|p| p.as_path()).collect();
     inputs.extend(a.matte.iter().map(|p| p.as_path()));
     inputs.extend(
-        [&a.mask, &a.matte_mask, &a.card_mask]
+        [&a.mask, &a.matte_mask, &a.card_mask, &a.camera]
             .into_iter()
             .flatten()
             .map(|p| p.as_path()),
@@ -68,15 +70,152 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
     {
         bail!("--saturation {level}: must be a positive level");
     }
+    if let Some(r) = a.ball_radius
+        && !(r > 0.0 && r.is_finite())
+    {
+        bail!("--ball-radius {r}: must be a positive length");
+    }
+    let camera = a.camera.as_deref().map(Intrinsics::from_file).transpose()?;
     let stack = load_reference_images(&chrome_paths, transfer, a.saturation, progress)?;
     let mask = chrome_mask.as_deref().map(read_grey_mask).transpose()?;
-    let cal = calibrate_chrome(
-        &stack,
-        mask.as_ref().zip(chrome_mask.as_deref()),
-        &ChromeOptions::default(),
-    )
-    .map_err(|e| mask_hint(e, "--mask"))?;
+    let options = ChromeOptions {
+        camera,
+        ..ChromeOptions::default()
+    };
+    if let (Some(k), Some(radius)) = (camera, a.ball_radius) {
+        return run_near(
+            &a,
+            &stack,
+            mask.as_ref().zip(chrome_mask.as_deref()),
+            k,
+            radius,
+            transfer,
+            progress,
+        );
+    }
+    let cal = calibrate_chrome(&stack, mask.as_ref().zip(chrome_mask.as_deref()), &options)
+        .map_err(|e| mask_hint(e, "--mask"))?;
+    report_ball(&cal, None);
+    let lights = chosen(a.keep_doubtful, || cal.all_lights(), || cal.lights())?;
+    let directions = lights.directions();
+    let (lights, intensity) =
+        measure_intensities(&a, &stack, lights, &directions, transfer, progress)?;
+    let json = lights_file_json(&lights, &cal, intensity.as_ref());
+    photostereo::io::output::write_bytes(&a.output, crate::overwrite(a.force), json.as_bytes())?;
+    say!("wrote {} ({} lights)", a.output.display(), lights.len());
+    Ok(())
+}
+
+/// Near lights from two balls (`--ball-radius`).
+fn run_near(
+    a: &CalibrateArgs,
+    stack: &photostereo::capture::stack::ImageStack,
+    mask: Option<(&photostereo::grid::ScalarMap, &Path)>,
+    camera: Intrinsics,
+    radius: f64,
+    transfer: Transfer,
+    progress: &dyn Progress,
+) -> Result<()> {
+    let two = calibrate_two_balls(stack, mask, &NearOptions::new(camera, radius)).map_err(|e| {
+        match e {
+            // One ball found: a mask would not add the other.
+            photostereo::Error::SphereNotFound { ref reason } if reason.contains("need two") => {
+                e.into()
+            }
+            e => mask_hint(e, "--mask (outlining both balls)"),
+        }
+    })?;
+    if !a.matte.is_empty() || a.matte_mask.is_some() || a.card_mask.is_some() {
+        eprintln!(
+            "warning: the intensities are measured at the matte reference, without the near lights' fall-off with distance"
+        );
+    }
+    for w in &two.warnings {
+        eprintln!("warning: {}", crate::printable(w));
+    }
+    for (b, cal) in two.balls.iter().enumerate() {
+        report_ball(cal, Some((b, two.centres[b])));
+    }
+    for (k, p) in two.positions.iter().enumerate() {
+        let image = file_name(&two.balls[0].lights[k].image);
+        match p {
+            Ok(p) => {
+                say!(
+                    "  {k:>3} {image}: position ({:.4}, {:.4}, {:.4}) ± {:.4} (rms), {:.4} from the balls' midpoint, rays {:.2}σ apart{}",
+                    p.position.x,
+                    p.position.y,
+                    p.position.z,
+                    p.uncertainty,
+                    p.distance,
+                    p.miss_sigmas,
+                    if p.accepted { "" } else { ", in doubt" }
+                );
+                for w in &p.warnings {
+                    eprintln!("warning: image {k} ({image}): {w}");
+                }
+            }
+            Err(why) => eprintln!("warning: image {k} ({image}): no position: {why}"),
+        }
+    }
+    let lights = chosen(a.keep_doubtful, || two.all_lights(), || two.lights())?;
+    let directions = lights.directions();
+    let (lights, intensity) =
+        measure_intensities(a, stack, lights, &directions, transfer, progress)?;
+    let json = near_lights_file_json(&lights, &two, radius, intensity.as_ref());
+    photostereo::io::output::write_bytes(&a.output, crate::overwrite(a.force), json.as_bytes())?;
+    say!(
+        "wrote {} ({} lights with positions, in the unit of the ball radius {radius})",
+        a.output.display(),
+        lights.len()
+    );
+    Ok(())
+}
+
+/// The lights to write: all of them with `--keep-doubtful`, else the accepted ones (an error
+/// naming those in doubt, with the flag that keeps them).
+fn chosen(
+    keep_doubtful: bool,
+    all: impl FnOnce() -> photostereo::Result<Lights>,
+    accepted: impl FnOnce() -> photostereo::Result<Lights>,
+) -> Result<Lights> {
+    if keep_doubtful {
+        return Ok(all()?);
+    }
+    accepted().map_err(|e| match e {
+        photostereo::Error::BadImage { ref reason, .. } if reason.contains("in doubt") => {
+            anyhow::anyhow!("{e}; --keep-doubtful writes them anyway")
+        }
+        e => e.into(),
+    })
+}
+
+/// Prints one ball's outline and highlights (`ball`: its index and centre, for two balls).
+fn report_ball(cal: &photostereo::calibrate::ChromeCalibration, ball: Option<(usize, [f64; 3])>) {
     let c = cal.sphere.circle;
+    if let Some((b, centre)) = ball {
+        say!(
+            "ball {b}: centre ({:.4}, {:.4}, {:.4}) in the unit of the radius",
+            centre[0],
+            centre[1],
+            centre[2]
+        );
+    }
+    if let Some(k) = &cal.cone {
+        let f = 0.5 * (k.camera.fx + k.camera.fy);
+        say!(
+            "  seen by the camera: axis ({:+.5}, {:+.5}, {:+.5}), half-angle {:.4}° ± {:.4}°, outline rms {:.2} px over {} edge points ({} outliers), tilt errors ({:.2}, {:.2}) px",
+            k.axis.x,
+            k.axis.y,
+            k.axis.z,
+            k.half_angle.to_degrees(),
+            k.std_err[2].to_degrees(),
+            k.rms_px,
+            k.points,
+            k.outliers,
+            k.std_err[0] * f,
+            k.std_err[1] * f
+        );
+    }
     say!(
         "chrome sphere ({}): centre ({:.2}, {:.2}) px, radius {:.2} px, ± ({:.2}, {:.2}, {:.2}) px, edge rms {:.2} px, {} edge points ({} outliers)",
         match cal.sphere_source {
@@ -94,7 +233,7 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
         cal.sphere.outliers
     );
     for w in &cal.warnings {
-        eprintln!("warning: {}", crate::printable(&w.to_string()));
+        eprintln!("warning: {}", crate::printable(w));
     }
     for o in &cal.lights {
         match &o.result {
@@ -127,23 +266,6 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
             }
         }
     }
-    let lights = if a.keep_doubtful {
-        cal.all_lights()?
-    } else {
-        cal.lights().map_err(|e| match e {
-            photostereo::Error::BadImage { ref reason, .. } if reason.contains("in doubt") => {
-                anyhow::anyhow!("{e}; --keep-doubtful writes them anyway")
-            }
-            e => e.into(),
-        })?
-    };
-    let directions = lights.directions();
-    let (lights, intensity) =
-        measure_intensities(&a, &stack, lights, &directions, transfer, progress)?;
-    let json = lights_file_json(&lights, &cal, intensity.as_ref());
-    photostereo::io::output::write_bytes(&a.output, crate::overwrite(a.force), json.as_bytes())?;
-    say!("wrote {} ({} lights)", a.output.display(), lights.len());
-    Ok(())
 }
 
 /// Relative intensities from the matte sphere or card, when one is given.

@@ -413,18 +413,34 @@ def reflectance_map(
     )
 
 
-def calibrate(images: np.ndarray, mask: Optional[np.ndarray] = None) -> Dict[str, Any]:
+def calibrate(
+    images: np.ndarray,
+    mask: Optional[np.ndarray] = None,
+    camera: Optional[np.ndarray] = None,
+    ball_radius: Optional[float] = None,
+) -> Dict[str, Any]:
     """Light directions from images of a chrome sphere (N x H x W[ x C]), one per light.
 
     Returns ``{"lights": N x 3 or None (when some image has no highlight or its light is in
-    doubt: ambiguous, at the rim, or more uncertain than 0.5 degrees rms), "report": dict}``:
-    the sphere fitted (from ``mask``, or detected and verified against the images), and per
-    image the highlight, its light, its uncertainty, confidence and whether it is accepted, or
-    why there is none.
+    doubt: ambiguous, at the rim, or more uncertain than 0.5 degrees rms), "positions": N x 3
+    or None, "report": dict}``: the sphere fitted (from ``mask``, or detected and verified
+    against the images), and per image the highlight, its light, its uncertainty, confidence
+    and whether it is accepted, or why there is none.
+
+    ``camera``: the 3 x 3 intrinsics K of a pinhole camera; the ball's outline is then fitted as
+    the cone of rays it subtends and each pixel reflects its own view ray. With ``ball_radius``
+    too (in any unit of length), two balls in the images place each light in 3-D where the rays
+    it reflects off them meet: ``positions`` (camera frame, the unit of the radius; None when a
+    position is missing or more uncertain than 0.5% of its distance) and ``lights`` the
+    directions to them from the balls' midpoint; the mask, if given, outlines both balls.
     """
     images = _check_array(images, "images")
-    lights, report = _native.calibrate(images, _mask(mask))
-    return {"lights": lights, "report": json.loads(report)}
+    if camera is not None:
+        camera = np.ascontiguousarray(camera, dtype=np.float64)
+    if ball_radius is not None:
+        ball_radius = float(ball_radius)
+    lights, positions, report = _native.calibrate(images, _mask(mask), camera, ball_radius)
+    return {"lights": lights, "positions": positions, "report": json.loads(report)}
 
 
 def read_image(path: PathLike) -> np.ndarray:

@@ -12,6 +12,7 @@ use numpy::{
     IntoPyArray, PyArray2, PyReadonlyArray2, PyReadonlyArray3, PyReadonlyArrayDyn,
     PyUntypedArrayMethods,
 };
+use photostereo::calibrate::near::{NearOptions, calibrate_two_balls};
 use photostereo::calibrate::{ChromeOptions, calibrate_chrome};
 use photostereo::capture::arrays::{Sample, normals_from_array, normals_to_array};
 use photostereo::capture::stack::{ColorMode, LoadOptions, Transfer};
@@ -637,20 +638,7 @@ fn integrate<'py>(
         }
         None => map.map(|n| n.iter().all(|v| v.is_finite())),
     };
-    let camera = match k {
-        Some(k) => {
-            let k = k.as_array();
-            if k.dim() != (3, 3) {
-                return Err(PyValueError::new_err(format!(
-                    "K: shape {:?}; 3×3 expected",
-                    k.dim()
-                )));
-            }
-            let m = [0, 1, 2].map(|r| [0, 1, 2].map(|c| k[[r, c]]));
-            Some(lib(Intrinsics::from_matrix(m))?)
-        }
-        None => None,
-    };
+    let camera = intrinsics_arg(k.as_ref(), "K")?;
     let options = IntegrationOptions {
         method: integrator_arg(method)?,
         camera,
@@ -877,14 +865,42 @@ fn nalgebra_vec(v: [f64; 3]) -> photostereo::nalgebra::Vector3<f64> {
     photostereo::nalgebra::Vector3::new(v[0], v[1], v[2])
 }
 
-/// Light directions from a chrome sphere's images: directions (N×3) and the report as JSON.
+/// A 3×3 intrinsics matrix argument named `name`.
+fn intrinsics_arg(k: Option<&PyReadonlyArray2<'_, f64>>, name: &str) -> PyRes<Option<Intrinsics>> {
+    let Some(k) = k else {
+        return Ok(None);
+    };
+    let k = k.as_array();
+    if k.dim() != (3, 3) {
+        return Err(PyValueError::new_err(format!(
+            "{name}: shape {:?}; 3×3 expected",
+            k.dim()
+        )));
+    }
+    let m = [0, 1, 2].map(|r| [0, 1, 2].map(|c| k[[r, c]]));
+    Ok(Some(lib(Intrinsics::from_matrix(m))?))
+}
+
+/// What `calibrate` returns: directions (N×3, `None` when some light is in doubt or missing),
+/// positions (N×3, with two balls), and the report as JSON.
+type Calibrated<'py> = (
+    Option<Bound<'py, PyArray2<f64>>>,
+    Option<Bound<'py, PyArray2<f64>>>,
+    String,
+);
+
+/// Light directions from a chrome sphere's images (perspective with `camera`), or with
+/// `ball_radius` light positions from two balls; and the report as JSON.
 #[pyfunction]
-#[pyo3(signature = (images, mask=None))]
+#[pyo3(signature = (images, mask=None, camera=None, ball_radius=None))]
 fn calibrate<'py>(
     py: Python<'py>,
     images: &Bound<'py, PyAny>,
     mask: Option<&Bound<'py, PyAny>>,
-) -> PyRes<(Option<Bound<'py, PyArray2<f64>>>, String)> {
+    camera: Option<PyReadonlyArray2<'py, f64>>,
+    ball_radius: Option<f64>,
+) -> PyRes<Calibrated<'py>> {
+    let camera = intrinsics_arg(camera.as_ref(), "camera")?;
     let samples = Samples::images(images, "images")?;
     let n = samples.shape()[0];
     let mask = mask_arg(mask, "mask")?;
@@ -910,19 +926,58 @@ fn calibrate<'py>(
             None => None,
         };
         let source = Path::new("<array mask>");
-        calibrate_chrome(
-            &stack,
-            grey_mask.as_ref().map(|m| (m, source)),
-            &ChromeOptions::default(),
-        )
+        let mask = grey_mask.as_ref().map(|m| (m, source));
+        match (camera, ball_radius) {
+            (Some(k), Some(r)) => {
+                calibrate_two_balls(&stack, mask, &NearOptions::new(k, r)).map(Calibration::Two)
+            }
+            (None, Some(_)) => Err(LibError::param(
+                "ball_radius",
+                "light positions need the camera's intrinsics (camera)",
+            )),
+            (camera, None) => calibrate_chrome(
+                &stack,
+                mask,
+                &ChromeOptions {
+                    camera,
+                    ..ChromeOptions::default()
+                },
+            )
+            .map(Calibration::One),
+        }
     });
-    let cal = lib(result)?;
-    let report = json(&cal)?;
-    let lights = cal
-        .lights()
-        .ok()
-        .map(|l| l.directions_array().into_pyarray(py));
-    Ok((lights, report))
+    Ok(match lib(result)? {
+        Calibration::One(cal) => (
+            cal.lights()
+                .ok()
+                .map(|l| l.directions_array().into_pyarray(py)),
+            None,
+            json(&cal)?,
+        ),
+        Calibration::Two(two) => {
+            let lights = two.lights().ok();
+            let positions = lights.as_ref().map(|l| {
+                let n = l.len();
+                let p: Vec<f64> = l
+                    .lights()
+                    .iter()
+                    .flat_map(|l| l.position.map_or([f64::NAN; 3], |p| [p.x, p.y, p.z]))
+                    .collect();
+                Array2::from_shape_vec((n, 3), p).unwrap_or_else(|_| Array2::zeros((n, 3)))
+            });
+            (
+                lights.map(|l| l.directions_array().into_pyarray(py)),
+                positions.map(|p| p.into_pyarray(py)),
+                json(&two)?,
+            )
+        }
+    })
+}
+
+/// One ball's calibration, or two balls' with light positions.
+enum Calibration {
+    One(photostereo::calibrate::ChromeCalibration),
+    Two(photostereo::calibrate::near::TwoBallCalibration),
 }
 
 /// An image file's samples as stored (H×W×C, uint8/uint16/float32).

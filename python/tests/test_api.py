@@ -256,3 +256,60 @@ def test_models_with_bad_values_are_refused(scene):
     # Plain least squares needs no σ: the unit model's NaN is fine there.
     unit = ps.estimate_model(s["images"], lights, s["mask"], method="ls")
     ps.solve(s["images"], lights, mask=s["mask"], method="ls", models=unit)
+
+
+def _two_ball_rig():
+    """Two mirror balls 60 px in radius under five near LEDs, through a pinhole camera (the
+    same rig as the command-line tool's test), rendered with numpy: 2 x 2 samples a pixel,
+    16-bit."""
+    f, cx, cy, w, h, s = 700.0, 350.0, 225.0, 700, 450, 2
+    k = np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]])
+    depth = 3000.0
+    radius = 60.0 / f * depth
+    centres = [np.array([(u - cx) / f * depth, 0.0, -depth]) for u in (90.0, 610.0)]
+    lamps = np.array(
+        [[1500, 900, -1500], [-1200, 1100, -1000], [-1400, -900, -1800], [1100, -1200, -700],
+         [200, 1500, -1200]], dtype=float,
+    )
+    u, v = np.meshgrid((np.arange(w * s) + 0.5) / s - 0.5, (np.arange(h * s) + 0.5) / s - 0.5)
+    d = np.stack([(u - cx) / f, -(v - cy) / f, -np.ones_like(u)], -1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    images = np.full((len(lamps), h * s, w * s), 0.35)
+    for c in centres:
+        b = d @ c
+        disc = b * b - (c @ c - radius * radius)
+        hit = disc > 0
+        p = (b - np.sqrt(np.where(hit, disc, 0)))[..., None] * d
+        n = (p - c) / radius
+        r = 2 * np.sum(-d * n, -1)[..., None] * n + d
+        for i, lamp in enumerate(lamps):
+            size = np.linalg.norm(lamp) * np.tan(np.radians(4.0))
+            to = lamp - p
+            t = np.sum(to * r, -1)
+            lit = (t > 0) & (np.linalg.norm(to - t[..., None] * r, axis=-1) <= size)
+            value = 0.7 * np.where(lit, 5.0, 0.1 + 0.03 * r[..., 1])
+            images[i][hit] = value[hit]
+    images = images.reshape(len(lamps), h, s, w, s).mean((2, 4))
+    images += np.random.default_rng(3).normal(0, 0.003, images.shape)
+    codes = np.round(np.clip(images, 0, 1) * 65535).astype(np.uint16)
+    return codes, k, radius, lamps, 0.5 * (centres[0] + centres[1])
+
+
+def test_calibrate_places_near_lights_from_two_balls_through_a_pinhole():
+    images, k, radius, lamps, mid = _two_ball_rig()
+    cal = ps.calibrate(images, camera=k, ball_radius=radius)
+    report = cal["report"]
+    for i, (entry, lamp) in enumerate(zip(report["positions"], lamps)):
+        p = entry["Ok"]
+        err = np.linalg.norm(np.array(p["position"]) - lamp)
+        dist = np.linalg.norm(lamp - mid)
+        assert err <= 0.02 * dist and err <= 3 * p["uncertainty"], (i, err, p)
+    # Balls this small leave each position more uncertain than 0.5% of its distance: in doubt,
+    # so no light set is returned, but the report holds every position.
+    assert cal["positions"] is None and cal["lights"] is None
+    assert all(not e["Ok"]["accepted"] for e in report["positions"])
+    # One ball through the same camera: directions, no positions.
+    one = ps.calibrate(images[:, :, 300:], camera=k - [[0, 0, 300], [0, 0, 0], [0, 0, 0]])
+    assert one["positions"] is None and one["report"]["cone"] is not None
+    with pytest.raises(ValueError, match="camera"):
+        ps.calibrate(images, ball_radius=radius)

@@ -11,6 +11,7 @@
 //! symmetric lamp is its centre — also for highlights near the rim, where the pixel centroid is
 //! pulled towards the centre of the sphere.
 
+use super::perspective::SphereCone;
 use super::sphere::CircleFit;
 use crate::stats::median_by;
 use crate::synth::reflectance::reflect;
@@ -97,7 +98,10 @@ pub struct Missing {
 }
 
 /// Finds the light's highlight on the sphere in one grey image (`plane`, `width` columns,
-/// row-major) and the light direction l = 2(n·v)n − v it gives (see the module doc).
+/// row-major) and the light direction l = 2(n·v)n − v it gives (see the module doc): with
+/// `cone` (a pinhole camera's view of the sphere, [`SphereCone`]) each pixel reflects its own
+/// view ray ([`SphereCone::reflected`]), else the orthographic v = (0, 0, 1). The sphere's
+/// pixels are those inside `sphere`'s circle either way.
 ///
 /// Steps: the sphere's pixels (inside the rim margin) give a background level (median) and,
 /// unless `noise` is given, a noise σ (1.4826 × MAD); pixels above background + level × (peak − background) form 8-connected
@@ -118,10 +122,19 @@ pub fn find_highlight(
     clipped: &[bool],
     width: usize,
     sphere: &CircleFit,
+    cone: Option<&SphereCone>,
     options: &HighlightOptions,
 ) -> Result<Highlight, Missing> {
     let is_clipped = |i: usize| clipped.get(i).copied().unwrap_or(false);
     let c = sphere.circle;
+    // Under a pinhole the ball's image is an ellipse a little longer than its best circle
+    // (R(1/cos θ − 1) at θ off the axis): its pixels are those whose rays are inside the cone
+    // by the rim margin, sought in a box that holds the ellipse.
+    let excess = super::sphere::ellipse_excess(&c, cone.map(|k| &k.camera));
+    let reflected = |x: f64, y: f64| match cone {
+        Some(k) => k.reflected(x, y),
+        None => c.normal_at(x, y).map(|n| reflect(&Vector3::z(), &n)),
+    };
     let inner = c.radius * (1.0 - options.rim_margin);
     let height = plane.len() / width.max(1);
     if width == 0 || height == 0 || inner.is_nan() || inner <= 0.0 {
@@ -130,11 +143,15 @@ pub fn find_highlight(
             reason: "the sphere lies outside the image".into(),
         });
     }
-    let x0 = ((c.cx - inner).floor().max(0.0)) as usize;
-    let x1 = ((c.cx + inner).ceil().max(0.0) as usize).min(width.saturating_sub(1));
-    let y0 = ((c.cy - inner).floor().max(0.0)) as usize;
-    let y1 = ((c.cy + inner).ceil().max(0.0) as usize).min(height.saturating_sub(1));
-    let inside = |x: usize, y: usize| (x as f64 - c.cx).hypot(y as f64 - c.cy) < inner;
+    let reach = inner + excess;
+    let x0 = ((c.cx - reach).floor().max(0.0)) as usize;
+    let x1 = ((c.cx + reach).ceil().max(0.0) as usize).min(width.saturating_sub(1));
+    let y0 = ((c.cy - reach).floor().max(0.0)) as usize;
+    let y1 = ((c.cy + reach).ceil().max(0.0) as usize).min(height.saturating_sub(1));
+    let inside = |x: usize, y: usize| match cone {
+        Some(k) => k.angular_distance(x as f64, y as f64) < -options.rim_margin * k.half_angle,
+        None => (x as f64 - c.cx).hypot(y as f64 - c.cy) < inner,
+    };
     let mut values = Vec::new();
     for y in y0..=y1 {
         for x in x0..=x1 {
@@ -194,10 +211,15 @@ pub fn find_highlight(
             stack.push((x, y));
             while let Some((px, py)) = stack.pop() {
                 let wgt = f64::from(plane[py * width + px]) - threshold;
-                // Equal-area pixels weigh equally in reflected-direction space (module doc).
-                if let Some(n) = c.normal_at(px as f64, py as f64) {
-                    let r = reflect(&Vector3::z(), &n);
-                    blob.add(px as f64, py as f64, r, wgt.max(f64::MIN_POSITIVE));
+                // Equal-area pixels weigh equally in reflected-direction space under the
+                // orthographic camera (module doc); under a pinhole each pixel weighs as the
+                // solid angle it reflects, relative to the orthographic 4/R².
+                let (fx, fy) = (px as f64, py as f64);
+                let solid = cone.map_or(Some(1.0), |k| {
+                    reflected_solid_angle(k, fx, fy).map(|a| a * c.radius * c.radius / 4.0)
+                });
+                if let (Some(r), Some(a)) = (reflected(fx, fy), solid) {
+                    blob.add(fx, fy, r, (wgt * a).max(f64::MIN_POSITIVE));
                 }
                 blob.clipped += usize::from(is_clipped(py * width + px));
                 for dy in -1isize..=1 {
@@ -268,7 +290,10 @@ pub fn find_highlight(
     // Noise in the blob's pixels.
     let noise = best.noise_rms(&direction, sigma);
     // The circle's uncertainty, propagated by re-reflecting at the perturbed circle.
-    let geom = circle_sensitivity(sphere, centroid);
+    let geom = match cone {
+        Some(k) => cone_sensitivity(k, centroid),
+        None => circle_sensitivity(sphere, centroid),
+    };
     let uncertainty_deg = sampling.hypot(noise).to_degrees().hypot(geom);
     let elongation = best.elongation(&direction);
     let mut warnings = Vec::new();
@@ -279,7 +304,10 @@ pub fn find_highlight(
             blobs.len() - 1
         ));
     }
-    let rim = c.distance(centroid[0], centroid[1]).abs() / c.radius;
+    let rim = match cone {
+        Some(k) => (k.angular_distance(centroid[0], centroid[1]) / k.half_angle).abs(),
+        None => c.distance(centroid[0], centroid[1]).abs() / c.radius,
+    };
     if rim < 3.0 * options.rim_margin {
         warnings.push(format!(
             "the highlight is at the rim ({:.1}% of the radius from it): the light is nearly behind the sphere and its direction is poorly determined",
@@ -366,6 +394,37 @@ fn circle_sensitivity(sphere: &CircleFit, centroid: [f64; 2]) -> f64 {
         }
         if let Some(n) = c.normal_at(centroid[0], centroid[1]) {
             let l = reflect(&Vector3::z(), &n);
+            sum += l.dot(&l0).clamp(-1.0, 1.0).acos().powi(2);
+        }
+    }
+    sum.sqrt().to_degrees()
+}
+
+/// The solid angle (steradians per square pixel) of the directions that the sphere reflects
+/// into the camera around pixel (u, v) under a pinhole camera: |∂r/∂u × ∂r/∂v| by central
+/// differences of a quarter pixel. `None` off the sphere.
+fn reflected_solid_angle(cone: &SphereCone, u: f64, v: f64) -> Option<f64> {
+    const H: f64 = 0.25;
+    let du = cone.reflected(u + H, v)? - cone.reflected(u - H, v)?;
+    let dv = cone.reflected(u, v + H)? - cone.reflected(u, v - H)?;
+    Some(du.cross(&dv).norm() / (4.0 * H * H))
+}
+
+/// As [`circle_sensitivity`], for the cone of a perspective view: each of its parameters moved
+/// by its standard error.
+fn cone_sensitivity(cone: &SphereCone, centroid: [f64; 2]) -> f64 {
+    let Some(l0) = cone.reflected(centroid[0], centroid[1]) else {
+        return 0.0;
+    };
+    let mut sum = 0.0;
+    for (k, d) in cone.std_err.iter().enumerate() {
+        if !d.is_finite() {
+            return f64::INFINITY;
+        }
+        if *d == 0.0 {
+            continue;
+        }
+        if let Some(l) = cone.perturbed(k, *d).reflected(centroid[0], centroid[1]) {
             sum += l.dot(&l0).clamp(-1.0, 1.0).acos().powi(2);
         }
     }

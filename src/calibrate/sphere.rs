@@ -5,8 +5,9 @@
 //! pixel `(c, r)` at `(c, r)`. Under the orthographic camera of the crate the sphere's normal at
 //! `(x, y)` is `((x − cx)/R, −(y − cy)/R, √(1 − …))` in the camera frame (y up).
 
+use crate::camera::Intrinsics;
 use crate::error::{Error, Result};
-use crate::grid::ScalarMap;
+use crate::grid::{Grid, ScalarMap};
 use crate::stats::median_by;
 use nalgebra::{Matrix3, Vector3};
 use serde::Serialize;
@@ -20,7 +21,7 @@ const OUTLIER_SIGMAS: f64 = 3.0;
 /// Floor of the outlier cut in pixels (a mask edge is never better than this).
 const OUTLIER_FLOOR_PX: f64 = 0.75;
 /// A mask's edge points may lie this far (rms, pixels) from its circle, plus 1% of the radius.
-const MAX_MASK_RMS_PX: f64 = 1.0;
+pub(crate) const MAX_MASK_RMS_PX: f64 = 1.0;
 /// Angular bins used to measure how much of the circumference the edge points cover.
 const COVERAGE_BINS: usize = 72;
 /// Least fraction of the circumference a detected circle's edge points must cover.
@@ -32,7 +33,7 @@ const SUPPORT_TOLERANCE_PX: f64 = 1.5;
 const RADIAL_COSINE: f64 = 0.9;
 /// Length (pixels) of outline over which a detected circle's edge points share their errors:
 /// the 3×3 Sobel stencil makes about three neighbours move together.
-const EDGE_CORRELATION_PX: f64 = 3.0;
+pub(crate) const EDGE_CORRELATION_PX: f64 = 3.0;
 /// Side (pixels) of the tiles over which the gradient noise is measured.
 const NOISE_TILE: usize = 16;
 /// Noise-only pixels expected to pass the edge threshold in a whole image.
@@ -226,17 +227,21 @@ fn geometric(points: &[[f64; 2]], start: Circle) -> Circle {
     c
 }
 
+/// A mask's largest finite value (0 for an empty one).
+fn mask_max(mask: &ScalarMap) -> f32 {
+    mask.data()
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .fold(0.0f32, f32::max)
+}
+
 /// Sub-pixel edge points of a mask: where the mask crosses half its maximum between two
 /// neighbouring pixels (linear interpolation, so an anti-aliased mask gives its true edge and a
 /// binary one the midpoints between inside and outside pixels).
 pub fn mask_edge_points(mask: &ScalarMap) -> Vec<[f64; 2]> {
     let (w, h) = (mask.width(), mask.height());
-    let max = mask
-        .data()
-        .iter()
-        .copied()
-        .filter(|v| v.is_finite())
-        .fold(0.0f32, f32::max);
+    let max = mask_max(mask);
     let level = f64::from(max) / 2.0;
     let value = |x: usize, y: usize| {
         let v = f64::from(*mask.at(x, y));
@@ -304,6 +309,63 @@ pub fn circle_from_mask(mask: &ScalarMap, source: &std::path::Path) -> Result<Ci
     Ok(fit)
 }
 
+/// The separate parts of a mask (8-connected regions of pixels at or above half its maximum,
+/// of at least 20 pixels), each as a mask of its own that keeps the anti-aliased values around
+/// it, largest first: one per ball when a mask outlines two.
+pub fn split_mask(mask: &ScalarMap) -> Vec<ScalarMap> {
+    let (w, h) = (mask.width(), mask.height());
+    let max = mask_max(mask);
+    if max <= 0.0 {
+        return Vec::new();
+    }
+    let on = |i: usize| mask.data()[i].is_finite() && mask.data()[i] >= max / 2.0;
+    let mut label = vec![usize::MAX; w * h];
+    let mut sizes = Vec::new();
+    let mut stack = Vec::new();
+    for start in 0..w * h {
+        if label[start] != usize::MAX || !on(start) {
+            continue;
+        }
+        let id = sizes.len();
+        let mut size = 0usize;
+        label[start] = id;
+        stack.push(start);
+        while let Some(i) = stack.pop() {
+            size += 1;
+            let (x, y) = ((i % w) as isize, (i / w) as isize);
+            for dy in -1..=1 {
+                for dx in -1..=1 {
+                    let (qx, qy) = (x + dx, y + dy);
+                    if qx < 0 || qy < 0 || qx >= w as isize || qy >= h as isize {
+                        continue;
+                    }
+                    let q = qy as usize * w + qx as usize;
+                    if label[q] == usize::MAX && on(q) {
+                        label[q] = id;
+                        stack.push(q);
+                    }
+                }
+            }
+        }
+        sizes.push(size);
+    }
+    let mut order: Vec<usize> = (0..sizes.len()).filter(|&k| sizes[k] >= 20).collect();
+    order.sort_by(|a, b| sizes[*b].cmp(&sizes[*a]));
+    order
+        .into_iter()
+        .map(|id| {
+            // A pixel belongs to the part when it or a neighbour within two pixels does (its
+            // anti-aliased rim lies below half level).
+            Grid::from_fn(w, h, |x, y| {
+                let near = (y.saturating_sub(2)..(y + 3).min(h)).any(|qy| {
+                    (x.saturating_sub(2)..(x + 3).min(w)).any(|qx| label[qy * w + qx] == id)
+                });
+                if near { *mask.at(x, y) } else { 0.0 }
+            })
+        })
+        .collect()
+}
+
 /// An edge point of an image: sub-pixel position and unit gradient direction.
 #[derive(Debug, Clone, Copy)]
 struct Edge {
@@ -341,7 +403,15 @@ pub struct Candidate {
 /// (for points correlated over three pixels) and a block jackknife's over eight sectors of
 /// the outline, combined with a 0.07 px floor for the shift of a whole mirror-ball outline
 /// that neither shows.
-pub fn detect_circles(evidence: &ScalarMap, max: usize) -> Vec<Candidate> {
+///
+/// With a pinhole `camera`, a ball θ off the optical axis images as an ellipse whose axes
+/// differ by about R(1/cos θ − 1) ([`super::perspective`]); the support tolerances are widened
+/// by that much, so that the circle is found, and the ellipse is then fitted as a cone of rays.
+pub fn detect_circles(
+    evidence: &ScalarMap,
+    max: usize,
+    camera: Option<&Intrinsics>,
+) -> Vec<Candidate> {
     let edges = edge_points(evidence);
     let (w, h) = (evidence.width(), evidence.height());
     if edges.len() < 3 || max == 0 {
@@ -406,7 +476,7 @@ pub fn detect_circles(evidence: &ScalarMap, max: usize) -> Vec<Candidate> {
                 cy: py as f64,
                 radius,
             };
-            let Some(c) = refine(&edges, start, max_radius, w, h) else {
+            let Some(c) = refine(&edges, start, max_radius, w, h, camera) else {
                 continue;
             };
             let same = |o: &Candidate| {
@@ -432,7 +502,7 @@ pub fn detect_circles(evidence: &ScalarMap, max: usize) -> Vec<Candidate> {
 /// # Errors
 /// [`Error::SphereNotFound`] when there is none.
 pub fn detect_circle(evidence: &ScalarMap) -> Result<CircleFit> {
-    detect_circles(evidence, 1)
+    detect_circles(evidence, 1, None)
         .first()
         .map(|c| c.fit)
         .ok_or_else(|| Error::SphereNotFound {
@@ -511,10 +581,10 @@ fn radius_peaks(edges: &[Edge], cx: f64, cy: f64, max_radius: f64, w: usize, h: 
 /// the other out, a shift of the whole circle. On rendered balls whose environment is brighter
 /// above by up to 0.3 of its level (`tests/chrome_captures.rs`' generator, seeds 1000–1099, not
 /// those the test checks), the centre moved by 0.066 px rms along the gradient.
-const OUTLINE_FLOOR_PX: f64 = 0.07;
+pub(crate) const OUTLINE_FLOOR_PX: f64 = 0.07;
 
 /// Sectors of the block jackknife of a detected circle.
-const JACKKNIFE_SECTORS: usize = 8;
+pub(crate) const JACKKNIFE_SECTORS: usize = 8;
 
 /// Block-jackknife standard errors of (cx, cy, R) from `points` about `circle`: the geometric
 /// fit without each of [`JACKKNIFE_SECTORS`] angular sectors in turn, var = (n − 1)/n Σ(θᵢ − θ̄)²
@@ -561,11 +631,19 @@ pub fn in_frame_fraction(c: &Circle, w: usize, h: usize) -> f64 {
 }
 
 /// Refits `start` to its supporting edge points, twice; `None` if it has too few.
-fn refine(edges: &[Edge], start: Circle, max_radius: f64, w: usize, h: usize) -> Option<Candidate> {
+fn refine(
+    edges: &[Edge],
+    start: Circle,
+    max_radius: f64,
+    w: usize,
+    h: usize,
+    camera: Option<&Intrinsics>,
+) -> Option<Candidate> {
     let mut c = start;
     let mut fit = None;
     let mut points = Vec::new();
     for tolerance in [2.5, SUPPORT_TOLERANCE_PX, SUPPORT_TOLERANCE_PX] {
+        let tolerance = tolerance + ellipse_excess(&c, camera);
         points = edges
             .iter()
             .filter(|e| {
@@ -600,9 +678,9 @@ fn refine(edges: &[Edge], start: Circle, max_radius: f64, w: usize, h: usize) ->
     // of them holding a supporting edge point.
     let arcs = (std::f64::consts::TAU * c.radius).ceil().max(8.0) as usize;
     let mut held = vec![false; arcs];
+    let tolerance = SUPPORT_TOLERANCE_PX + ellipse_excess(&c, camera);
     for e in edges {
-        if c.distance(e.x, e.y).abs() <= SUPPORT_TOLERANCE_PX && radial_cos(e, &c) >= RADIAL_COSINE
-        {
+        if c.distance(e.x, e.y).abs() <= tolerance && radial_cos(e, &c) >= RADIAL_COSINE {
             let a = (e.y - c.cy)
                 .atan2(e.x - c.cx)
                 .rem_euclid(std::f64::consts::TAU);
@@ -624,6 +702,29 @@ fn refine(edges: &[Edge], start: Circle, max_radius: f64, w: usize, h: usize) ->
         fit,
         in_frame: visible as f64 / arcs as f64,
         support: supported as f64 / visible.max(1) as f64,
+    })
+}
+
+/// The edge points of `evidence` (as [`detect_circles`] finds them) within `band` pixels of
+/// `circle` whose gradient is within 26° of radial: the outline's points, for a fit of another
+/// model of it (a sphere's cone of rays under a pinhole camera, whose image is an ellipse).
+pub fn outline_points(evidence: &ScalarMap, circle: &Circle, band: f64) -> Vec<[f64; 2]> {
+    edge_points(evidence)
+        .iter()
+        .filter(|e| {
+            circle.distance(e.x, e.y).abs() <= band && radial_cos(e, circle) >= RADIAL_COSINE
+        })
+        .map(|e| [e.x, e.y])
+        .collect()
+}
+
+/// How far (pixels) the image of a ball whose outline is about `c` departs from a circle
+/// under `camera`: the difference of its ellipse's axes, R(1/cos θ − 1) at θ off the optical
+/// axis (0 orthographic).
+pub(crate) fn ellipse_excess(c: &Circle, camera: Option<&Intrinsics>) -> f64 {
+    camera.map_or(0.0, |k| {
+        let (x, y) = ((c.cx - k.cx) / k.fx, (c.cy - k.cy) / k.fy);
+        c.radius * ((1.0 + x * x + y * y).sqrt() - 1.0)
     })
 }
 

@@ -827,6 +827,7 @@ mod tests {
                     direction: unit(DIRECTIONS[k]),
                     intensity: INTENSITIES[k],
                     file: Some(format!("img_{k}.png")),
+                    position: None,
                 })
                 .collect(),
         )

@@ -27,6 +27,11 @@ pub struct Light {
     pub intensity: [f64; 3],
     /// Image file this light belongs to, when the lights file names one.
     pub file: Option<String>,
+    /// The light's position (camera frame), when it is a near light measured as one (e.g. by
+    /// two mirror balls, [`crate::calibrate::near`]); `direction` is then the direction to it
+    /// from a point of the scene (from two balls: their midpoint, where the object should be).
+    /// The photometric-stereo solvers use `direction` (the distant approximation).
+    pub position: Option<Vector3<f64>>,
 }
 
 /// An ordered set of distant lights, one per image.
@@ -52,6 +57,11 @@ struct JsonLight {
     direction: [f64; 3],
     #[serde(default)]
     intensity: Option<JsonIntensity>,
+    #[serde(default)]
+    position: Option<[f64; 3]>,
+    /// Written by `photostereo calibrate` (informational).
+    #[serde(default, rename = "position_uncertainty")]
+    _position_uncertainty: Option<f64>,
     /// Written by `photostereo calibrate` (informational).
     #[serde(default, rename = "confidence")]
     _confidence: Option<f64>,
@@ -81,6 +91,8 @@ struct JsonLightOut<'a> {
     file: Option<&'a str>,
     direction: [f64; 3],
     intensity: JsonIntensity,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    position: Option<[f64; 3]>,
 }
 
 impl Light {
@@ -90,6 +102,7 @@ impl Light {
             direction,
             intensity: [1.0; 3],
             file: None,
+            position: None,
         }
     }
 
@@ -154,6 +167,14 @@ impl Lights {
                 let scaled = d / largest;
                 scaled / scaled.norm()
             };
+            if let Some(p) = light.position
+                && !p.iter().all(|v| v.is_finite())
+            {
+                return Err(Error::InvalidLight {
+                    index,
+                    reason: format!("position {:?} is not finite", p.as_slice()),
+                });
+            }
             if let Some(bad) = light
                 .intensity
                 .iter()
@@ -178,6 +199,11 @@ impl Lights {
             }
         }
         Ok(Lights { lights })
+    }
+
+    /// How many lights have a position ([`Light::position`]).
+    pub fn positioned(&self) -> usize {
+        self.lights.iter().filter(|l| l.position.is_some()).count()
     }
 
     /// Lights of unit intensity from directions.
@@ -225,6 +251,7 @@ impl Lights {
                     Some(JsonIntensity::Rgb(rgb)) => rgb,
                 },
                 file: l.file,
+                position: l.position.map(Vector3::from),
             })
             .collect();
         Lights::new(lights)
@@ -535,6 +562,7 @@ impl Lights {
                     } else {
                         JsonIntensity::Rgb(l.intensity)
                     },
+                    position: l.position.map(|p| [p.x, p.y, p.z]),
                 })
                 .collect(),
         };
@@ -655,6 +683,24 @@ mod tests {
             assert!((a.direction - b.direction).norm() < 1e-15);
             assert_eq!((a.intensity, &a.file), (b.intensity, &b.file));
         }
+    }
+
+    #[test]
+    fn near_lights_keep_their_positions() {
+        let text = r#"{"lights": [
+            {"direction": [0, 0, 1], "position": [10, 20, 300], "position_uncertainty": 0.5},
+            {"direction": [1, 0, 1]}]}"#;
+        let l = Lights::from_json_str(text, Path::new("l.json")).unwrap();
+        assert_eq!(l.positioned(), 1);
+        assert_eq!(
+            l.lights()[0].position,
+            Some(Vector3::new(10.0, 20.0, 300.0))
+        );
+        let back = Lights::from_json_str(&l.to_json(), Path::new("x")).unwrap();
+        assert_eq!(back.lights()[0].position, l.lights()[0].position);
+        assert_eq!(back.lights()[1].position, None);
+        let bad = r#"{"lights": [{"direction": [0, 0, 1], "position": [1e400, 0, 0]}]}"#;
+        assert!(Lights::from_json_str(bad, Path::new("l.json")).is_err());
     }
 
     #[test]

@@ -989,6 +989,7 @@ impl BandRun {
             count: self.info.len(),
             unmasked_files: files.mask_source.is_none(),
             behind: files.lights.behind(),
+            positioned: files.lights.positioned(),
         }
     }
 }

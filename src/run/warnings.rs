@@ -28,6 +28,13 @@ pub enum Warning {
         /// Lights in all.
         count: usize,
     },
+    /// Lights given with positions (near lights), used by their directions.
+    NearLights {
+        /// Lights with a position.
+        positioned: usize,
+        /// Lights in all.
+        count: usize,
+    },
     /// JPEG images: lossy, 8-bit, sRGB-encoded.
     Lossy {
         /// JPEG images among the inputs.
@@ -110,6 +117,10 @@ impl fmt::Display for Warning {
                 f,
                 "light(s) {} of {count} point behind the surface (z < 0; z points from the object towards the camera): they light only surfaces the camera sees at grazing angles; check their sign",
                 crate::capture::lights::index_list(lights)
+            ),
+            Warning::NearLights { positioned, count } => write!(
+                f,
+                "{positioned} of {count} lights have a position (near lights), but the solver models distant ones: each was used with its given direction (from two balls: from their midpoint), which is off at a pixel by about the angle the pixel's offset from that point subtends at the light"
             ),
             Warning::Lossy { images } => write!(
                 f,
@@ -210,6 +221,12 @@ pub(crate) fn warnings(
     if !facts.behind.is_empty() {
         warnings.push(Warning::LightsBehind {
             lights: facts.behind.clone(),
+            count: facts.count,
+        });
+    }
+    if facts.positioned > 0 {
+        warnings.push(Warning::NearLights {
+            positioned: facts.positioned,
             count: facts.count,
         });
     }

@@ -94,6 +94,9 @@ pub struct ChromeCapture {
     pub environment_slope: f64,
     /// The wall.
     pub wall: Wall,
+    /// The wall's brightness in each image, as a factor of [`ChromeCapture::wall`]'s (the
+    /// lamps light the wall too, each its own amount); missing entries are 1.
+    pub wall_gain: Vec<f64>,
     /// One lamp per image: the light to calibrate.
     pub lamps: Vec<Lamp>,
     /// Further sources lit in every image with its lamp, as a fraction of that lamp's radiance
@@ -258,7 +261,7 @@ impl ChromeCapture {
             }
             return self.reflectance * value.max(0.0);
         }
-        self.wall_at(x, y)
+        self.wall_at(x, y) * self.wall_gain.get(k).copied().unwrap_or(1.0)
     }
 
     /// Where the ray of image point (x, y) meets ball `b` (camera frame), if it does.

@@ -14,6 +14,8 @@ pub(crate) struct InputFacts<'a> {
     pub unmasked_files: bool,
     /// Indices of the lights behind the surface (z < 0).
     pub behind: Vec<usize>,
+    /// Lights given with a position (near lights), solved as distant ones.
+    pub positioned: usize,
 }
 
 /// The per-pixel maps of a solve, over a whole image or a band of rows: what every pixel's

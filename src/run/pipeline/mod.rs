@@ -211,6 +211,7 @@ pub fn reconstruct_normals_with_models(
         count: capture.stack.count(),
         unmasked_files,
         behind: capture.lights.behind(),
+        positioned: capture.lights.positioned(),
     };
     let recon = solve_whole(
         (&capture.stack, models),
@@ -712,6 +713,7 @@ mod tests {
             count: COUNT,
             unmasked_files: false,
             behind: vec![3],
+            positioned: 2,
         };
         let config = Config {
             albedo_normalised: true,
@@ -741,6 +743,10 @@ mod tests {
         assert!(r.warnings.contains(&Warning::AlbedoAboveOne { pixels: 2 }));
         assert!(r.warnings.contains(&Warning::LightsBehind {
             lights: vec![3],
+            count: COUNT
+        }));
+        assert!(r.warnings.contains(&Warning::NearLights {
+            positioned: 2,
             count: COUNT
         }));
         // Not declared normalised: no albedo warning.
