@@ -826,6 +826,7 @@ fn calibrate_command_places_near_lights_from_two_balls() {
         assert!(l.direction.angle(&(p - measured_mid)) < 1e-9);
     }
     assert_eq!(json["calibration"]["ball_radius"].as_f64(), Some(radius));
+    assert!(json["calibration"]["two_balls"]["positions"][0]["found"]["accepted"].is_boolean());
     // Balls this small leave every position more uncertain than 0.5% of its distance: in
     // doubt, refused without --keep-doubtful.
     let o = calibrate(

@@ -300,14 +300,14 @@ def test_calibrate_places_near_lights_from_two_balls_through_a_pinhole():
     cal = ps.calibrate(images, camera=k, ball_radius=radius)
     report = cal["report"]
     for i, (entry, lamp) in enumerate(zip(report["positions"], lamps)):
-        p = entry["Ok"]
+        p = entry["found"]
         err = np.linalg.norm(np.array(p["position"]) - lamp)
         dist = np.linalg.norm(lamp - mid)
         assert err <= 0.02 * dist and err <= 3 * p["uncertainty"], (i, err, p)
     # Balls this small leave each position more uncertain than 0.5% of its distance: in doubt,
     # so no light set is returned, but the report holds every position.
     assert cal["positions"] is None and cal["lights"] is None
-    assert all(not e["Ok"]["accepted"] for e in report["positions"])
+    assert all(not e["found"]["accepted"] for e in report["positions"])
     # One ball through the same camera: directions, no positions.
     one = ps.calibrate(images[:, :, 300:], camera=k - [[0, 0, 300], [0, 0, 0], [0, 0, 0]])
     assert one["positions"] is None and one["report"]["cone"] is not None

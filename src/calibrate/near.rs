@@ -95,10 +95,29 @@ pub struct TwoBallCalibration {
     pub balls: Vec<ChromeCalibration>,
     /// Each ball's centre (camera frame, unit of the radius).
     pub centres: Vec<[f64; 3]>,
-    /// Per image, the light's position, or why there is none.
+    /// Per image, the light's position, or why there is none (written as `{"found": …}` or
+    /// `{"missing": {"reason": …}}`, as the highlights are).
+    #[serde(serialize_with = "serialize_positions")]
     pub positions: Vec<std::result::Result<LightPosition, String>>,
     /// Warnings about the calibration as a whole.
     pub warnings: Vec<String>,
+}
+
+/// Writes positions as found / missing entries (see [`TwoBallCalibration::positions`]).
+fn serialize_positions<S: serde::Serializer>(
+    positions: &[std::result::Result<LightPosition, String>],
+    s: S,
+) -> std::result::Result<S::Ok, S::Error> {
+    #[derive(Serialize)]
+    #[serde(rename_all = "snake_case")]
+    enum Entry<'a> {
+        Found(&'a LightPosition),
+        Missing { reason: &'a str },
+    }
+    s.collect_seq(positions.iter().map(|p| match p {
+        Ok(p) => Entry::Found(p),
+        Err(reason) => Entry::Missing { reason },
+    }))
 }
 
 impl TwoBallCalibration {
