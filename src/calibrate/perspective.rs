@@ -24,7 +24,8 @@
 //! the centre and P are positions in that unit ([`SphereCone::centre`]), which is what two
 //! balls need to place a near light ([`super::near`]).
 
-use super::sphere::{Circle, fit_circle};
+// The robust rounds and outlier cut are the circle fit's.
+use super::sphere::{Circle, OUTLIER_FLOOR_PX, OUTLIER_SIGMAS, ROBUST_ROUNDS, fit_circle};
 use crate::camera::Intrinsics;
 use crate::error::{Error, Result};
 use crate::stats::median_by;
@@ -33,12 +34,6 @@ use serde::Serialize;
 
 /// Gauss–Newton iterations of the cone fit.
 const ITERATIONS: usize = 30;
-/// Rounds of outlier removal.
-const ROBUST_ROUNDS: usize = 4;
-/// Points beyond this many robust σ of the angular residuals are outliers …
-const OUTLIER_SIGMAS: f64 = 3.0;
-/// … but never within this many pixels (as for circles).
-const OUTLIER_FLOOR_PX: f64 = 0.75;
 
 /// A sphere's cone of outline rays under a pinhole camera, fitted to its outline.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -288,17 +283,7 @@ pub(crate) fn cone_jackknife(points: &[[f64; 2]], cone: &SphereCone, sectors: us
         let (a, alpha) = gauss_newton(&rest, cone.axis, cone.half_angle);
         fits.push([a.dot(&e1), a.dot(&e2), alpha]);
     }
-    let n = fits.len();
-    if n < 2 {
-        return [0.0; 3];
-    }
-    let mut out = [0.0; 3];
-    for (k, o) in out.iter_mut().enumerate() {
-        let mean = fits.iter().map(|f| f[k]).sum::<f64>() / n as f64;
-        let ss: f64 = fits.iter().map(|f| (f[k] - mean).powi(2)).sum();
-        *o = ((n - 1) as f64 / n as f64 * ss).sqrt();
-    }
-    out
+    super::sphere::jackknife_spread(&fits)
 }
 
 fn angle(d: &Vector3<f64>, axis: &Vector3<f64>) -> f64 {

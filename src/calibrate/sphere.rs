@@ -15,11 +15,11 @@ use serde::Serialize;
 /// Gauss–Newton iterations of the geometric circle fit (it converges in 3–5 from Kåsa's).
 const GEOMETRIC_ITERATIONS: usize = 20;
 /// Robust refits: points farther than [`OUTLIER_SIGMAS`] robust σ from the circle are dropped.
-const ROBUST_ROUNDS: usize = 4;
+pub(crate) const ROBUST_ROUNDS: usize = 4;
 /// Outlier cut in robust standard deviations (1.4826 × median absolute residual).
-const OUTLIER_SIGMAS: f64 = 3.0;
+pub(crate) const OUTLIER_SIGMAS: f64 = 3.0;
 /// Floor of the outlier cut in pixels (a mask edge is never better than this).
-const OUTLIER_FLOOR_PX: f64 = 0.75;
+pub(crate) const OUTLIER_FLOOR_PX: f64 = 0.75;
 /// A mask's edge points may lie this far (rms, pixels) from its circle, plus 1% of the radius.
 pub(crate) const MAX_MASK_RMS_PX: f64 = 1.0;
 /// Angular bins used to measure how much of the circumference the edge points cover.
@@ -605,6 +605,12 @@ fn sector_jackknife(points: &[[f64; 2]], circle: Circle) -> [f64; 3] {
         let c = geometric(&rest, circle);
         fits.push([c.cx, c.cy, c.radius]);
     }
+    jackknife_spread(&fits)
+}
+
+/// Jackknife standard errors of three parameters from their leave-one-block-out fits:
+/// √((n − 1)/n Σ(θᵢ − θ̄)²) each, 0 with fewer than two fits.
+pub(crate) fn jackknife_spread(fits: &[[f64; 3]]) -> [f64; 3] {
     let n = fits.len();
     if n < 2 {
         return [0.0; 3];
