@@ -183,6 +183,11 @@ pub struct MethodArgs {
     /// Never correct the light intensities.
     #[arg(long)]
     pub no_recalibrate: bool,
+    /// auto: keep the robust Lambertian fit where Lambert's law fails instead of refitting
+    /// those pixels with a diffuse term plus specular lobes (the refit is kept only where it
+    /// explains a pixel; it costs about 1.5 s on a DiLiGenT object).
+    #[arg(long)]
+    pub no_lobes: bool,
     /// auto: noise standard deviation of the samples (after division by intensity), when known;
     /// by default it is estimated from each image.
     #[arg(long, value_name = "SIGMA")]
@@ -336,6 +341,9 @@ pub struct EvalArgs {
     /// With `--diligent`: shadow labelling after each solve.
     #[command(flatten)]
     pub shadows: ShadowArgs,
+    /// With `--diligent`: `auto` without the refit with specular lobes.
+    #[arg(long)]
+    pub no_lobes: bool,
 }
 
 /// `--align` values.
@@ -786,6 +794,7 @@ impl MethodArgs {
             noise_sigma: self.noise_sigma,
             fill: !self.strict,
             shadow_labels: self.shadows.options(),
+            lobes: !self.no_lobes,
             ..SolveOptions::default()
         };
         solve.validate()?;

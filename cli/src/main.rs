@@ -573,6 +573,7 @@ fn eval_diligent(a: &EvalArgs) -> Result<()> {
             let config = Config {
                 solve: SolveOptions {
                     shadow_labels: a.shadows.options(),
+                    lobes: !a.no_lobes,
                     ..SolveOptions::with_method(m.method())
                 },
                 integration: None,
@@ -604,6 +605,16 @@ fn eval_diligent(a: &EvalArgs) -> Result<()> {
             });
             if !recon.model.shadow_labels.is_empty() {
                 row["shadow_labels"] = serde_json::to_value(&recon.model.shadow_labels)?;
+            }
+            if !recon.model.lobes.is_empty() {
+                row["lobes"] = serde_json::to_value(&recon.model.lobes)?;
+                row["timings_s"]["lobes"] = recon
+                    .model
+                    .lobes
+                    .iter()
+                    .map(|l| l.seconds)
+                    .sum::<f64>()
+                    .into();
             }
             rows.push(row);
         }
@@ -765,9 +776,23 @@ fn print_summary(report: &Report, dir: &Path) {
     );
     let m = &report.model;
     if m.robust_pixels > 0 || m.recalibrated {
+        let lobes: (usize, usize) = m
+            .lobes
+            .iter()
+            .fold((0, 0), |(a, r), l| (a + l.applied, r + l.refitted));
         say!(
-            "  model: {:.1}% of solved pixels needed the robust fit{}",
+            "  model: {:.1}% of solved pixels needed the robust fit{}{}",
             100.0 * m.robust_fraction,
+            if lobes.1 > 0 {
+                format!(
+                    ", {:.1}% are explained by specular lobes ({} of {} refitted)",
+                    100.0 * lobes.0 as f64 / c.solved.max(1) as f64,
+                    lobes.0,
+                    lobes.1
+                )
+            } else {
+                String::new()
+            },
             match (m.recalibrated, m.gains_applied.iter().all(|&a| a)) {
                 (true, true) =>
                     "; light intensities corrected from the data (gains in report.json)",

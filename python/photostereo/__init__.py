@@ -274,7 +274,8 @@ def estimate_model(
     transfer: str = "auto",
     saturation: Optional[float] = None,
 ) -> List[Dict[str, Any]]:
-    """The capture-wide models (noise sigma and intensity gains per image) a solve of these
+    """The capture-wide models (noise sigma and intensity gains per image, and ``lobe_limit``,
+    the relative-residual limit of ``auto``'s refit with specular lobes) a solve of these
     images would estimate: estimate them once on the whole capture (or a sample of its rows)
     and pass them to :func:`solve` for each part. Arguments as :func:`solve`."""
     images = _check_array(images, "images")

@@ -1,7 +1,8 @@
 """Photometric stereo over the tiles of a Dask array: captures larger than one machine.
 
 The per-pixel solve is independent per pixel once the capture-wide model (each image's noise
-sigma and intensity gain, what ``method="auto"`` estimates before fitting any pixel) is fixed.
+sigma and intensity gain, and the limit of the refit with specular lobes: what
+``method="auto"`` estimates before fitting any pixel) is fixed.
 So :func:`solve` estimates that model once, from a sample of rows spread over the capture,
 then maps the library's solve over spatial tiles (all images of a tile in one chunk) under
 that model, and returns lazy Dask arrays. Dask schedules the tiles: the same code runs on a

@@ -367,6 +367,7 @@ fn model_to_py<'py>(py: Python<'py>, m: &ImageModel) -> PyRes<Bound<'py, PyDict>
     d.set_item("gain_pixels", g.pixels)?;
     d.set_item("unit_misfit", g.unit_misfit)?;
     d.set_item("misfit", g.misfit)?;
+    d.set_item("lobe_limit", m.lobe_limit)?;
     Ok(d)
 }
 
@@ -411,7 +412,19 @@ fn model_from_py(d: &Bound<'_, PyAny>) -> PyRes<ImageModel> {
     g.pixels = get("gain_pixels")?.extract()?;
     g.unit_misfit = get("unit_misfit")?.extract()?;
     g.misfit = get("misfit")?.extract()?;
-    Ok(ImageModel { sigma, gains: g })
+    // Optional: models written before the refit with specular lobes have none.
+    let lobe_limit =
+        match d.get_item("lobe_limit") {
+            Ok(v) if !v.is_none() => Some(v.extract::<f64>().map_err(|_| {
+                PyTypeError::new_err("model: \"lobe_limit\" is not a float or None")
+            })?),
+            _ => None,
+        };
+    Ok(ImageModel {
+        sigma,
+        gains: g,
+        lobe_limit,
+    })
 }
 
 fn status_code(s: PixelStatus) -> u8 {

@@ -105,7 +105,11 @@ pub fn solve_shared_normal(
         lights,
         mask,
         options,
-        ImageModel { sigma, gains },
+        ImageModel {
+            sigma,
+            gains,
+            lobe_limit: None,
+        },
         progress,
     )
 }
@@ -180,7 +184,7 @@ fn fit_shared(
     model: ImageModel,
     progress: &dyn Progress,
 ) -> Result<Vec<Solution>> {
-    let ImageModel { sigma, gains } = model;
+    let ImageModel { sigma, gains, .. } = model;
     let dirs = lights.directions();
     let k = stack.count();
     let pixels: Vec<usize> = (0..mask.len()).filter(|&i| mask.data()[i]).collect();
@@ -459,6 +463,7 @@ mod tests {
                 gains: scale.iter().map(|s| (1.0 / s) as f32).collect(),
                 ..GainEstimate::unit(12)
             },
+            lobe_limit: None,
         };
         let options = SolveOptions::default();
         let sol = solve_shared_normal_with_model(&stack, &lights, &mask, &options, model, &Silent)
@@ -528,6 +533,7 @@ mod tests {
         let model = |n: usize| ImageModel {
             sigma: vec![1e-3; n],
             gains: GainEstimate::unit(n),
+            lobe_limit: None,
         };
         let with_model = |stack: &ImageStack, m: ImageModel| {
             solve_shared_normal_with_model(stack, &lights, &mask, &options, m, &Silent)

@@ -12,6 +12,8 @@
 //! - [`normals`]: albedo and unit normals from g, gradients and the integrability check.
 //! - [`interreflection`]: the light a concave surface throws onto itself, predicted from the
 //!   reconstructed shape and subtracted (opt-in, a pipeline stage).
+//! - [`lobes`]: a non-Lambertian refit (a diffuse term plus specular lobes) of the pixels
+//!   Lambert's law does not explain, kept where it explains them ([`solve::SolveOptions::lobes`]).
 //! - [`shadows`]: spatially coherent shadow/inlier labels per image (graph cuts) and the refit
 //!   from them (opt-in: [`solve::SolveOptions::shadow_labels`]).
 
@@ -19,6 +21,7 @@ pub mod color;
 pub mod fill;
 pub mod intensities;
 pub mod interreflection;
+pub mod lobes;
 pub mod noise;
 pub mod normals;
 pub mod robust;

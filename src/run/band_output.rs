@@ -182,7 +182,7 @@ impl BandSink for BandOutput {
     fn band(&mut self, y0: usize, solutions: Vec<Solution>) -> Result<()> {
         self.fill_to(y0)?;
         for (m, s) in self.models.iter_mut().zip(&solutions) {
-            m.add_shadow_labels(s);
+            m.add_band_passes(s);
         }
         self.emit(&solutions)
     }

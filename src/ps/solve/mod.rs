@@ -155,7 +155,11 @@ pub fn solve_with_model(
     check_model(&model, stack.count())?;
     let (w, h) = (stack.width(), stack.height());
     let dirs64 = lights.directions();
-    let ImageModel { sigma, gains } = model;
+    let ImageModel {
+        sigma,
+        gains,
+        lobe_limit,
+    } = model;
     let per = PerImage {
         dirs: dirs64
             .iter()
@@ -203,6 +207,12 @@ pub fn solve_with_model(
             stack, channel, lights, mask, options, labels, &mut sol,
         )?;
         sol.shadow_labels = Some(summary);
+    }
+    if options.method == Method::Auto && options.lobes {
+        let summary = crate::ps::lobes::refit_with_lobes(
+            stack, channel, lights, mask, options, lobe_limit, &mut sol,
+        )?;
+        sol.lobes = Some(summary);
     }
     // Last: the fill leans on the final estimates of the solved neighbours.
     if options.fill {
@@ -348,10 +358,13 @@ mod tests {
         // Every method, without intensity recalibration (the per-pixel form has none) and with
         // a known noise level (the per-pixel form cannot estimate it).
         let (mut boundary, mut escalated) = (0, 0);
+        // Without the refit with specular lobes: it judges each pixel against the others,
+        // which the per-pixel form cannot (`ps::lobes` has its own tests).
         for opts in Method::ALL.map(|method| SolveOptions {
             method,
             recalibrate: Some(false),
             noise_sigma: Some(0.004),
+            lobes: false,
             ..SolveOptions::default()
         }) {
             let sol = solve(&stack, 0, &lights, &mask, &opts, &Silent).unwrap();

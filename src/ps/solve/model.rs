@@ -80,6 +80,11 @@ pub struct ImageModel {
     pub sigma: Vec<f32>,
     /// Intensity gains per image (unit when not recalibrated).
     pub gains: crate::ps::intensities::GainEstimate,
+    /// [`Method::Auto`] with [`SolveOptions::lobes`]: the relative-residual limit above which a
+    /// refit with specular lobes is declined ([`crate::ps::lobes`]), estimated on a sample of
+    /// the capture's pixels; `None` when not estimated (a solve then takes it from its own
+    /// pixels).
+    pub lobe_limit: Option<f64>,
 }
 
 impl ImageModel {
@@ -98,7 +103,24 @@ impl ImageModel {
     ) -> Result<Self> {
         check_inputs(stack, channel, lights, mask, options)?;
         let (sigma, gains) = noise_and_gains(stack, channel, lights, mask, options);
-        Ok(ImageModel { sigma, gains })
+        let lobe_limit = (options.method == Method::Auto && options.lobes)
+            .then(|| {
+                crate::ps::lobes::estimate_limit(
+                    stack,
+                    channel,
+                    lights,
+                    mask,
+                    options,
+                    &sigma,
+                    &gains.gains,
+                )
+            })
+            .flatten();
+        Ok(ImageModel {
+            sigma,
+            gains,
+            lobe_limit,
+        })
     }
 
     /// Whether `options` needs a model estimated from the data for `count` images (otherwise
@@ -112,6 +134,7 @@ impl ImageModel {
         ImageModel {
             sigma: vec![f32::NAN; count],
             gains: crate::ps::intensities::GainEstimate::unit(count),
+            lobe_limit: None,
         }
     }
 }

@@ -279,6 +279,10 @@ pub struct SolveOptions {
     /// ([`crate::ps::shadows`]); `None` (the default): off.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub shadow_labels: Option<crate::ps::shadows::ShadowLabelOptions>,
+    /// [`Method::Auto`]: refit the pixels that fail the Lambertian fit test with a diffuse term
+    /// plus specular lobes and keep the refit where it explains them ([`crate::ps::lobes`]);
+    /// default on.
+    pub lobes: bool,
 }
 
 impl Default for SolveOptions {
@@ -298,6 +302,7 @@ impl Default for SolveOptions {
             fit_test_z: DEFAULT_FIT_TEST_Z,
             fill: true,
             shadow_labels: None,
+            lobes: true,
         }
     }
 }

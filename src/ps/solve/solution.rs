@@ -54,6 +54,9 @@ pub struct Solution {
     /// What the shadow labelling pass changed, when it ran
     /// ([`SolveOptions::shadow_labels`], [`crate::ps::shadows`]).
     pub shadow_labels: Option<crate::ps::shadows::ShadowSummary>,
+    /// What the refit with specular lobes did, when it ran ([`SolveOptions::lobes`],
+    /// [`crate::ps::lobes`]).
+    pub lobes: Option<crate::ps::lobes::LobeSummary>,
 }
 
 impl Solution {
@@ -80,6 +83,7 @@ impl Solution {
                 Vec::new()
             },
             shadow_labels: None,
+            lobes: None,
         }
     }
 
@@ -109,6 +113,9 @@ impl Solution {
         if let Some(b) = &band.shadow_labels {
             self.shadow_labels.get_or_insert_default().add(b);
         }
+        if let Some(b) = &band.lobes {
+            self.lobes.get_or_insert_default().add(b);
+        }
         Ok(())
     }
 
@@ -128,6 +135,7 @@ impl Solution {
             gains: self.gains.clone(),
             noise: self.noise.clone(),
             shadow_labels: self.shadow_labels,
+            lobes: self.lobes,
         }
     }
 

@@ -135,6 +135,8 @@ pub(crate) struct ChannelModel {
     pub noise: Vec<f32>,
     /// What the shadow labelling changed, when it ran.
     pub shadow_labels: Option<crate::ps::shadows::ShadowSummary>,
+    /// What the refit with specular lobes did, when it ran.
+    pub lobes: Option<crate::ps::lobes::LobeSummary>,
 }
 
 impl ChannelModel {
@@ -146,14 +148,19 @@ impl ChannelModel {
                 gains: s.gains.clone(),
                 noise: s.noise.clone(),
                 shadow_labels: s.shadow_labels,
+                lobes: s.lobes,
             })
             .collect()
     }
 
-    /// Adds the shadow labelling counts of `band`, a solved band of this channel.
-    pub(crate) fn add_shadow_labels(&mut self, band: &Solution) {
+    /// Adds the shadow labelling and lobe refit counts of `band`, a solved band of this
+    /// channel.
+    pub(crate) fn add_band_passes(&mut self, band: &Solution) {
         if let Some(b) = &band.shadow_labels {
             self.shadow_labels.get_or_insert_default().add(b);
+        }
+        if let Some(b) = &band.lobes {
+            self.lobes.get_or_insert_default().add(b);
         }
     }
 }
@@ -209,6 +216,7 @@ pub(crate) fn model_summary(
         },
         noise: models.iter().map(|m| m.noise.clone()).collect(),
         shadow_labels: models.iter().filter_map(|m| m.shadow_labels).collect(),
+        lobes: models.iter().filter_map(|m| m.lobes).collect(),
     }
 }
 

@@ -539,6 +539,7 @@ mod tests {
             gains: s.gains.clone(),
             noise: s.noise.clone(),
             shadow_labels: s.shadow_labels,
+            lobes: s.lobes,
         }
     }
 
@@ -647,6 +648,7 @@ mod tests {
                     },
                     noise: vec![0.01 * f; COUNT],
                     shadow_labels: None,
+                    lobes: None,
                 }
             })
             .collect()

@@ -30,6 +30,11 @@ pub struct ModelSummary {
     /// did not run).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub shadow_labels: Vec<crate::ps::shadows::ShadowSummary>,
+    /// Per channel, what the refit with specular lobes did: how many of the pixels that failed
+    /// the Lambertian fit test the lobe model explains ([`crate::ps::lobes`]; absent when it did
+    /// not run).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub lobes: Vec<crate::ps::lobes::LobeSummary>,
 }
 
 /// Summary of the input, for the report.
