@@ -114,8 +114,9 @@ fn blinn_phong(exponent: f64) -> Material {
 }
 
 /// Lobes that the light set resolves: the refit removes most of the error the specular
-/// estimator leaves (Blinn–Phong n = 10: 1.56° → 0.39° at 128², 32 lights; Torrance–Sparrow
-/// m = 0.3: 1.04° → 0.33°), and the report counts every escalated pixel once.
+/// estimator leaves (measured at 128² by `measure_rendered`, 32 lights: Blinn–Phong n = 10
+/// 1.56° → 0.39°, Torrance–Sparrow m = 0.3 1.04° → 0.33°; this test renders 96²), and the
+/// report counts every escalated pixel once.
 #[test]
 fn lobes_remove_the_error_of_broad_highlights() {
     let ts = Material::with_specular(Specular::TorranceSparrow(TorranceSparrow {
@@ -139,9 +140,9 @@ fn lobes_remove_the_error_of_broad_highlights() {
 }
 
 /// Where the refit cannot help it changes nothing: a sharp lobe that 32 lights sample too
-/// sparsely to resolve (it moved the normals from 0.27° to 0.54° before the resolution test),
-/// a rough diffuse surface the lobes do not describe (2.07° → 2.25° before the information
-/// criterion), and a matte one.
+/// sparsely to resolve (at 128² it moved the normals from 0.27° to 0.54° before the resolution
+/// test), a rough diffuse surface the lobes do not describe (2.07° → 2.25° before the
+/// information criterion), and a matte one.
 #[test]
 fn lobes_leave_what_they_cannot_explain() {
     let mut rough = Material::lambertian();

@@ -185,7 +185,7 @@ pub struct MethodArgs {
     pub no_recalibrate: bool,
     /// auto: keep the robust Lambertian fit where Lambert's law fails instead of refitting
     /// those pixels with a diffuse term plus specular lobes (the refit is kept only where it
-    /// explains a pixel; it costs about 1.5 s on a DiLiGenT object).
+    /// explains a pixel; it costs 1.5–1.8 s of a run on a DiLiGenT object).
     #[arg(long)]
     pub no_lobes: bool,
     /// auto: noise standard deviation of the samples (after division by intensity), when known;

@@ -29,8 +29,9 @@
 //! squares solution (Lawson and Hanson, *Solving Least Squares Problems*, 1974, ch. 23), and n
 //! moves by damped Gauss–Newton steps in its tangent plane on the projected Jacobian (Kaufman,
 //! "A variable projection method for solving separable nonlinear least squares problems",
-//! BIT 1975). It starts from the robust estimate's normal and runs [`ROUNDS`] rounds of Tukey
-//! reweighting (scale 1.4826 × the median absolute residual, never below the image noise), so
+//! BIT 1975). It starts from the robust estimate's normal and runs [`ROUNDS`] rounds, each but
+//! the first Tukey-reweighted (scale 1.4826 × the median absolute residual, never below the
+//! image noise), so
 //! cast shadows and interreflections that the model does not describe lose their weight. The
 //! samples are the threshold set of the shadow rule: no sample the Lambertian fit calls
 //! shadowed or saturated is used.
@@ -58,7 +59,7 @@
 //! **Measured** (docs/photometric-stereo.md): DiLiGenT cat 5.33° → 4.43°, bear 4.23° → 3.94°,
 //! reading 11.79° → 11.03° (mean angular error, default command); on rendered scenes under 32
 //! and 96 lights the error falls by up to a factor 9 (Blinn–Phong n = 10) and rises on none.
-//! It costs about 1.3 s on a DiLiGenT object (2 cores).
+//! It costs 1.1–1.5 s of the solve on a DiLiGenT object (2 cores), 1.5–1.8 s of the whole run.
 //!
 //! **Where it breaks.** Anisotropic, retro-reflective or strongly Fresnel-dependent surfaces
 //! (the lobe depends on more than θ_h); near lights and perspective views (v and h change
@@ -70,7 +71,7 @@ use crate::capture::lights::Lights;
 use crate::capture::stack::ImageStack;
 use crate::error::{Error, Result};
 use crate::grid::Mask;
-use crate::ps::robust::{Estimator, half_vector};
+use crate::ps::robust::{Estimator, MAD_TO_SIGMA, TUKEY_C, half_vector};
 use crate::ps::solve::{PixelStatus, Solution, SolveOptions};
 use crate::stats::median_by;
 use nalgebra::{SMatrix, SVector, Vector3};
@@ -103,9 +104,6 @@ const MAX_STEPS: usize = 20;
 /// fraction of the errors that real captures leave: ending at 10⁻⁴ changed no DiLiGenT mean
 /// by more than 0.005° and took a third more steps).
 const STEP_TOLERANCE: f64 = 1e-3;
-
-/// Tukey biweight constant (95% efficiency under Gaussian noise).
-const TUKEY_C: f64 = 4.685;
 
 /// The upper median, reordering `values`; `None` when empty.
 fn median(values: &mut [f64]) -> Option<f64> {
@@ -545,7 +543,7 @@ pub(crate) fn fit_samples(s: &mut Samples, start: Vector3<f64>) -> Option<LobeFi
         if round > 0 {
             abs.clear();
             abs.extend(s.r.iter().map(|r| r.abs()));
-            let scale = (1.4826 * median(&mut abs)?).max(noise);
+            let scale = (MAD_TO_SIGMA * median(&mut abs)?).max(noise);
             for (w, r) in s.w.iter_mut().zip(&s.r) {
                 let u = r / (TUKEY_C * scale);
                 *w = if u.abs() < 1.0 {
@@ -564,7 +562,7 @@ pub(crate) fn fit_samples(s: &mut Samples, start: Vector3<f64>) -> Option<LobeFi
     }
     abs.clear();
     abs.extend(s.r.iter().map(|r| r.abs()));
-    let scale = (1.4826 * median(&mut abs)?).max(noise);
+    let scale = (MAD_TO_SIGMA * median(&mut abs)?).max(noise);
     let lobe_cost: f64 = s.r.iter().map(|r| tukey_rho(r / scale)).sum();
     let lambert_cost = lambert_robust_cost(s, start, scale);
     let terms = c.iter().filter(|&&v| v > 0.0).count();
@@ -746,7 +744,7 @@ fn limit_of(mut relative: Vec<f64>, z: f64) -> Option<(f64, f64)> {
     }
     let centre = median(&mut relative)?;
     let mut deviations: Vec<f64> = relative.iter().map(|r| (r - centre).abs()).collect();
-    let spread = 1.4826 * median(&mut deviations)?;
+    let spread = MAD_TO_SIGMA * median(&mut deviations)?;
     Some((centre + z * spread, centre))
 }
 
@@ -823,11 +821,23 @@ pub fn refit_with_lobes(
     let t = Instant::now();
     crate::ps::solve::check_inputs(stack, channel, lights, mask, options)?;
     mask.check_same_size(&solution.g, "solution vs mask")?;
+    mask.check_same_size(&solution.robust, "solution's robust map vs mask")?;
+    mask.check_same_size(&solution.status, "solution's status vs mask")?;
+    mask.check_same_size(&solution.residual, "solution's residual vs mask")?;
+    mask.check_same_size(&solution.samples, "solution's sample counts vs mask")?;
     let count = stack.count();
     if solution.gains.gains.len() != count {
         return Err(Error::param(
             "solution",
             format!("{} gains for {count} images", solution.gains.gains.len()),
+        ));
+    }
+    if let Some(l) = limit
+        && !(l.is_finite() && l > 0.0)
+    {
+        return Err(Error::param(
+            "lobe_limit",
+            format!("{l} is not a finite relative residual > 0"),
         ));
     }
     let sigma: Vec<f32> = if solution.noise.len() == count {
@@ -948,6 +958,21 @@ mod tests {
                 "{} vs {best}",
                 cost(&x)
             );
+        }
+    }
+
+    /// `basis` cubes each lobe's exponential to get the next: the widths must be a factor 3
+    /// apart.
+    #[test]
+    fn widths_are_a_factor_three_apart() {
+        for pair in WIDTHS.windows(2) {
+            assert!((pair[0] / pair[1] - 3.0).abs() < 1e-12, "{pair:?}");
+        }
+        let mut b = [0.0; TERMS];
+        basis(0.97, 0.5, &mut b);
+        for (j, w) in WIDTHS.iter().enumerate() {
+            let want = (-(1.0 - 0.97) / w).exp() * 0.5;
+            assert!((b[j + 1] - want).abs() < 1e-12 * want.max(1e-300), "{j}");
         }
     }
 

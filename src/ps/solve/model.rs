@@ -54,8 +54,16 @@ pub(crate) fn noise_and_gains(
     (sigma, gains)
 }
 
-/// Checks that `model` has one entry per image.
+/// Checks that `model` has one entry per image and a usable lobe limit.
 pub(crate) fn check_model(model: &ImageModel, count: usize) -> Result<()> {
+    if let Some(l) = model.lobe_limit
+        && !(l.is_finite() && l > 0.0)
+    {
+        return Err(Error::param(
+            "model",
+            format!("lobe limit {l} is not a finite relative residual > 0"),
+        ));
+    }
     if model.sigma.len() != count || model.gains.gains.len() != count {
         return Err(Error::param(
             "model",

@@ -35,7 +35,8 @@ impl PixelStatus {
 pub struct Solution {
     /// g = ρN per pixel; NaN where there is no estimate ([`PixelStatus::has_normal`]).
     pub g: Grid<Vector3<f32>>,
-    /// RMS of I − g·l over the used samples; NaN where not solved.
+    /// RMS of I − g·l over the used samples; NaN where not solved. For a pixel refitted with
+    /// specular lobes ([`crate::ps::lobes`]), the lobe model's weighted RMS residual.
     pub residual: ScalarMap,
     /// Number of samples used.
     pub samples: Grid<u16>,
