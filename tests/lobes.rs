@@ -3,9 +3,9 @@
 //! cast shadows) in lobes of several families and widths that the dictionary does not contain
 //! exactly.
 
+mod common;
+
 use photostereo::capture::dataset::Capture;
-use photostereo::capture::lights::Lights;
-use photostereo::capture::stack::ColorMode;
 use photostereo::eval::metrics::angular_errors;
 use photostereo::progress::Silent;
 use photostereo::ps::solve::SolveOptions;
@@ -13,22 +13,9 @@ use photostereo::run::pipeline::{Config, Reconstruction, reconstruct};
 use photostereo::synth::reflectance::{
     BlinnPhong, Diffuse, Material, Specular, TorranceSparrow, Ward,
 };
-use photostereo::synth::render::{RenderOptions, Rendering, render};
-use photostereo::synth::scene::Scene;
+use photostereo::synth::render::Rendering;
 
-fn rendered(material: Material, lights: usize, size: usize) -> (Capture, Rendering) {
-    let lights = Lights::fibonacci(lights, 30.0).unwrap();
-    let scene = Scene::sphere_on_ground(size, material);
-    let options = RenderOptions {
-        noise_sigma: 0.005,
-        seed: 3,
-        ..RenderOptions::default()
-    };
-    let r = render(&scene, &lights, &options).unwrap();
-    let stack = r.to_stack(&lights, ColorMode::Grey).unwrap();
-    let capture = Capture::from_stack(stack, lights, Some(r.truth.mask.clone())).unwrap();
-    (capture, r)
-}
+use common::sphere_on_ground as rendered;
 
 /// Mean angular error of the default method with and without the lobes, and the run with them.
 fn both(capture: &Capture, r: &Rendering) -> (f64, f64, Reconstruction) {

@@ -1,29 +1,18 @@
 //! The robust estimators and the automatic method on rendered scenes with ground truth: a
 //! sphere on a ground plane beside a pyramid (attached and cast shadows), matte and glossy.
 
+mod common;
+
 use photostereo::capture::dataset::Capture;
-use photostereo::capture::lights::Lights;
-use photostereo::capture::stack::ColorMode;
 use photostereo::eval::metrics::angular_errors;
 use photostereo::progress::Silent;
 use photostereo::ps::solve::{Method, SolveOptions};
 use photostereo::run::pipeline::{Config, Reconstruction, reconstruct};
 use photostereo::synth::reflectance::{BlinnPhong, Material, Specular, TorranceSparrow};
-use photostereo::synth::render::{RenderOptions, Rendering, render};
-use photostereo::synth::scene::Scene;
+use photostereo::synth::render::Rendering;
 
 fn rendered(material: Material) -> (Capture, Rendering) {
-    let lights = Lights::fibonacci(32, 30.0).unwrap();
-    let scene = Scene::sphere_on_ground(96, material);
-    let options = RenderOptions {
-        noise_sigma: 0.005,
-        seed: 3,
-        ..RenderOptions::default()
-    };
-    let r = render(&scene, &lights, &options).unwrap();
-    let stack = r.to_stack(&lights, ColorMode::Grey).unwrap();
-    let capture = Capture::from_stack(stack, lights, Some(r.truth.mask.clone())).unwrap();
-    (capture, r)
+    common::sphere_on_ground(material, 32, 96)
 }
 
 fn run(capture: &Capture, r: &Rendering, method: Method) -> (f64, Reconstruction) {

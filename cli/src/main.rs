@@ -776,19 +776,19 @@ fn print_summary(report: &Report, dir: &Path) {
     );
     let m = &report.model;
     if m.robust_pixels > 0 || m.recalibrated {
-        let lobes: (usize, usize) = m
-            .lobes
-            .iter()
-            .fold((0, 0), |(a, r), l| (a + l.applied, r + l.refitted));
+        let lobes: (usize, usize, f64) = m.lobes.iter().fold((0, 0, 0.0), |(a, r, t), l| {
+            (a + l.applied, r + l.refitted, t + l.seconds)
+        });
         say!(
             "  model: {:.1}% of solved pixels needed the robust fit{}{}",
             100.0 * m.robust_fraction,
             if lobes.1 > 0 {
                 format!(
-                    ", {:.1}% are explained by specular lobes ({} of {} refitted)",
+                    ", {:.1}% are explained by specular lobes ({} of {} refitted, in {:.2} s of the solve)",
                     100.0 * lobes.0 as f64 / c.solved.max(1) as f64,
                     lobes.0,
-                    lobes.1
+                    lobes.1,
+                    lobes.2
                 )
             } else {
                 String::new()

@@ -71,7 +71,7 @@ use crate::capture::lights::Lights;
 use crate::capture::stack::ImageStack;
 use crate::error::{Error, Result};
 use crate::grid::Mask;
-use crate::ps::robust::{Estimator, MAD_TO_SIGMA, TUKEY_C, half_vector};
+use crate::ps::robust::{Estimator, Loss, MAD_TO_SIGMA, TUKEY_C, half_vector};
 use crate::ps::solve::{PixelStatus, Solution, SolveOptions};
 use crate::stats::median_by;
 use nalgebra::{SMatrix, SVector, Vector3};
@@ -219,39 +219,102 @@ fn basis(x: f64, nl: f64, b: &mut [f64; TERMS]) {
     }
 }
 
-/// The samples of one pixel in the form the fit uses.
+/// Σ aₖbₖ in four interleaved partial sums, added in a fixed order: independent chains that
+/// the compiler vectorises, with a result that does not depend on the machine.
+#[inline]
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    debug_assert_eq!(a.len(), b.len());
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [0.0; 4];
+    let (mut ca, mut cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    for (x, y) in (&mut ca).zip(&mut cb) {
+        for lane in 0..4 {
+            acc[lane] += x[lane] * y[lane];
+        }
+    }
+    let tail: f64 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
+}
+
+/// `out` = `w` × `v`, element by element.
+#[inline]
+fn weighted(w: &[f64], v: &[f64], out: &mut Vec<f64>) {
+    out.clear();
+    out.extend(w.iter().zip(v).map(|(w, v)| w * v));
+}
+
+/// The samples of one pixel in the form the fit uses, one array a quantity (so that the passes
+/// over the samples vectorise).
 #[derive(Default)]
 pub(crate) struct Samples {
-    l: Vec<Vector3<f64>>,
-    h: Vec<Vector3<f64>>,
+    /// Light directions, by component.
+    l: [Vec<f64>; 3],
+    /// Half vectors, by component.
+    h: [Vec<f64>; 3],
     y: Vec<f64>,
     /// Noise σ of each sample (after gains).
     sigma: Vec<f64>,
     /// Current robust weights.
     w: Vec<f64>,
-    /// Scratch: residuals and the two tangent derivatives of the model.
+    /// Scratch: n·l, and the first lobe's exponent and then its value, at the normal being
+    /// evaluated; the weights times the residuals there.
+    nl: Vec<f64>,
+    e: Vec<f64>,
+    wr: Vec<f64>,
+    /// Scratch: the model's derivative along each tangent, the projected Jacobian's two columns
+    /// and those times the weights.
+    d: [Vec<f64>; 2],
+    j: [Vec<f64>; 2],
+    wj: [Vec<f64>; 2],
+    /// Scratch of [`fit_samples`]'s medians.
+    abs: Vec<f64>,
+    /// Scratch of [`lambert_robust_cost`]: the weights, and the light directions' components
+    /// times them.
+    lambert: [Vec<f64>; 4],
+    /// The evaluation at the current normal.
+    cur: Evaluation,
+    /// The evaluation at the last trial normal ([`Samples::project`]); it becomes the current
+    /// one when accepted ([`Samples::accept`]), so a rejected trial costs no re-evaluation.
+    trial: Evaluation,
+}
+
+/// The model evaluated at one normal.
+#[derive(Default)]
+struct Evaluation {
+    /// Each basis function at every sample.
+    basis: [Vec<f64>; TERMS],
+    /// The same times the robust weights.
+    wb: [Vec<f64>; TERMS],
+    /// Residuals at the non-negative least-squares weights.
     r: Vec<f64>,
-    d: Vec<[f64; 2]>,
-    basis: Vec<[f64; TERMS]>,
-    /// The weighted Gram matrix of the basis as evaluated last.
+    /// The weighted Gram matrix of the basis.
     gram: Mat,
-    /// The passive set of the last linear solve.
+    /// The passive set of the linear solve.
     passive: [bool; TERMS],
 }
 
 impl Samples {
     fn clear(&mut self) {
-        self.passive = [false; TERMS];
-        self.l.clear();
-        self.h.clear();
+        self.cur.passive = [false; TERMS];
+        for v in self.l.iter_mut().chain(&mut self.h) {
+            v.clear();
+        }
         self.y.clear();
         self.sigma.clear();
         self.w.clear();
     }
 
     fn push(&mut self, l: Vector3<f64>, h: Vector3<f64>, y: f64, sigma: f64) {
-        self.l.push(l);
-        self.h.push(h);
+        for c in 0..3 {
+            self.l[c].push(l[c]);
+            self.h[c].push(h[c]);
+        }
         self.y.push(y);
         self.sigma.push(sigma);
         self.w.push(1.0);
@@ -261,56 +324,87 @@ impl Samples {
         self.y.len()
     }
 
-    /// Evaluates the basis at `n` for every sample, the Gram matrix and right-hand side of the
-    /// weighted linear problem.
+    /// Evaluates the basis at `n` for every sample into the trial evaluation, and returns the
+    /// weighted Gram matrix and right-hand side of the linear problem.
     fn normal_equations(&mut self, n: &Vector3<f64>) -> (Mat, Vec6) {
-        let mut a = [[0.0; TERMS]; TERMS];
-        let mut rhs = [0.0; TERMS];
-        self.basis.resize(self.len(), [0.0; TERMS]);
-        for (k, b) in self.basis.iter_mut().enumerate() {
-            let nl = n.dot(&self.l[k]);
-            if nl <= 0.0 {
-                *b = [0.0; TERMS];
-                continue;
+        let len = self.len();
+        let [lx, ly, lz] = &self.l;
+        let [hx, hy, hz] = &self.h;
+        self.nl.clear();
+        self.nl
+            .extend((0..len).map(|k| n.x * lx[k] + n.y * ly[k] + n.z * lz[k]));
+        self.e.clear();
+        self.e.extend((0..len).map(|k| {
+            let x = n.x * hx[k] + n.y * hy[k] + n.z * hz[k];
+            -(1.0 - x.min(1.0)) / WIDTHS[0]
+        }));
+        for v in &mut self.e {
+            *v = v.exp();
+        }
+        let ev = &mut self.trial;
+        for b in &mut ev.basis {
+            b.resize(len, 0.0);
+        }
+        for k in 0..len {
+            // Each lobe is the cube of the next wider one, times n·l; nothing below the
+            // horizon.
+            let nl = self.nl[k].max(0.0);
+            let mut e = if nl > 0.0 { self.e[k] } else { 0.0 };
+            ev.basis[0][k] = nl;
+            for b in &mut ev.basis[1..] {
+                b[k] = e * nl;
+                e = e * e * e;
             }
-            basis(n.dot(&self.h[k]), nl, b);
-            let w = self.w[k];
-            if w <= 0.0 {
-                continue;
+        }
+        for (wb, b) in ev.wb.iter_mut().zip(&ev.basis) {
+            weighted(&self.w, b, wb);
+        }
+        let mut a = Mat::zeros();
+        let mut rhs = Vec6::zeros();
+        for i in 0..TERMS {
+            rhs[i] = dot(&ev.wb[i], &self.y);
+            for j in i..TERMS {
+                let v = dot(&ev.wb[i], &ev.basis[j]);
+                a[(i, j)] = v;
+                a[(j, i)] = v;
             }
-            let wy = w * self.y[k];
-            for (row, (r, &bi)) in a.iter_mut().zip(rhs.iter_mut().zip(b.iter())) {
-                let wb = w * bi;
-                *r += bi * wy;
-                for (x, &bj) in row.iter_mut().zip(b.iter()) {
-                    *x += wb * bj;
+        }
+        (a, rhs)
+    }
+
+    /// Evaluates the model at `n` into the trial evaluation (the linear solve warm-started
+    /// from the current one's passive set): the linear weights and the weighted sum of
+    /// squared residuals.
+    fn project(&mut self, n: &Vector3<f64>) -> (Vec6, f64) {
+        let (a, rhs) = self.normal_equations(n);
+        let (c, passive) = nnls(&a, &rhs, self.cur.passive);
+        let ev = &mut self.trial;
+        ev.gram = a;
+        ev.passive = passive;
+        ev.r.clear();
+        ev.r.extend_from_slice(&self.y);
+        for (b, &ci) in ev.basis.iter().zip(c.iter()) {
+            if ci != 0.0 {
+                for (r, b) in ev.r.iter_mut().zip(b) {
+                    *r -= b * ci;
                 }
             }
         }
-        (Mat::from_fn(|i, j| a[i][j]), Vec6::from_fn(|i, _| rhs[i]))
+        weighted(&self.w, &ev.r, &mut self.wr);
+        let cost = dot(&self.wr, &ev.r);
+        (c, cost)
     }
 
-    /// The linear weights at `n` and the weighted sum of squared residuals.
-    fn project(&mut self, n: &Vector3<f64>) -> (Vec6, f64) {
-        let (a, rhs) = self.normal_equations(n);
-        self.gram = a;
-        let (c, passive) = nnls(&a, &rhs, self.passive);
-        self.passive = passive;
-        let mut cost = 0.0;
-        self.r.resize(self.len(), 0.0);
-        for k in 0..self.len() {
-            let pred: f64 = self.basis[k].iter().zip(c.iter()).map(|(b, c)| b * c).sum();
-            self.r[k] = self.y[k] - pred;
-            cost += self.w[k] * self.r[k] * self.r[k];
-        }
-        (c, cost)
+    /// Makes the trial evaluation the current one.
+    fn accept(&mut self) {
+        std::mem::swap(&mut self.cur, &mut self.trial);
     }
 }
 
 /// Non-negative least squares min |Bc − y|² s.t. c ≥ 0 from its normal equations
 /// `a` = BᵀB, `b` = Bᵀy (Lawson and Hanson's active-set algorithm), started from the passive
-/// set `guess` when its solution is feasible (the last evaluation's, which a small move of the
-/// normal rarely changes). Returns the solution and its passive set.
+/// set `guess` when its solution is feasible (the current, last accepted, evaluation's, which a
+/// small move of the normal rarely changes). Returns the solution and its passive set.
 fn nnls(a: &Mat, b: &Vec6, guess: [bool; TERMS]) -> (Vec6, [bool; TERMS]) {
     let scale = a.diagonal().max().max(f64::MIN_POSITIVE);
     let tol = 1e-12 * scale * b.amax().max(f64::MIN_POSITIVE);
@@ -423,68 +517,61 @@ fn tangents(n: &Vector3<f64>) -> [Vector3<f64>; 2] {
 /// the samples' current weights. Returns the normal, the weights and the cost.
 fn descend(s: &mut Samples, mut n: Vector3<f64>) -> (Vector3<f64>, Vec6, f64) {
     let (mut c, mut cost) = s.project(&n);
+    s.accept();
     let mut damping: f64 = 1e-3;
     for _ in 0..MAX_STEPS {
         let t = tangents(&n);
-        // The model's derivative along each tangent, for fixed weights.
-        s.d.resize(s.len(), [0.0; 2]);
-        for k in 0..s.len() {
-            let b = &s.basis[k];
-            if b[0] <= 0.0 {
-                s.d[k] = [0.0; 2];
+        let len = s.len();
+        // The model's derivative along each tangent, for fixed weights:
+        // d/dn of n·l (ρ + Σ c_j e_j) = l (ρ + Σ c_j e_j) + n·l Σ c_j e_j/w_j h, with the
+        // basis already carrying the n·l factor.
+        let b = &s.cur.basis;
+        for d in &mut s.d {
+            d.resize(len, 0.0);
+        }
+        for (k, &b0) in b[0].iter().enumerate() {
+            if b0 <= 0.0 {
+                s.d[0][k] = 0.0;
+                s.d[1][k] = 0.0;
                 continue;
             }
             let mut lobe = 0.0;
             let mut sum = 0.0;
             for j in 0..WIDTHS.len() {
-                lobe += c[j + 1] * b[j + 1] / WIDTHS[j];
-                sum += c[j + 1] * b[j + 1];
+                lobe += c[j + 1] * b[j + 1][k] / WIDTHS[j];
+                sum += c[j + 1] * b[j + 1][k];
             }
-            // d/dn of n·l (ρ + Σ c_j e_j) = l (ρ + Σ c_j e_j) + n·l Σ c_j e_j/w_j h, with the
-            // basis already carrying the n·l factor.
-            let grad = s.l[k] * (c[0] + sum / b[0]) + s.h[k] * lobe;
-            s.d[k] = [grad.dot(&t[0]), grad.dot(&t[1])];
+            let along_l = c[0] + sum / b0;
+            let grad: [f64; 3] = std::array::from_fn(|a| s.l[a][k] * along_l + s.h[a][k] * lobe);
+            for (q, tq) in t.iter().enumerate() {
+                s.d[q][k] = grad[0] * tq.x + grad[1] * tq.y + grad[2] * tq.z;
+            }
         }
         // Project the derivatives off the span of the active basis (Kaufman's Jacobian).
-        let mut bd = [Vec6::zeros(), Vec6::zeros()];
-        for k in 0..s.len() {
-            let w = s.w[k];
-            if w <= 0.0 {
-                continue;
-            }
-            for (i, &b) in s.basis[k].iter().enumerate() {
-                bd[0][i] += w * b * s.d[k][0];
-                bd[1][i] += w * b * s.d[k][1];
-            }
-        }
+        let bd: [Vec6; 2] =
+            std::array::from_fn(|q| Vec6::from_fn(|i, _| dot(&s.cur.wb[i], &s.d[q])));
         let active: [bool; TERMS] = std::array::from_fn(|i| c[i] > 0.0);
-        let coef = match factor_passive(&s.gram, &active) {
+        let coef = match factor_passive(&s.cur.gram, &active) {
             Some(f) => [
                 f.solve(&restrict(&bd[0], &active)),
                 f.solve(&restrict(&bd[1], &active)),
             ],
             None => [Vec6::zeros(); 2],
         };
-        let mut jtj = nalgebra::Matrix2::<f64>::zeros();
-        let mut jtr = nalgebra::Vector2::<f64>::zeros();
-        for k in 0..s.len() {
-            let w = s.w[k];
-            if w <= 0.0 {
-                continue;
-            }
-            let b = &s.basis[k];
-            let mut j = [0.0; 2];
-            for (q, jq) in j.iter_mut().enumerate() {
-                let proj: f64 = (0..TERMS).map(|i| b[i] * coef[q][i]).sum();
-                *jq = s.d[k][q] - proj;
-            }
-            for p in 0..2 {
-                jtr[p] += w * j[p] * s.r[k];
-                for q in 0..2 {
-                    jtj[(p, q)] += w * j[p] * j[q];
+        for (q, coef) in coef.iter().enumerate() {
+            s.j[q].clear();
+            s.j[q].extend_from_slice(&s.d[q]);
+            for (bi, &ci) in b.iter().zip(coef.iter()) {
+                if ci != 0.0 {
+                    for (j, b) in s.j[q].iter_mut().zip(bi) {
+                        *j -= b * ci;
+                    }
                 }
             }
+            weighted(&s.w, &s.j[q], &mut s.wj[q]);
         }
+        let jtr = nalgebra::Vector2::from_fn(|p, _| dot(&s.wj[p], &s.cur.r));
+        let jtj = nalgebra::Matrix2::from_fn(|p, q| dot(&s.wj[p], &s.j[q]));
         let mut moved = false;
         let mut step_norm: f64 = 0.0;
         for _ in 0..8 {
@@ -500,8 +587,12 @@ fn descend(s: &mut Samples, mut n: Vector3<f64>) -> (Vector3<f64>, Vec6, f64) {
                 break;
             }
             let candidate = (n + t[0] * delta[0] + t[1] * delta[1]).normalize();
+            if !candidate.iter().all(|v| v.is_finite()) {
+                break;
+            }
             let (c2, cost2) = s.project(&candidate);
             if cost2 <= cost {
+                s.accept();
                 n = candidate;
                 c = c2;
                 cost = cost2;
@@ -512,10 +603,7 @@ fn descend(s: &mut Samples, mut n: Vector3<f64>) -> (Vector3<f64>, Vec6, f64) {
             damping *= 4.0;
         }
         if !moved {
-            // Restore the scratch of the kept normal.
-            let (c2, cost2) = s.project(&n);
-            c = c2;
-            cost = cost2;
+            // The current evaluation is still the kept normal's.
             break;
         }
         if step_norm < STEP_TOLERANCE {
@@ -534,23 +622,21 @@ pub(crate) fn fit_samples(s: &mut Samples, start: Vector3<f64>) -> Option<LobeFi
     if s.len() < need || !start.iter().all(|v| v.is_finite()) || start.norm() == 0.0 {
         return None;
     }
-    let noise = median(&mut s.sigma.clone())?;
+    // The scratch for medians, taken out of the samples while they are borrowed.
+    let mut abs = std::mem::take(&mut s.abs);
+    abs.clear();
+    abs.extend_from_slice(&s.sigma);
+    let noise = median(&mut abs)?;
     let mut n = start.normalize();
     let mut c = Vec6::zeros();
     let mut cost = 0.0;
-    let mut abs = Vec::with_capacity(s.len());
     for round in 0..ROUNDS {
         if round > 0 {
             abs.clear();
-            abs.extend(s.r.iter().map(|r| r.abs()));
+            abs.extend(s.cur.r.iter().map(|r| r.abs()));
             let scale = (MAD_TO_SIGMA * median(&mut abs)?).max(noise);
-            for (w, r) in s.w.iter_mut().zip(&s.r) {
-                let u = r / (TUKEY_C * scale);
-                *w = if u.abs() < 1.0 {
-                    (1.0 - u * u).powi(2)
-                } else {
-                    0.0
-                };
+            for (w, r) in s.w.iter_mut().zip(&s.cur.r) {
+                *w = Loss::Tukey.weight(r / scale);
             }
         }
         (n, c, cost) = descend(s, n);
@@ -558,12 +644,14 @@ pub(crate) fn fit_samples(s: &mut Samples, start: Vector3<f64>) -> Option<LobeFi
     let used = s.w.iter().filter(|&&w| w > 0.0).count();
     let weight: f64 = s.w.iter().sum();
     if used < need || weight <= 0.0 {
+        s.abs = abs;
         return None;
     }
     abs.clear();
-    abs.extend(s.r.iter().map(|r| r.abs()));
+    abs.extend(s.cur.r.iter().map(|r| r.abs()));
     let scale = (MAD_TO_SIGMA * median(&mut abs)?).max(noise);
-    let lobe_cost: f64 = s.r.iter().map(|r| tukey_rho(r / scale)).sum();
+    s.abs = abs;
+    let lobe_cost: f64 = s.cur.r.iter().map(|r| tukey_rho(r / scale)).sum();
     let lambert_cost = lambert_robust_cost(s, start, scale);
     let terms = c.iter().filter(|&&v| v > 0.0).count();
     let penalty = 0.5 * (2 + terms).saturating_sub(3) as f64 * (s.len() as f64).ln();
@@ -587,36 +675,34 @@ fn tukey_rho(u: f64) -> f64 {
 
 /// Σ ρ(r/scale) of Lambert's law with outliers on the samples: g by Tukey IRLS at a fixed
 /// scale from the start (a unit normal, scaled by least squares).
-fn lambert_robust_cost(s: &Samples, start: Vector3<f64>, scale: f64) -> f64 {
+fn lambert_robust_cost(s: &mut Samples, start: Vector3<f64>, scale: f64) -> f64 {
     let n0 = start.normalize();
+    let [lx, ly, lz] = &s.l;
+    let len = s.len();
+    let along = |g: &Vector3<f64>, k: usize| g.x * lx[k] + g.y * ly[k] + g.z * lz[k];
     let (mut num, mut den) = (0.0, 0.0);
-    for (l, y) in s.l.iter().zip(&s.y) {
-        let a = n0.dot(l);
-        num += a * y;
+    for k in 0..len {
+        let a = along(&n0, k);
+        num += a * s.y[k];
         den += a * a;
     }
     let mut g = n0 * if den > 0.0 { num / den } else { 0.0 };
+    let [w, wl @ ..] = &mut s.lambert;
     for _ in 0..10 {
-        let mut a = nalgebra::Matrix3::<f64>::zeros();
-        let mut b = Vector3::zeros();
-        for (l, y) in s.l.iter().zip(&s.y) {
-            let u = (y - g.dot(l)) / (TUKEY_C * scale);
-            let w = if u.abs() < 1.0 {
-                (1.0 - u * u).powi(2)
-            } else {
-                0.0
-            };
-            a += l * l.transpose() * w;
-            b += l * (w * y);
+        w.clear();
+        w.extend((0..len).map(|k| Loss::Tukey.weight((s.y[k] - along(&g, k)) / scale)));
+        for (out, l) in wl.iter_mut().zip(&s.l) {
+            weighted(w, l, out);
         }
+        let a = nalgebra::Matrix3::from_fn(|i, j| dot(&wl[i.min(j)], &s.l[i.max(j)]));
+        let b = Vector3::from_fn(|i, _| dot(&wl[i], &s.y));
         match a.cholesky() {
             Some(ch) => g = ch.solve(&b),
             None => break,
         }
     }
-    s.l.iter()
-        .zip(&s.y)
-        .map(|(l, y)| tukey_rho((y - g.dot(l)) / scale))
+    (0..len)
+        .map(|k| tukey_rho((s.y[k] - along(&g, k)) / scale))
         .sum()
 }
 
@@ -973,6 +1059,48 @@ mod tests {
         for (j, w) in WIDTHS.iter().enumerate() {
             let want = (-(1.0 - 0.97) / w).exp() * 0.5;
             assert!((b[j + 1] - want).abs() < 1e-12 * want.max(1e-300), "{j}");
+        }
+    }
+
+    /// The evaluation a fit ends with is the one at its normal: evaluating the model there
+    /// again gives the same weights, cost and residuals (a rejected trial step must not leave
+    /// its evaluation behind).
+    #[test]
+    fn the_kept_evaluation_belongs_to_the_final_normal() {
+        let lights = Lights::fibonacci(48, 15.0).unwrap();
+        let truth = LobeFit {
+            normal: Vector3::new(-0.2, 0.1, 0.95).normalize(),
+            albedo: 0.5,
+            lobes: [0.1, 0.0, 0.3, 0.0, 0.0],
+            residual: 0.0,
+            used: 0,
+            preferred: true,
+        };
+        let mut s = Samples::default();
+        for (k, l) in lights.directions().into_iter().enumerate() {
+            // Deterministic noise of about 1%, and two outliers for the Tukey rounds.
+            let wobble = 0.01 * ((k as f64 * 2.39996).sin());
+            let outlier = if k % 17 == 3 { 0.3 } else { 0.0 };
+            let y = truth.predict(&l) * (1.0 + wobble) + outlier;
+            if y > 0.01 {
+                s.push(l, half_vector(&l), y, 1e-3);
+            }
+        }
+        let start = (truth.normal + Vector3::new(0.1, -0.05, 0.0)).normalize();
+        let fit = fit_samples(&mut s, start).unwrap();
+        let kept = s.cur.r.clone();
+        let (c, _) = s.project(&fit.normal);
+        assert!(
+            (c[0] - fit.albedo).abs() < 1e-9,
+            "{} vs {}",
+            c[0],
+            fit.albedo
+        );
+        for (a, b) in c.iter().skip(1).zip(&fit.lobes) {
+            assert!((a - b).abs() < 1e-9, "{c:?} vs {:?}", fit.lobes);
+        }
+        for (a, b) in s.trial.r.iter().zip(&kept) {
+            assert!((a - b).abs() < 1e-9, "{a} vs {b}");
         }
     }
 

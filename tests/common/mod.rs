@@ -1,9 +1,12 @@
 //! Helpers shared by the integration tests.
 #![allow(dead_code)]
 
+use photostereo::capture::dataset::Capture;
 use photostereo::capture::lights::Lights;
+use photostereo::capture::stack::ColorMode;
 use photostereo::eval::demo::{SyntheticCapture, synthesize};
-use photostereo::synth::render::RenderOptions;
+use photostereo::synth::reflectance::Material;
+use photostereo::synth::render::{RenderOptions, Rendering, render};
 use photostereo::synth::scene::{Albedo, Scene};
 use photostereo::synth::write::{ImageFormat, write_synthetic};
 use std::path::{Path, PathBuf};
@@ -146,4 +149,22 @@ pub fn listing(dir: &Path) -> Vec<String> {
         .unwrap_or_default();
     v.sort();
     v
+}
+
+/// A sphere on a ground plane beside a pyramid (attached and cast shadows) of `material`,
+/// `size`² pixels, under `lights` Fibonacci lights up to 30° from the horizon's zenith, with
+/// noise σ 0.005 (seed 3): the grey capture under the scene's mask, and the rendering with its
+/// ground truth.
+pub fn sphere_on_ground(material: Material, lights: usize, size: usize) -> (Capture, Rendering) {
+    let lights = Lights::fibonacci(lights, 30.0).unwrap();
+    let scene = Scene::sphere_on_ground(size, material);
+    let options = RenderOptions {
+        noise_sigma: 0.005,
+        seed: 3,
+        ..RenderOptions::default()
+    };
+    let r = render(&scene, &lights, &options).unwrap();
+    let stack = r.to_stack(&lights, ColorMode::Grey).unwrap();
+    let capture = Capture::from_stack(stack, lights, Some(r.truth.mask.clone())).unwrap();
+    (capture, r)
 }
