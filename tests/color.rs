@@ -10,7 +10,7 @@ use photostereo::grid::Grid;
 use photostereo::progress::Silent;
 use photostereo::ps::color::{ColorSolve, solve_shared_normal};
 use photostereo::ps::solve::{Method, SolveOptions};
-use photostereo::run::pipeline::{Config, Reconstruction, reconstruct};
+use photostereo::run::pipeline::{Config, Reconstruction, estimate_models, reconstruct};
 use photostereo::synth::reflectance::{BlinnPhong, Material, Specular};
 use photostereo::synth::render::{RenderOptions, Rendering, render};
 use photostereo::synth::scene::{Albedo, Scene, SceneKind};
@@ -199,6 +199,40 @@ fn shared_normal_with_the_automatic_method_rejects_highlights() {
         "shared {auto_err} vs per-channel {per}"
     );
     assert!(auto.model.robust_fraction > 0.3);
+}
+
+/// The shared-normal solve is not refitted with specular lobes, so its model carries no
+/// lobe limit (estimating one fits thousands of sampled pixels for nothing); per-channel
+/// solves of the same glossy capture do estimate theirs.
+#[test]
+fn the_shared_solve_estimates_no_lobe_limit() {
+    let material = Material {
+        diffuse_color: [0.8, 0.5, 0.3],
+        ..Material::with_specular(Specular::BlinnPhong(BlinnPhong {
+            ks: 0.2,
+            exponent: 50.0,
+        }))
+    };
+    let lights = coloured_lights(32);
+    let (_, rgb, _) = rendered(Scene::sphere_on_ground(96, material), &lights, 0.005, 4);
+    let models = |color| {
+        let config = Config {
+            color,
+            integration: None,
+            ..Config::default()
+        };
+        estimate_models(&rgb, &config).unwrap()
+    };
+    let shared = models(ColorSolve::SharedNormal);
+    assert_eq!(shared.len(), 1);
+    assert_eq!(shared[0].lobe_limit, None);
+    let per = models(ColorSolve::PerChannel);
+    assert_eq!(per.len(), 3);
+    assert!(
+        per.iter().all(|m| m.lobe_limit.is_some_and(|l| l > 0.0)),
+        "{:?}",
+        per.iter().map(|m| m.lobe_limit).collect::<Vec<_>>()
+    );
 }
 
 /// A grey stack is refused with an error naming the parameter.

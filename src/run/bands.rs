@@ -265,11 +265,27 @@ pub(crate) fn estimate_models(
     if shared_normal(stack.channels(), config) {
         crate::ps::color::check_rgb_inputs(stack, lights, mask, options)?;
         let grey = grey.insert(stack.grey_mix());
-        return Ok(vec![ImageModel::estimate(grey, 0, lights, mask, options)?]);
+        return Ok(vec![ImageModel::estimate(
+            grey,
+            0,
+            lights,
+            mask,
+            &shared_model_options(options),
+        )?]);
     }
     (0..stack.channels())
         .map(|c| ImageModel::estimate(stack, c, lights, mask, options))
         .collect()
+}
+
+/// The options a shared-normal colour solve's model is estimated under: those of the solve,
+/// without the lobe refit, which that solve does not run (its capture-wide limit would be
+/// estimated for nothing: about 4000 sampled pixels fitted).
+pub(crate) fn shared_model_options(options: &SolveOptions) -> SolveOptions {
+    SolveOptions {
+        lobes: false,
+        ..*options
+    }
 }
 
 /// How many models a solve of a `channels`-channel stack under `config` uses.

@@ -737,7 +737,7 @@ fn estimate_models(
             0,
             &files.lights,
             &mask,
-            &config.solve,
+            &crate::run::bands::shared_model_options(&config.solve),
         )?]);
     }
     (0..o.channels)
