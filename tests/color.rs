@@ -50,6 +50,24 @@ fn rendered(scene: Scene, lights: &Lights, noise: f32, seed: u64) -> (Rendering,
     (r, rgb, grey)
 }
 
+/// [`rendered`] for an orange Blinn–Phong sphere on a ground plane (k_s 0.2, exponent 50),
+/// 96², under 32 coloured lights, noise 0.005.
+fn glossy_sphere_on_ground() -> (Rendering, Capture, Capture) {
+    let material = Material {
+        diffuse_color: [0.8, 0.5, 0.3],
+        ..Material::with_specular(Specular::BlinnPhong(BlinnPhong {
+            ks: 0.2,
+            exponent: 50.0,
+        }))
+    };
+    rendered(
+        Scene::sphere_on_ground(96, material),
+        &coloured_lights(32),
+        0.005,
+        4,
+    )
+}
+
 fn run(capture: &Capture, method: Method, color: ColorSolve) -> Reconstruction {
     run_with(capture, method, color, true)
 }
@@ -159,15 +177,7 @@ fn shared_normal_beats_grey_and_per_channel_on_a_coloured_object() {
 /// solves without it: the comparison is of the sample selection.
 #[test]
 fn shared_normal_with_the_automatic_method_rejects_highlights() {
-    let material = Material {
-        diffuse_color: [0.8, 0.5, 0.3],
-        ..Material::with_specular(Specular::BlinnPhong(BlinnPhong {
-            ks: 0.2,
-            exponent: 50.0,
-        }))
-    };
-    let lights = coloured_lights(32);
-    let (r, rgb, grey_capture) = rendered(Scene::sphere_on_ground(96, material), &lights, 0.005, 4);
+    let (r, rgb, grey_capture) = glossy_sphere_on_ground();
     let grey = mean_error(
         &run_with(&grey_capture, Method::Auto, ColorSolve::SharedNormal, false),
         &r,
@@ -206,15 +216,7 @@ fn shared_normal_with_the_automatic_method_rejects_highlights() {
 /// solves of the same glossy capture do estimate theirs.
 #[test]
 fn the_shared_solve_estimates_no_lobe_limit() {
-    let material = Material {
-        diffuse_color: [0.8, 0.5, 0.3],
-        ..Material::with_specular(Specular::BlinnPhong(BlinnPhong {
-            ks: 0.2,
-            exponent: 50.0,
-        }))
-    };
-    let lights = coloured_lights(32);
-    let (_, rgb, _) = rendered(Scene::sphere_on_ground(96, material), &lights, 0.005, 4);
+    let (_, rgb, _) = glossy_sphere_on_ground();
     let models = |color| {
         let config = Config {
             color,
