@@ -16,10 +16,20 @@
 //! multigrid method", ETNA 37, 2010) — on each coarse level up to two steps of flexible
 //! conjugate gradients preconditioned by that level's cycle — with symmetric Gauss–Seidel
 //! smoothing in red–black order (red then black before the coarse correction, black then red
-//! after it), so that each half-sweep updates one colour from the other in parallel, and the
-//! coarsest level (at most [`COARSEST`] active cells) solved by dense Cholesky. It preconditions
-//! a flexible conjugate-gradient solve ([`solve`]) whose iterate and residual are kept in `f64`
-//! and its other vectors in `f32`.
+//! after it), and the coarsest level (at most [`COARSEST`] active cells) solved by dense
+//! Cholesky. It preconditions a flexible conjugate-gradient solve ([`solve`]) whose iterate and
+//! residual are kept in `f64` and its other vectors in `f32`.
+//!
+//! Speed: every pass works on whole rows (the neighbour sums of a row are four products of
+//! shifted rows, with no test per cell, because edges leaving the grid have weight 0), so the
+//! loops vectorise; both colours of a Gauss–Seidel sweep are relaxed in one pass, the second a
+//! row behind the first, in parallel blocks of rows that exchange copies of their boundary rows;
+//! the residual is restricted as it is computed, never stored; each product with A on a coarse
+//! level gives the K-cycle's dot products in the same pass (summed over fixed blocks of rows,
+//! so the same on any number of threads); and the cycle's vectors are allocated once per
+//! solve. The sweeps, products and restricted residuals are those of the cell-by-cell formulas
+//! bit for bit (unit test); only the K-cycle's dot products are summed in another order, which
+//! moved the depth of a 1024² sphere by 1.7e-8 of its range, with the same 12 iterations.
 //!
 //! Memory: [`BYTES_PER_CELL`] per pixel of the domain's bounding box at the peak, taken by
 //! [`crate::integrate::Integrator::working_bytes`] for streamed runs.
@@ -29,21 +39,23 @@
 //! in `f64`, so the residual the solve carries stays the true one (a 1024² test grid reaches a
 //! relative residual of 1e-8 in 11 iterations, within 1e-7 of the solution's range).
 
-use super::{COARSEST, Coarsest, Csr, KCYCLE_MIN_RATIO, STALLED_SWEEPS, dense_factor, kcycle};
+use super::{COARSEST, Coarsest, Csr, KCYCLE_MIN_RATIO, KCYCLE_T, STALLED_SWEEPS, dense_factor};
 use crate::integrate::sparse::{NONE, dot};
 use faer::MatMut;
 use faer::linalg::solvers::Solve;
 use rayon::prelude::*;
 
 /// Bytes of working memory a cell of the grid costs at the peak of masked least squares on it
-/// (`masked.rs`), besides the maps over the whole image, as counted for the solve's first
-/// cycle, when most is held at once: the finest level's weights and diagonal (12), the coarse
-/// levels' (4), the domain (1), the solve's iterate and residual (16), direction and
-/// preconditioned residual (8), the finest level's cycle scratch (4), the restricted residual
-/// and correction (2), the first coarse level's K-cycle vectors (5) and the deeper levels'
-/// (about 4). The measured growth of the peak with the window is lower, 26–46 B a cell
-/// (1732×1732 normal maps under discs of radius 400, 600 and 800 px), so this is an upper
-/// bound.
+/// (`masked.rs`), besides the maps over the whole image, as counted for the solve, when most is
+/// held at once: the finest level's weights and diagonal (12), the coarse levels' (4), the
+/// domain (1), the solve's iterate and residual (16), direction and preconditioned residual
+/// (8), and the cycle's scratch, allocated once for all levels ([`GridMultigrid::work`]): the
+/// first coarse level's restricted residual, correction and five K-cycle vectors (7) and the
+/// deeper levels' (about 4, counted generously). That is 52; the bound is kept at 56, which
+/// also held the finest level's cycle scratch (the fused sweeps no longer need it) and is what
+/// the streamed plans were measured with. The measured growth of the peak with the window is
+/// lower, 26–46 B a cell (1732×1732 normal maps under discs of radius 400, 600 and 800 px), so
+/// this is an upper bound.
 pub const BYTES_PER_CELL: u64 = 56;
 
 /// A right-hand side's element: the outer solve's residual is `f64`, the coarse levels' `f32`.
@@ -133,38 +145,112 @@ impl GridLaplacian {
         self.diag.iter().filter(|&&d| d > 0.0).count()
     }
 
-    /// Σ over the cell's neighbours of weight × x.
+    /// Σ over the neighbours of each cell of row `row` of weight × x, into `out` (`w` long),
+    /// given that row of x and the rows above and below it (`None` outside the grid). Summed in
+    /// the same order for every cell (right, left, below, above), with no test per cell: the
+    /// weights of edges that leave the grid are zero, and the loops run over whole rows, so they
+    /// vectorise.
     #[inline(always)]
-    fn neighbours(&self, x: &[f32], i: usize, col: usize, row: usize) -> f32 {
+    fn row_neighbours(
+        &self,
+        row: usize,
+        xr: &[f32],
+        above: Option<&[f32]>,
+        below: Option<&[f32]>,
+        out: &mut [f32],
+    ) {
         let w = self.w;
-        let mut s = 0.0;
-        if col + 1 < w {
-            s += self.right[i] * x[i + 1];
+        let rw = &self.right[row * w..(row + 1) * w];
+        if w == 1 {
+            out[0] = 0.0;
+        } else {
+            out[0] = rw[0] * xr[1];
+            for (((o, &a), &xa), (&c, &xc)) in out[1..w - 1]
+                .iter_mut()
+                .zip(&rw[1..w - 1])
+                .zip(&xr[2..])
+                .zip(rw[..w - 2].iter().zip(&xr[..w - 2]))
+            {
+                *o = a * xa + c * xc;
+            }
+            out[w - 1] = rw[w - 2] * xr[w - 2];
         }
-        if col > 0 {
-            s += self.right[i - 1] * x[i - 1];
+        if let Some(xb) = below {
+            let dw = &self.down[row * w..(row + 1) * w];
+            for ((o, &a), &v) in out.iter_mut().zip(dw).zip(xb) {
+                *o += a * v;
+            }
         }
-        if row + 1 < self.h {
-            s += self.down[i] * x[i + w];
+        if let Some(xa) = above {
+            let uw = &self.down[(row - 1) * w..row * w];
+            for ((o, &a), &v) in out.iter_mut().zip(uw).zip(xa) {
+                *o += a * v;
+            }
         }
-        if row > 0 {
-            s += self.down[i - w] * x[i - w];
-        }
-        s
+    }
+
+    /// Row `row` of `x` (a whole grid) with the rows above and below it.
+    #[inline(always)]
+    fn rows_around<'a>(
+        &self,
+        x: &'a [f32],
+        row: usize,
+    ) -> (&'a [f32], Option<&'a [f32]>, Option<&'a [f32]>) {
+        let w = self.w;
+        (
+            &x[row * w..(row + 1) * w],
+            (row > 0).then(|| &x[(row - 1) * w..row * w]),
+            (row + 1 < self.h).then(|| &x[(row + 1) * w..(row + 2) * w]),
+        )
     }
 
     /// y = A x.
+    #[cfg(test)]
     pub fn multiply(&self, x: &[f32], y: &mut [f32]) {
+        self.multiply_dots(x, y, []);
+    }
+
+    /// y = A x, with x·y and x·uₖ for each of `u`, summed in `f64` row by row over fixed
+    /// blocks of rows, the blocks' sums added in order.
+    fn multiply_dots<const K: usize>(
+        &self,
+        x: &[f32],
+        y: &mut [f32],
+        u: [&[f32]; K],
+    ) -> (f64, [f64; K]) {
         let w = self.w;
-        y.par_chunks_mut(w)
-            .enumerate()
-            .with_min_len(rows_per_task(w))
-            .for_each(|(row, out)| {
-                for (col, o) in out.iter_mut().enumerate() {
-                    let i = row * w + col;
-                    *o = self.diag[i] * x[i] - self.neighbours(x, i, col, row);
+        let rows = rows_per_task(w);
+        let block = |(k, chunk): (usize, &mut [f32])| {
+            let mut nb = vec![0f32; w];
+            let (mut xy, mut xu) = (0.0, [0.0; K]);
+            for (r, out) in chunk.chunks_mut(w).enumerate() {
+                let row = k * rows + r;
+                let (xr, above, below) = self.rows_around(x, row);
+                self.row_neighbours(row, xr, above, below, &mut nb);
+                let d = &self.diag[row * w..(row + 1) * w];
+                for (((o, &d), &v), &s) in out.iter_mut().zip(d).zip(xr).zip(&nb) {
+                    *o = d * v - s;
+                    xy += f64::from(v) * f64::from(*o);
                 }
-            });
+                for (s, u) in xu.iter_mut().zip(u) {
+                    for (&v, &u) in xr.iter().zip(&u[row * w..(row + 1) * w]) {
+                        *s += f64::from(v) * f64::from(u);
+                    }
+                }
+            }
+            (xy, xu)
+        };
+        if rows >= self.h {
+            return block((0, y));
+        }
+        let partial: Vec<(f64, [f64; K])> =
+            y.par_chunks_mut(rows * w).enumerate().map(block).collect();
+        partial
+            .into_iter()
+            .fold((0.0, [0.0; K]), |(a, mut b), (c, d)| {
+                b.iter_mut().zip(d).for_each(|(b, d)| *b += d);
+                (a + c, b)
+            })
     }
 
     /// (A x)ᵢ in `f64`, for the outer solve's A p: its residual is updated by it, and a rounded
@@ -172,23 +258,35 @@ impl GridLaplacian {
     /// grid: 7e-6 of the range on a 1024² test grid, against 1e-7). It is recomputed where
     /// needed rather than stored, which saves 8 bytes a cell for two more stencil passes.
     #[inline(always)]
-    fn wide(&self, x: &[f32], i: usize, col: usize, row: usize) -> f64 {
+    fn row_wide(&self, x: &[f32], row: usize, out: &mut [f64]) {
         let w = self.w;
+        let (xr, above, below) = self.rows_around(x, row);
+        let d = &self.diag[row * w..(row + 1) * w];
+        for ((o, &d), &v) in out.iter_mut().zip(d).zip(xr) {
+            *o = f64::from(d) * f64::from(v);
+        }
         let term = |weight: f32, v: f32| f64::from(weight) * f64::from(v);
-        let mut s = f64::from(self.diag[i]) * f64::from(x[i]);
-        if col + 1 < w {
-            s -= term(self.right[i], x[i + 1]);
+        let rw = &self.right[row * w..(row + 1) * w];
+        if w > 1 {
+            for ((o, &a), &v) in out[..w - 1].iter_mut().zip(&rw[..w - 1]).zip(&xr[1..]) {
+                *o -= term(a, v);
+            }
+            for ((o, &a), &v) in out[1..].iter_mut().zip(&rw[..w - 1]).zip(&xr[..w - 1]) {
+                *o -= term(a, v);
+            }
         }
-        if col > 0 {
-            s -= term(self.right[i - 1], x[i - 1]);
+        if let Some(xb) = below {
+            let dw = &self.down[row * w..(row + 1) * w];
+            for ((o, &a), &v) in out.iter_mut().zip(dw).zip(xb) {
+                *o -= term(a, v);
+            }
         }
-        if row + 1 < self.h {
-            s -= term(self.down[i], x[i + w]);
+        if let Some(xa) = above {
+            let uw = &self.down[(row - 1) * w..row * w];
+            for ((o, &a), &v) in out.iter_mut().zip(uw).zip(xa) {
+                *o -= term(a, v);
+            }
         }
-        if row > 0 {
-            s -= term(self.down[i - w], x[i - w]);
-        }
-        s
     }
 
     /// Σᵢ vᵢ (A x)ᵢ, summed over fixed blocks of rows in order (the same on any number of
@@ -199,11 +297,12 @@ impl GridLaplacian {
         let partial: Vec<f64> = (0..self.h.div_ceil(rows))
             .into_par_iter()
             .map(|block| {
+                let mut ax = vec![0f64; w];
                 let mut sum = 0.0;
                 for row in block * rows..((block + 1) * rows).min(self.h) {
-                    for col in 0..w {
-                        let i = row * w + col;
-                        sum += f64::from(v[i]) * self.wide(x, i, col, row);
+                    self.row_wide(x, row, &mut ax);
+                    for (&v, &a) in v[row * w..(row + 1) * w].iter().zip(&ax) {
+                        sum += f64::from(v) * a;
                     }
                 }
                 sum
@@ -212,64 +311,193 @@ impl GridLaplacian {
         partial.iter().sum()
     }
 
-    /// r = b − A x.
-    fn residual<B: Rhs>(&self, b: &[B], x: &[f32], r: &mut [f32]) {
+    /// The residual b − A x of row `row` (0 on inactive cells, which carry no equation), into
+    /// `out`, with `nb` as scratch.
+    #[inline(always)]
+    fn row_residual<B: Rhs>(
+        &self,
+        b: &[B],
+        x: &[f32],
+        row: usize,
+        nb: &mut [f32],
+        out: &mut [f32],
+    ) {
         let w = self.w;
-        r.par_chunks_mut(w)
-            .enumerate()
-            .with_min_len(rows_per_task(w))
-            .for_each(|(row, out)| {
-                for (col, o) in out.iter_mut().enumerate() {
-                    let i = row * w + col;
-                    // Inactive cells carry no equation: their right-hand side is not restricted.
-                    *o = if self.diag[i] > 0.0 {
-                        b[i].single() - (self.diag[i] * x[i] - self.neighbours(x, i, col, row))
-                    } else {
-                        0.0
-                    };
-                }
-            });
-    }
-
-    /// One Gauss–Seidel half-sweep over the cells of one colour ((column + row) mod 2): their
-    /// new values depend only on the other colour's, which it leaves alone, so they are computed
-    /// in parallel into `scratch` and then copied.
-    fn half_sweep<B: Rhs>(&self, b: &[B], x: &mut [f32], colour: usize, scratch: &mut [f32]) {
-        let w = self.w;
-        let xs: &[f32] = x;
-        scratch
-            .par_chunks_mut(w)
-            .enumerate()
-            .with_min_len(rows_per_task(w))
-            .for_each(|(row, out)| {
-                for col in ((row + colour) & 1..w).step_by(2) {
-                    let i = row * w + col;
-                    let d = self.diag[i];
-                    out[col] = if d > 0.0 {
-                        (b[i].single() + self.neighbours(xs, i, col, row)) / d
-                    } else {
-                        0.0
-                    };
-                }
-            });
-        x.par_chunks_mut(w)
-            .zip(scratch.par_chunks(w))
-            .enumerate()
-            .with_min_len(rows_per_task(w))
-            .for_each(|(row, (out, new))| {
-                for col in ((row + colour) & 1..w).step_by(2) {
-                    out[col] = new[col];
-                }
-            });
-    }
-
-    /// A symmetric Gauss–Seidel step in red–black order: forward red then black, backward
-    /// black then red.
-    fn sweep<B: Rhs>(&self, b: &[B], x: &mut [f32], forward: bool, scratch: &mut [f32]) {
-        let order = if forward { [0, 1] } else { [1, 0] };
-        for colour in order {
-            self.half_sweep(b, x, colour, scratch);
+        let (xr, above, below) = self.rows_around(x, row);
+        self.row_neighbours(row, xr, above, below, nb);
+        let (d, br) = (
+            &self.diag[row * w..(row + 1) * w],
+            &b[row * w..(row + 1) * w],
+        );
+        for ((((o, &d), &v), &s), &b) in out.iter_mut().zip(d).zip(xr).zip(nb.iter()).zip(br) {
+            *o = if d > 0.0 {
+                b.single() - (d * v - s)
+            } else {
+                0.0
+            };
         }
+    }
+
+    /// rc = Pᵀ (b − A x): each 2×2 block's sum of the residual, without storing the residual.
+    fn restricted_residual<B: Rhs>(&self, b: &[B], x: &[f32], rc: &mut [f32]) {
+        let (w, h) = (self.w, self.h);
+        let (wc, _) = self.coarse_size();
+        let rows = rows_per_task(wc);
+        let block = |(k, chunk): (usize, &mut [f32])| {
+            let (mut nb, mut res) = (vec![0f32; w], vec![0f32; w]);
+            for (r, out) in chunk.chunks_mut(wc).enumerate() {
+                let row = k * rows + r;
+                // Summed as the blocks are read, row by row: ((r00 + r01) + r10) + r11.
+                self.row_residual(b, x, 2 * row, &mut nb, &mut res);
+                for (col, o) in out.iter_mut().enumerate() {
+                    *o = res[2 * col];
+                    if 2 * col + 1 < w {
+                        *o += res[2 * col + 1];
+                    }
+                }
+                if 2 * row + 1 < h {
+                    self.row_residual(b, x, 2 * row + 1, &mut nb, &mut res);
+                    for (col, o) in out.iter_mut().enumerate() {
+                        *o += res[2 * col];
+                        if 2 * col + 1 < w {
+                            *o += res[2 * col + 1];
+                        }
+                    }
+                }
+            }
+        };
+        if rows * 2 >= h {
+            block((0, rc));
+        } else {
+            rc.par_chunks_mut(rows * wc).enumerate().for_each(block);
+        }
+    }
+
+    /// Copies of the row above and the row below each block of `rows` rows (`None` outside the
+    /// grid).
+    fn halos(&self, x: &[f32], rows: usize) -> Vec<Halo> {
+        let (w, h) = (self.w, self.h);
+        (0..h.div_ceil(rows))
+            .map(|k| {
+                let (r0, r1) = (k * rows, ((k + 1) * rows).min(h));
+                (
+                    (r0 > 0).then(|| x[(r0 - 1) * w..r0 * w].to_vec()),
+                    (r1 < h).then(|| x[r1 * w..(r1 + 1) * w].to_vec()),
+                )
+            })
+            .collect()
+    }
+
+    /// Gauss–Seidel on the cells of one colour ((column + row) mod 2) of row `r` of a block;
+    /// rows outside the block come from its halo. A cell's new value depends only on the other
+    /// colour's.
+    #[inline(always)]
+    fn relax_row<B: Rhs>(
+        &self,
+        b: &[B],
+        block: &mut Block,
+        r: usize,
+        colour: usize,
+        nb: &mut [f32],
+    ) {
+        let w = self.w;
+        let Block {
+            rows: chunk,
+            first: row0,
+            halo,
+        } = block;
+        let row0 = *row0;
+        let n = chunk.len() / w;
+        let row = row0 + r;
+        {
+            let xr = &chunk[r * w..(r + 1) * w];
+            let up = if r > 0 {
+                Some(&chunk[(r - 1) * w..r * w])
+            } else {
+                halo.0.as_deref()
+            };
+            let down = if r + 1 < n {
+                Some(&chunk[(r + 1) * w..(r + 2) * w])
+            } else {
+                halo.1.as_deref()
+            };
+            self.row_neighbours(row, xr, up, down, nb);
+        }
+        let (d, br) = (
+            &self.diag[row * w..(row + 1) * w],
+            &b[row * w..(row + 1) * w],
+        );
+        let out = &mut chunk[r * w..(r + 1) * w];
+        for col in ((row + colour) & 1..w).step_by(2) {
+            out[col] = if d[col] > 0.0 {
+                (br[col].single() + nb[col]) / d[col]
+            } else {
+                0.0
+            };
+        }
+    }
+
+    /// Calls `f(block, scratch row)` on blocks of `rows` rows of x, in parallel when there are
+    /// several.
+    fn for_blocks(
+        &self,
+        x: &mut [f32],
+        rows: usize,
+        halo: Vec<Halo>,
+        f: impl Fn(&mut Block, &mut [f32]) + Sync,
+    ) {
+        let w = self.w;
+        let block = |((k, chunk), halo): ((usize, &mut [f32]), Halo)| {
+            let mut nb = vec![0f32; w];
+            f(
+                &mut Block {
+                    rows: chunk,
+                    first: k * rows,
+                    halo: &halo,
+                },
+                &mut nb,
+            );
+        };
+        if rows >= self.h {
+            block(((0, x), halo.into_iter().next().unwrap_or((None, None))));
+        } else {
+            x.par_chunks_mut(rows * w)
+                .enumerate()
+                .zip(halo)
+                .for_each(block);
+        }
+    }
+
+    /// Half of a symmetric Gauss–Seidel step in red–black order, in place: forward, red then
+    /// black; backward, black then red. Both colours are relaxed in one pass over the rows,
+    /// the second colour a row behind the first (row y − 1's second colour needs the first
+    /// colour's new values in rows y − 2 … y, and row y's first colour the second colour's old
+    /// values in rows y − 1 … y + 1), which gives the same values as two half-sweeps for half
+    /// the memory traffic. Blocks of rows run in parallel: each relaxes the first colour on all
+    /// its rows and the second on its inner rows, reading copies of the rows around it (their
+    /// second colour, unchanged until then), and then the second colour on its first and last
+    /// rows, from fresh copies.
+    fn sweep<B: Rhs>(&self, b: &[B], x: &mut [f32], forward: bool) {
+        let (first, second) = if forward { (0, 1) } else { (1, 0) };
+        let w = self.w;
+        let rows = rows_per_task(w);
+        let halo = self.halos(x, rows);
+        self.for_blocks(x, rows, halo, |block, nb| {
+            for r in 0..block.rows.len() / w {
+                self.relax_row(b, block, r, first, nb);
+                if r >= 2 {
+                    self.relax_row(b, block, r - 1, second, nb);
+                }
+            }
+        });
+        let halo = self.halos(x, rows);
+        self.for_blocks(x, rows, halo, |block, nb| {
+            let n = block.rows.len() / w;
+            self.relax_row(b, block, 0, second, nb);
+            if n > 1 {
+                self.relax_row(b, block, n - 1, second, nb);
+            }
+        });
     }
 
     /// Size of the coarse grid: 2×2 blocks.
@@ -307,6 +535,7 @@ impl GridLaplacian {
     }
 
     /// rc = Pᵀ r: each block's sum.
+    #[cfg(test)]
     fn restrict(&self, r: &[f32], rc: &mut [f32]) {
         let (w, h) = (self.w, self.h);
         let (wc, _) = self.coarse_size();
@@ -426,48 +655,114 @@ impl GridMultigrid {
         &self.levels[0]
     }
 
-    /// z = M⁻¹ r: one cycle from zero.
-    pub fn apply<B: Rhs>(&self, r: &[B], z: &mut [f32]) {
-        self.cycle(0, r, z);
+    /// The scratch vectors of the cycle, kept between cycles (see [`Work`]).
+    pub fn work(&self) -> Vec<Work> {
+        self.levels[1..]
+            .iter()
+            .map(|level| {
+                let n = level.len();
+                Work {
+                    rc: vec![0.0; n],
+                    xc: vec![0.0; n],
+                    k: KVectors {
+                        c1: vec![0.0; n],
+                        v1: vec![0.0; n],
+                        r2: vec![0.0; n],
+                        c2: vec![0.0; n],
+                        v2: vec![0.0; n],
+                    },
+                }
+            })
+            .collect()
     }
 
-    /// The K-cycle's coarse correction on `level` (as the parent module's, on grids).
-    fn krylov(&self, level: usize, b: &[f32], x: &mut [f32]) {
+    /// z = M⁻¹ r: one cycle from zero, with the scratch of [`Self::work`].
+    pub fn apply<B: Rhs>(&self, r: &[B], z: &mut [f32], work: &mut [Work]) {
+        self.cycle(0, r, z, work);
+    }
+
+    /// The K-cycle's coarse correction on `level` (Notay 2010, as the parent module's
+    /// [`kcycle`] but on grids, with the scratch of `own` and the deeper levels' in `deeper`,
+    /// and each matrix product fused with the dot products that follow it).
+    fn krylov(
+        &self,
+        level: usize,
+        b: &[f32],
+        x: &mut [f32],
+        own: &mut KVectors,
+        deeper: &mut [Work],
+    ) {
         if level + 1 == self.levels.len() {
-            self.cycle(level, b, x);
+            self.cycle(level, b, x, deeper);
             return;
         }
         let a = &self.levels[level];
-        let ratio = self.active[level] as f64 / self.active[level + 1].max(1) as f64;
-        kcycle(
-            b,
-            x,
-            |b, x| self.cycle(level, b, x),
-            |x, y| a.multiply(x, y),
-            dot,
-            ratio >= KCYCLE_MIN_RATIO,
+        let second =
+            self.active[level] as f64 / self.active[level + 1].max(1) as f64 >= KCYCLE_MIN_RATIO;
+        let KVectors { c1, v1, r2, c2, v2 } = own;
+        self.cycle(level, b, c1, deeper);
+        let (rho1, [alpha1]) = a.multiply_dots(c1, v1, [b]);
+        if rho1.is_nan() || rho1 <= 0.0 {
+            x.copy_from_slice(c1);
+            return;
+        }
+        let s1 = alpha1 / rho1;
+        let first_only = |x: &mut [f32], c1: &[f32]| {
+            elementwise(x, |i, x| {
+                for (x, &c) in x.iter_mut().zip(&c1[i..]) {
+                    *x = (s1 * f64::from(c)) as f32;
+                }
+            });
+        };
+        // r2 = b − s1 v1, with |r2|² and |b|².
+        let [r2r2, bb] = sums(r2, |i, r2| {
+            let mut s = [0.0; 2];
+            for ((r, &b), &v) in r2.iter_mut().zip(&b[i..]).zip(&v1[i..]) {
+                *r = (f64::from(b) - s1 * f64::from(v)) as f32;
+                s[0] += f64::from(*r) * f64::from(*r);
+                s[1] += f64::from(b) * f64::from(b);
+            }
+            s
+        });
+        if !second || r2r2 <= KCYCLE_T * KCYCLE_T * bb {
+            first_only(x, c1);
+            return;
+        }
+        self.cycle(level, r2, c2, deeper);
+        let (beta, [gamma, alpha2]) = a.multiply_dots(c2, v2, [v1, r2]);
+        let rho2 = beta - gamma * gamma / rho1;
+        if rho2.is_nan() || rho2 <= 0.0 {
+            first_only(x, c1);
+            return;
+        }
+        let (k1, k2) = (
+            alpha1 / rho1 - gamma * alpha2 / (rho1 * rho2),
+            alpha2 / rho2,
         );
+        elementwise(x, |i, x| {
+            for ((x, &c1), &c2) in x.iter_mut().zip(&c1[i..]).zip(&c2[i..]) {
+                *x = (k1 * f64::from(c1) + k2 * f64::from(c2)) as f32;
+            }
+        });
     }
 
-    fn cycle<B: Rhs>(&self, level: usize, b: &[B], x: &mut [f32]) {
+    /// One cycle on `level` from x = 0; `work` holds the scratch of the levels below it.
+    fn cycle<B: Rhs>(&self, level: usize, b: &[B], x: &mut [f32], work: &mut [Work]) {
         let a = &self.levels[level];
-        x.iter_mut().for_each(|v| *v = 0.0);
+        x.fill(0.0);
         if level + 1 == self.levels.len() {
             self.coarsest_solve(a, b, x);
             return;
         }
-        let mut scratch = vec![0f32; a.len()];
-        a.sweep(b, x, true, &mut scratch);
-        a.residual(b, x, &mut scratch);
-        let (wc, hc) = a.coarse_size();
-        let mut rc = vec![0f32; wc * hc];
-        a.restrict(&scratch, &mut rc);
-        let mut xc = vec![0f32; wc * hc];
-        self.krylov(level + 1, &rc, &mut xc);
-        drop(rc);
-        a.prolong_add(&xc, x);
-        drop(xc);
-        a.sweep(b, x, false, &mut scratch);
+        let Some((next, deeper)) = work.split_first_mut() else {
+            return;
+        };
+        a.sweep(b, x, true);
+        a.restricted_residual(b, x, &mut next.rc);
+        let Work { rc, xc, k } = next;
+        self.krylov(level + 1, rc, xc, k, deeper);
+        a.prolong_add(xc, x);
+        a.sweep(b, x, false);
     }
 
     fn coarsest_solve<B: Rhs>(&self, a: &GridLaplacian, b: &[B], x: &mut [f32]) {
@@ -488,53 +783,126 @@ impl GridMultigrid {
                 }
             }
             Coarsest::Sweeps => {
-                let mut scratch = vec![0f32; a.len()];
                 for _ in 0..STALLED_SWEEPS {
-                    a.sweep(b, x, true, &mut scratch);
-                    a.sweep(b, x, false, &mut scratch);
+                    a.sweep(b, x, true);
+                    a.sweep(b, x, false);
                 }
             }
         }
     }
 }
 
-/// Connected parts of the active cells through edges of positive weight: a label per cell
-/// ([`NONE`] for inactive cells) and the number of parts.
-pub(crate) fn parts(a: &GridLaplacian) -> (Vec<u32>, usize) {
-    let (w, h) = (a.w, a.h);
-    let mut label = vec![NONE; a.len()];
-    let mut count = 0u32;
-    let mut stack = Vec::new();
-    for s in 0..a.len() {
-        if label[s] != NONE || a.diag[s] <= 0.0 {
-            continue;
-        }
-        label[s] = count;
-        stack.push(s);
-        while let Some(i) = stack.pop() {
-            let (x, y) = (i % w, i / w);
-            let mut visit = |j: usize, weight: f32| {
-                if weight > 0.0 && label[j] == NONE {
-                    label[j] = count;
-                    stack.push(j);
-                }
-            };
-            if x + 1 < w {
-                visit(i + 1, a.right[i]);
-            }
-            if x > 0 {
-                visit(i - 1, a.right[i - 1]);
-            }
-            if y + 1 < h {
-                visit(i + w, a.down[i]);
-            }
-            if y > 0 {
-                visit(i - w, a.down[i - w]);
-            }
-        }
-        count += 1;
+/// Copies of the rows just above and below a block of rows.
+type Halo = (Option<Vec<f32>>, Option<Vec<f32>>);
+
+/// A block of rows of x in a sweep: the rows, the index of the first, and copies of the rows
+/// around it.
+struct Block<'a> {
+    rows: &'a mut [f32],
+    first: usize,
+    halo: &'a Halo,
+}
+
+/// The scratch of one coarse level, kept between cycles: the restricted residual and the
+/// correction of the finer level's cycle, and the K-cycle's vectors.
+pub(crate) struct Work {
+    rc: Vec<f32>,
+    xc: Vec<f32>,
+    k: KVectors,
+}
+
+/// The K-cycle's vectors on one level: two cycles' corrections, their products with A, and the
+/// residual after the first.
+pub(crate) struct KVectors {
+    c1: Vec<f32>,
+    v1: Vec<f32>,
+    r2: Vec<f32>,
+    c2: Vec<f32>,
+    v2: Vec<f32>,
+}
+
+/// Calls `f(offset, chunk)` on fixed chunks of `x`, in parallel when there are several.
+fn elementwise(x: &mut [f32], f: impl Fn(usize, &mut [f32]) + Sync) {
+    if x.len() <= CELLS_PER_TASK {
+        f(0, x);
+    } else {
+        x.par_chunks_mut(CELLS_PER_TASK)
+            .enumerate()
+            .for_each(|(k, chunk)| f(k * CELLS_PER_TASK, chunk));
     }
-    (label, count as usize)
+}
+
+/// As [`elementwise`], with `N` sums that `f` returns for each chunk, added in chunk order (the
+/// same on any number of threads).
+fn sums<const N: usize>(
+    x: &mut [f32],
+    f: impl Fn(usize, &mut [f32]) -> [f64; N] + Sync,
+) -> [f64; N] {
+    let add = |mut a: [f64; N], b: [f64; N]| {
+        a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
+        a
+    };
+    if x.len() <= CELLS_PER_TASK {
+        return f(0, x);
+    }
+    let partial: Vec<[f64; N]> = x
+        .par_chunks_mut(CELLS_PER_TASK)
+        .enumerate()
+        .map(|(k, chunk)| f(k * CELLS_PER_TASK, chunk))
+        .collect();
+    partial.into_iter().fold([0.0; N], add)
+}
+
+/// Connected parts of the active cells through edges of positive weight: a label per cell
+/// ([`NONE`] for inactive cells) and the number of parts, numbered in the order of each part's
+/// first cell in row-major order.
+///
+/// One scan joins each cell to its left and upper neighbours in a union–find forest whose
+/// links always point to a lower index (with path halving), so that every root is its part's
+/// first cell; a second scan makes every link point to its root, and a third replaces the links
+/// by part numbers in place (a cell's root comes before it, so its number is already written).
+/// Linear in the cells, sequential, and 4 bytes a cell.
+pub(crate) fn parts(a: &GridLaplacian) -> (Vec<u32>, usize) {
+    let (w, n) = (a.w, a.len());
+    let mut link: Vec<u32> = (0..n as u32).collect();
+    let root = |link: &mut [u32], mut i: usize| {
+        while link[i] as usize != i {
+            let up = link[link[i] as usize];
+            link[i] = up;
+            i = up as usize;
+        }
+        i
+    };
+    for i in 0..n {
+        let join = |j: usize, link: &mut Vec<u32>| {
+            let (ri, rj) = (root(link, i), root(link, j));
+            if ri != rj {
+                link[ri.max(rj)] = ri.min(rj) as u32;
+            }
+        };
+        if i % w > 0 && a.right[i - 1] > 0.0 {
+            join(i - 1, &mut link);
+        }
+        if i >= w && a.down[i - w] > 0.0 {
+            join(i - w, &mut link);
+        }
+    }
+    for i in 0..n {
+        link[i] = link[link[i] as usize];
+    }
+    let mut count = 0u32;
+    for i in 0..n {
+        let r = link[i] as usize;
+        link[i] = if a.diag[i] <= 0.0 {
+            NONE
+        } else if r == i {
+            count += 1;
+            count - 1
+        } else {
+            link[r]
+        };
+    }
+    (link, count as usize)
 }
 
 /// The mean of `v` over each part (`label`, `parts` from [`parts`]), summed in `f64`.
@@ -559,7 +927,7 @@ pub(crate) fn part_means<T: Copy + Into<f64>>(v: &[T], label: &[u32], parts: usi
 /// and the iterations used.
 ///
 /// The iterate and the residual are `f64`, the direction and preconditioned residual `f32`, and
-/// A p is recomputed in `f64` where it is needed ([`GridLaplacian::wide`]): the residual's
+/// A p is recomputed in `f64` where it is needed ([`GridLaplacian::row_wide`]): the residual's
 /// updates are then exact to `f64` for the (rounded) direction the iterate moves along, so it
 /// stays the true residual. (An `f32` iterate gathers rounding noise at every step: on a 5000²
 /// sphere of depth range 2000 px it raised the mean integration residual from 9.1e-4 to
@@ -591,7 +959,8 @@ pub(crate) fn solve(
     // The residual, from x = 0.
     let mut r = b;
     let mut z = vec![0f32; n];
-    mg.apply(&r, &mut z);
+    let mut work = mg.work();
+    mg.apply(&r, &mut z, &mut work);
     let mut p = z.clone();
     let mut rz = dot(&r, &z);
     let w = a.w;
@@ -609,14 +978,19 @@ pub(crate) fn solve(
             .zip(r.par_chunks_mut(w))
             .enumerate()
             .with_min_len(rows_per_task(w))
-            .for_each(|(row, (x, r))| {
-                for col in 0..w {
-                    let i = row * w + col;
-                    x[col] += alpha * f64::from(dir[i]);
-                    r[col] -= alpha * a.wide(dir, i, col, row);
-                }
-            });
-        mg.apply(&r, &mut z);
+            .for_each_init(
+                || vec![0f64; w],
+                |ap, (row, (x, r))| {
+                    a.row_wide(dir, row, ap);
+                    for (((x, r), &d), &ap) in
+                        x.iter_mut().zip(r).zip(&dir[row * w..]).zip(ap.iter())
+                    {
+                        *x += alpha * f64::from(d);
+                        *r -= alpha * ap;
+                    }
+                },
+            );
+        mg.apply(&r, &mut z, &mut work);
         let rz_new = dot(&r, &z);
         // Flexible (Polak–Ribière) β for the K-cycle, which is not a fixed linear map:
         // zᵀ(r − r_prev)/ρ_prev, with r − r_prev = −α A p.
@@ -723,6 +1097,162 @@ mod tests {
         coarse.multiply(&xc, &mut direct);
         for (g, d) in galerkin.iter().zip(&direct) {
             assert!((g - d).abs() < 1e-3, "{g} vs {d}");
+        }
+    }
+
+    /// A grid of `w`×`h` with irregular unit and fractional weights (some cells inactive), an
+    /// iterate and a right-hand side.
+    fn irregular(w: usize, h: usize) -> (GridLaplacian, Vec<f32>, Vec<f64>) {
+        let weight = |k: usize| match (k * 2654435761) % 7 {
+            0 | 1 => 0.0,
+            2 => 0.5,
+            _ => 1.0,
+        };
+        let right = (0..w * h).map(weight).collect();
+        let down = (0..w * h).map(|k| weight(k + 3)).collect();
+        let a = GridLaplacian::new(w, h, right, down);
+        let x = (0..w * h)
+            .map(|k| ((k * 7919) % 101) as f32 / 7.0)
+            .collect();
+        let b = (0..w * h).map(|k| ((k * 31) % 17) as f64 - 8.3).collect();
+        (a, x, b)
+    }
+
+    /// (A x)ᵢ cell by cell, with the bounds tested per cell: the reference for the row kernels.
+    fn reference_neighbours(a: &GridLaplacian, x: &[f32], i: usize) -> f32 {
+        let (w, col, row) = (a.w, i % a.w, i / a.w);
+        let mut s = 0.0;
+        if col + 1 < w {
+            s += a.right[i] * x[i + 1];
+        }
+        if col > 0 {
+            s += a.right[i - 1] * x[i - 1];
+        }
+        if row + 1 < a.h {
+            s += a.down[i] * x[i + w];
+        }
+        if row > 0 {
+            s += a.down[i - w] * x[i - w];
+        }
+        s
+    }
+
+    /// The fused red–black sweep, in parallel blocks with copied rows between them, gives
+    /// bit for bit what two half-sweeps cell by cell give, forward and backward, on one block
+    /// and on several (a grid taller than a block), and the product and restricted residual
+    /// what the cell-by-cell formulas give.
+    #[test]
+    fn row_kernels_match_the_cell_by_cell_formulas() {
+        for (w, h) in [(1, 5), (7, 1), (37, 29), (64, 1500), (33, 2100)] {
+            let (a, x0, b) = irregular(w, h);
+            for forward in [true, false] {
+                let mut fused = x0.clone();
+                a.sweep(&b, &mut fused, forward);
+                let mut reference = x0.clone();
+                let order = if forward { [0, 1] } else { [1, 0] };
+                for colour in order {
+                    let old = reference.clone();
+                    for i in 0..w * h {
+                        if (i % w + i / w) % 2 == colour {
+                            reference[i] = if a.diag[i] > 0.0 {
+                                (b[i] as f32 + reference_neighbours(&a, &old, i)) / a.diag[i]
+                            } else {
+                                0.0
+                            };
+                        }
+                    }
+                }
+                assert!(
+                    fused
+                        .iter()
+                        .zip(&reference)
+                        .all(|(p, q)| p.to_bits() == q.to_bits()),
+                    "{w}×{h}, forward {forward}"
+                );
+            }
+            let mut ax = vec![0f32; w * h];
+            a.multiply(&x0, &mut ax);
+            let xf: Vec<f32> = b.iter().map(|&v| v as f32).collect();
+            let mut ax2 = vec![0f32; w * h];
+            let (xy, [xu]) = a.multiply_dots(&x0, &mut ax2, [&xf]);
+            assert_eq!(ax, ax2);
+            let (mut ry, mut ru) = (0.0, 0.0);
+            for i in 0..w * h {
+                let v = a.diag[i] * x0[i] - reference_neighbours(&a, &x0, i);
+                assert_eq!(ax[i].to_bits(), v.to_bits(), "{w}×{h}: A x at {i}");
+                ry += f64::from(x0[i]) * f64::from(v);
+                ru += f64::from(x0[i]) * f64::from(xf[i]);
+            }
+            assert!((xy - ry).abs() <= 1e-9 * ry.abs().max(1.0), "{xy} vs {ry}");
+            assert!((xu - ru).abs() <= 1e-9 * ru.abs().max(1.0), "{xu} vs {ru}");
+            let residual: Vec<f32> = (0..w * h)
+                .map(|i| {
+                    if a.diag[i] > 0.0 {
+                        b[i] as f32 - ax[i]
+                    } else {
+                        0.0
+                    }
+                })
+                .collect();
+            let (wc, hc) = a.coarse_size();
+            let (mut fused, mut reference) = (vec![0f32; wc * hc], vec![0f32; wc * hc]);
+            a.restricted_residual(&b, &x0, &mut fused);
+            a.restrict(&residual, &mut reference);
+            assert_eq!(fused, reference, "{w}×{h}: restricted residual");
+        }
+    }
+
+    /// The union–find labelling gives the parts a depth-first search gives, numbered alike.
+    #[test]
+    fn parts_match_a_depth_first_search() {
+        for (w, h) in [(1, 1), (1, 9), (9, 1), (37, 29), (64, 300)] {
+            // Edges present with probability 0.45, below the square lattice's bond percolation
+            // threshold: many parts, of every shape.
+            let edge = |k: usize| f32::from(u8::from((k * 2654435761) % 100 < 45));
+            let a = GridLaplacian::new(
+                w,
+                h,
+                (0..w * h).map(edge).collect(),
+                (0..w * h).map(|k| edge(k * 7 + 11)).collect(),
+            );
+            let mut label = vec![NONE; a.len()];
+            let mut count = 0u32;
+            for s in 0..a.len() {
+                if label[s] != NONE || a.diag[s] <= 0.0 {
+                    continue;
+                }
+                label[s] = count;
+                let mut stack = vec![s];
+                while let Some(i) = stack.pop() {
+                    let (x, y) = (i % w, i / w);
+                    let mut edges = Vec::new();
+                    if x + 1 < w {
+                        edges.push((i + 1, a.right[i]));
+                    }
+                    if x > 0 {
+                        edges.push((i - 1, a.right[i - 1]));
+                    }
+                    if y + 1 < h {
+                        edges.push((i + w, a.down[i]));
+                    }
+                    if y > 0 {
+                        edges.push((i - w, a.down[i - w]));
+                    }
+                    for (j, weight) in edges {
+                        if weight > 0.0 && label[j] == NONE {
+                            label[j] = count;
+                            stack.push(j);
+                        }
+                    }
+                }
+                count += 1;
+            }
+            let (got, parts_found) = parts(&a);
+            assert_eq!(parts_found, count as usize, "{w}×{h}");
+            assert_eq!(got, label, "{w}×{h}");
+            if w * h > 100 {
+                assert!(count > 20, "{w}×{h}: {count} parts");
+            }
         }
     }
 

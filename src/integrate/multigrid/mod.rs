@@ -42,7 +42,7 @@ pub(crate) const COARSEST: usize = 64;
 const STALL: f64 = 0.8;
 /// The K-cycle's second inner step is skipped when the first leaves at most this fraction of
 /// the residual (Notay 2010).
-const KCYCLE_T: f64 = 0.25;
+pub(super) const KCYCLE_T: f64 = 0.25;
 /// The K-cycle's second inner step is taken only on levels at least this many times larger
 /// than the next (a second visit doubles the work below; with four-node aggregates the ratio is
 /// near 4, and where coarsening slows down the cycle falls back to one step).
