@@ -563,10 +563,10 @@ fn two_balls(seed: u64) -> ChromeCapture {
 }
 
 /// Issue 25 part 4: two balls place each near light where its reflected rays meet. Twenty
-/// seeded rigs of eight LEDs: accepted positions 0.5% of the light's distance off on average,
-/// 95% or more within 1% and none beyond 2%, the stated uncertainty covering twice over about
-/// 95% of the errors, and most positions accepted (a position is accepted when twice its rms
-/// uncertainty is within 1% of its distance).
+/// seeded rigs of eight LEDs: accepted positions 0.5% of the light's distance off on average
+/// and every one within 1%, the stated uncertainty covering twice over about 95% of the errors,
+/// and most positions accepted (a position is accepted when twice its rms uncertainty — the
+/// re-triangulated bound where that is larger — is within 1% of its distance).
 #[test]
 fn two_balls_place_near_lights_within_one_percent_of_their_distance() {
     let mut errors = Vec::new();
@@ -624,9 +624,8 @@ fn two_balls_place_near_lights_within_one_percent_of_their_distance() {
         covered * 100.0
     );
     assert!(mean <= 0.005, "mean error {:.3}%", mean * 100.0);
-    assert!(within_1 >= 0.95, "{:.1}% within 1%", within_1 * 100.0);
     assert!(
-        worst.2 <= 0.02,
+        worst.2 <= 0.01,
         "a position {:.2}% off was accepted",
         worst.2 * 100.0
     );

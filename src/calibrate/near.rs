@@ -69,7 +69,10 @@ pub struct LightPosition {
     /// Position (camera frame, the unit of the balls' radius).
     #[serde(serialize_with = "super::serialize_vector")]
     pub position: Vector3<f64>,
-    /// Root-mean-square uncertainty of the position (√ of the covariance's trace), same unit.
+    /// Root-mean-square uncertainty of the position, same unit: √ of the covariance's trace, or
+    /// half the re-triangulated bound at twice each error's standard deviation where that is
+    /// larger (rays meeting at a small angle, where the distance's error is not linear in the
+    /// directions').
     pub uncertainty: f64,
     /// Standard deviation along the principal axes of the covariance, largest first.
     pub principal_std: [f64; 3],
@@ -423,29 +426,76 @@ impl Triangulation {
     }
 }
 
+/// The weighted point nearest `rays` and its covariance (module doc), or `None` when the rays
+/// do not fix it.
+fn nearest(rays: &[Ray], weights: &[f64]) -> Option<(Vector3<f64>, Matrix3<f64>)> {
+    let mut a = Matrix3::zeros();
+    let mut b = Vector3::zeros();
+    for (r, w) in rays.iter().zip(weights) {
+        let m = (Matrix3::identity() - r.direction * r.direction.transpose()) * *w;
+        a += m;
+        b += m * r.origin;
+    }
+    let inv = a.try_inverse()?;
+    let x = inv * b;
+    x.iter().all(|v| v.is_finite()).then_some((x, inv))
+}
+
+/// How far the position `x` moves when each error source is set to twice its standard
+/// deviation, one at a time and either way, the light re-triangulated each time (with the same
+/// `weights`) rather than the move linearised: the larger move of each source, combined in
+/// quadrature. For errors that act linearly this is twice the rms uncertainty; where the rays
+/// meet at a small angle, the distance along them grows faster than linearly with the angle's
+/// error (as one over the angle), and the bound says so. The sources are each ray's direction
+/// (two axes across it) and its ball's position (the principal axes of its covariance).
+fn two_sigma_bound(rays: &[Ray], weights: &[f64], x: &Vector3<f64>) -> f64 {
+    let mut sum = 0.0;
+    for (k, r) in rays.iter().enumerate() {
+        let d = r.direction;
+        let helper = if d.x.abs() < 0.9 {
+            Vector3::x()
+        } else {
+            Vector3::y()
+        };
+        let e1 = d.cross(&helper).normalize();
+        let e2 = d.cross(&e1);
+        let eig = r.origin_cov.symmetric_eigen();
+        // (true: the direction, false: the origin; the move at twice the standard deviation)
+        let mut moves = vec![(true, 2.0 * r.sigma * e1), (true, 2.0 * r.sigma * e2)];
+        for (value, axis) in eig.eigenvalues.iter().zip(eig.eigenvectors.column_iter()) {
+            moves.push((false, 2.0 * value.max(0.0).sqrt() * axis.into_owned()));
+        }
+        for (direction, step) in moves {
+            let mut worst: f64 = 0.0;
+            for s in [1.0, -1.0] {
+                let mut moved = rays.to_vec();
+                if direction {
+                    moved[k].direction = (d + s * step).normalize();
+                } else {
+                    moved[k].origin = r.origin + s * step;
+                }
+                let y = nearest(&moved, weights).map_or(f64::INFINITY, |(y, _)| (y - x).norm());
+                worst = worst.max(y);
+            }
+            sum += worst * worst;
+        }
+    }
+    sum.sqrt()
+}
+
 /// The weighted point nearest the rays (module doc), with distances and directions measured
 /// from `reference`.
 fn triangulate(
     rays: &[Ray],
     reference: &Vector3<f64>,
 ) -> std::result::Result<LightPosition, Triangulation> {
-    let solve = |weights: &[f64]| -> Option<(Vector3<f64>, Matrix3<f64>)> {
-        let mut a = Matrix3::zeros();
-        let mut b = Vector3::zeros();
-        for (r, w) in rays.iter().zip(weights) {
-            let m = (Matrix3::identity() - r.direction * r.direction.transpose()) * *w;
-            a += m;
-            b += m * r.origin;
-        }
-        let inv = a.try_inverse()?;
-        let x = inv * b;
-        x.iter().all(|v| v.is_finite()).then_some((x, inv))
-    };
+    let solve = |weights: &[f64]| nearest(rays, weights);
     // First with unit lateral errors, then with those at the distance found.
     let (mut x, _) = solve(&vec![1.0; rays.len()]).ok_or(Triangulation::Parallel)?;
     let mut cov = Matrix3::zeros();
+    let mut w = Vec::with_capacity(rays.len());
     for _ in 0..3 {
-        let mut w = Vec::with_capacity(rays.len());
+        w.clear();
         for r in rays {
             let t = r.direction.dot(&(x - r.origin));
             // The point nearest the rays must lie ahead of both balls: diverging rays (a
@@ -479,13 +529,14 @@ fn triangulate(
         }
         _ => (0.0, 1.0),
     };
+    let bound = two_sigma_bound(rays, &w, &x);
     let eig = cov.symmetric_eigen();
     let mut sd: Vec<f64> = eig.eigenvalues.iter().map(|v| v.max(0.0).sqrt()).collect();
     sd.sort_by(|a, b| b.total_cmp(a));
     let to = x - reference;
     Ok(LightPosition {
         position: x,
-        uncertainty: cov.trace().max(0.0).sqrt(),
+        uncertainty: cov.trace().max(0.0).sqrt().max(bound / 2.0),
         principal_std: [sd[0], sd[1], sd[2]],
         distance: to.norm(),
         direction: to.normalize(),
@@ -526,6 +577,27 @@ mod tests {
         for (got, want) in p.principal_std.iter().zip(expected) {
             assert!((got / want - 1.0).abs() < 1e-9, "{p:?} vs {expected:?}");
         }
+        // Errors this small act linearly: the re-triangulated bound is twice the rms.
+        let rms = expected.iter().map(|v| v * v).sum::<f64>().sqrt();
+        assert!(
+            (p.uncertainty / rms - 1.0).abs() < 0.02,
+            "{} vs {rms}",
+            p.uncertainty
+        );
+        // Twenty times larger (2σ = 2.3° against rays 15° apart), the distance's error is no
+        // longer linear in the angle's: an angle smaller by 2σ lengthens the rays by more than
+        // a larger one shortens them, and the stated uncertainty grows beyond the linear one.
+        let wide = |o: Vector3<f64>| Ray {
+            sigma: 20.0 * sigma,
+            ..ray(o)
+        };
+        let q = triangulate(&[wide(a), wide(c)], &Vector3::zeros()).unwrap();
+        let linear = 20.0 * rms;
+        assert!(
+            q.uncertainty > 1.05 * linear && q.uncertainty < 2.0 * linear,
+            "{} vs linear {linear}",
+            q.uncertainty
+        );
         // Parallel rays fix no position.
         let par = Ray {
             direction: Vector3::z(),
