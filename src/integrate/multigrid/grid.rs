@@ -175,16 +175,26 @@ impl GridLaplacian {
             }
             out[w - 1] = rw[w - 2] * xr[w - 2];
         }
-        if let Some(xb) = below {
-            let dw = &self.down[row * w..(row + 1) * w];
-            for ((o, &a), &v) in out.iter_mut().zip(dw).zip(xb) {
-                *o += a * v;
-            }
-        }
-        if let Some(xa) = above {
-            let uw = &self.down[(row - 1) * w..row * w];
-            for ((o, &a), &v) in out.iter_mut().zip(uw).zip(xa) {
-                *o += a * v;
+        self.vertical(row, above, below, out, |o, a, v| *o += a * v);
+    }
+
+    /// `f(out, weight, x)` for the edge to the row below and then the edge to the row above,
+    /// over row `row` (given those rows of x).
+    #[inline(always)]
+    fn vertical<T>(
+        &self,
+        row: usize,
+        above: Option<&[f32]>,
+        below: Option<&[f32]>,
+        out: &mut [T],
+        f: impl Fn(&mut T, f32, f32),
+    ) {
+        let w = self.w;
+        for (edges, xs) in [(row * w, below), (row.saturating_sub(1) * w, above)] {
+            if let Some(xs) = xs {
+                for ((o, &a), &v) in out.iter_mut().zip(&self.down[edges..edges + w]).zip(xs) {
+                    f(o, a, v);
+                }
             }
         }
     }
@@ -275,18 +285,7 @@ impl GridLaplacian {
                 *o -= term(a, v);
             }
         }
-        if let Some(xb) = below {
-            let dw = &self.down[row * w..(row + 1) * w];
-            for ((o, &a), &v) in out.iter_mut().zip(dw).zip(xb) {
-                *o -= term(a, v);
-            }
-        }
-        if let Some(xa) = above {
-            let uw = &self.down[(row - 1) * w..row * w];
-            for ((o, &a), &v) in out.iter_mut().zip(uw).zip(xa) {
-                *o -= term(a, v);
-            }
-        }
+        self.vertical(row, above, below, out, |o, a, v| *o -= term(a, v));
     }
 
     /// Σᵢ vᵢ (A x)ᵢ, summed over fixed blocks of rows in order (the same on any number of
