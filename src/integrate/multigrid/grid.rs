@@ -347,17 +347,15 @@ impl GridLaplacian {
             for (r, out) in chunk.chunks_mut(wc).enumerate() {
                 let row = k * rows + r;
                 // Summed as the blocks are read, row by row: ((r00 + r01) + r10) + r11.
-                self.row_residual(b, x, 2 * row, &mut nb, &mut res);
-                for (col, o) in out.iter_mut().enumerate() {
-                    *o = res[2 * col];
-                    if 2 * col + 1 < w {
-                        *o += res[2 * col + 1];
-                    }
-                }
-                if 2 * row + 1 < h {
-                    self.row_residual(b, x, 2 * row + 1, &mut nb, &mut res);
+                for y in 2 * row..(2 * row + 2).min(h) {
+                    let first = y == 2 * row;
+                    self.row_residual(b, x, y, &mut nb, &mut res);
                     for (col, o) in out.iter_mut().enumerate() {
-                        *o += res[2 * col];
+                        *o = if first {
+                            res[2 * col]
+                        } else {
+                            *o + res[2 * col]
+                        };
                         if 2 * col + 1 < w {
                             *o += res[2 * col + 1];
                         }
@@ -822,13 +820,10 @@ pub(crate) struct KVectors {
 
 /// Calls `f(offset, chunk)` on fixed chunks of `x`, in parallel when there are several.
 fn elementwise(x: &mut [f32], f: impl Fn(usize, &mut [f32]) + Sync) {
-    if x.len() <= CELLS_PER_TASK {
-        f(0, x);
-    } else {
-        x.par_chunks_mut(CELLS_PER_TASK)
-            .enumerate()
-            .for_each(|(k, chunk)| f(k * CELLS_PER_TASK, chunk));
-    }
+    sums(x, |i, chunk| {
+        f(i, chunk);
+        []
+    });
 }
 
 /// As [`elementwise`], with `N` sums that `f` returns for each chunk, added in chunk order (the
