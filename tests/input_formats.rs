@@ -52,6 +52,7 @@ fn lights_with(intensities: &[[f64; 3]]) -> Lights {
                 intensity: *i,
                 file: None,
                 position: None,
+                anisotropy: None,
             })
             .collect(),
     )

@@ -198,6 +198,7 @@ fn coloured_lights_divide_out() {
             intensity: [1.0 + 0.1 * k as f64, 0.7, 0.4],
             file: None,
             position: None,
+            anisotropy: None,
         });
     }
     let lights = Lights::new(lights).unwrap();

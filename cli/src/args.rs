@@ -209,6 +209,57 @@ pub struct MethodArgs {
     /// Interreflection compensation.
     #[command(flatten)]
     pub interreflections: InterreflectionArgs,
+    /// Near lights.
+    #[command(flatten)]
+    pub near: NearArgs,
+}
+
+/// Near-light options: used when every light in the lights file has a `position` and --camera
+/// gives the intrinsics.
+#[derive(Debug, Args, Clone)]
+pub struct NearArgs {
+    /// Solve positioned lights with the distant approximation (each light's `direction`)
+    /// instead of the near-light model.
+    #[arg(long)]
+    pub distant_lights: bool,
+    /// Near lights: depth of the start plane along the optical axis, in the units of the light
+    /// positions (default: searched from the images around the lights' mean distance).
+    #[arg(long, value_name = "DIST", conflicts_with = "distant_lights")]
+    pub near_start: Option<f64>,
+    /// Near lights: most alternations of normals and depth.
+    #[arg(long, default_value_t = photostereo::ps::near::DEFAULT_MAX_ITERATIONS, value_name = "N", conflicts_with = "distant_lights")]
+    pub near_iterations: usize,
+    /// Near lights: stop when the depth moves by less than this fraction of its range.
+    #[arg(long, default_value_t = photostereo::ps::near::DEFAULT_TOLERANCE, value_name = "FRACTION", conflicts_with = "distant_lights")]
+    pub near_tolerance: f64,
+}
+
+impl NearArgs {
+    /// The library's near-light configuration, `None` with --distant-lights.
+    pub fn config(&self) -> Result<Option<photostereo::run::pipeline::NearConfig>> {
+        if self.distant_lights {
+            return Ok(None);
+        }
+        if let Some(d) = self.near_start
+            && !(d.is_finite() && d > 0.0)
+        {
+            bail!("--near-start {d}: must be a positive distance");
+        }
+        if self.near_iterations == 0 {
+            bail!("--near-iterations must be at least 1");
+        }
+        if !(self.near_tolerance > 0.0 && self.near_tolerance < 1.0) {
+            bail!(
+                "--near-tolerance {}: must be in (0, 1)",
+                self.near_tolerance
+            );
+        }
+        Ok(Some(photostereo::run::pipeline::NearConfig {
+            start_distance: self.near_start,
+            max_iterations: self.near_iterations,
+            tolerance: self.near_tolerance,
+        }))
+    }
 }
 
 /// Interreflection compensation options.
@@ -396,6 +447,10 @@ pub enum BenchCommand {
     /// control) with interreflections, without and with compensation (scale known, scale
     /// estimated); JSON to standard output, a chart in `--out`.
     Interreflections(InterreflectionBenchArgs),
+    /// Near lights: normal and depth error of the near-light model and of the distant
+    /// approximation against the LEDs' distance on rendered scenes (sphere, vase, bumps);
+    /// JSON to standard output, a chart in `--out`.
+    Near(NearBenchArgs),
     /// Wall time and peak memory of the in-memory and the streamed (`--max-memory`) run on
     /// the same stack, as child processes, alternating.
     Stream(StreamBenchArgs),
@@ -514,6 +569,32 @@ pub struct InterreflectionBenchArgs {
     #[arg(long, default_value_t = interreflections::DEFAULT_ALBEDO)]
     pub albedo: f64,
     /// Write `interreflections.json` and the chart `interreflections.svg/.png` here.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Also print a Markdown table (to standard error).
+    #[arg(long)]
+    pub markdown: bool,
+}
+
+/// `bench near` options.
+#[derive(Debug, Args)]
+pub struct NearBenchArgs {
+    /// Image size (square).
+    #[arg(long, default_value_t = 128)]
+    pub size: usize,
+    /// Number of LEDs.
+    #[arg(long, default_value_t = 16)]
+    pub lights: usize,
+    /// Read noise relative to the mean image level.
+    #[arg(long, default_value_t = 0.01)]
+    pub noise: f32,
+    /// LED profile exponent μ (cos^μ).
+    #[arg(long, default_value_t = 1.0)]
+    pub mu: f64,
+    /// Light distances in object sizes; lists are comma- or space-separated.
+    #[arg(long, num_args = 1.., value_delimiter = ',', default_values_t = photostereo::eval::near::DEFAULT_DISTANCES)]
+    pub distances: Vec<f64>,
+    /// Write `near.json` and the chart `near.svg/.png` here.
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
     /// Also print a Markdown table (to standard error).
@@ -812,6 +893,7 @@ impl MethodArgs {
             mesh: self.mesh,
             color: ColorSolve::default(),
             interreflections,
+            near: self.near.config()?,
         })
     }
 }

@@ -340,6 +340,121 @@ pub fn interreflections(a: InterreflectionBenchArgs) -> Result<()> {
     Ok(())
 }
 
+/// `bench near`: both models' errors against the LEDs' distance.
+pub fn near(a: crate::args::NearBenchArgs) -> Result<()> {
+    let report = photostereo::eval::near::sweep(&photostereo::eval::near::NearSweepOptions {
+        size: a.size,
+        lights: a.lights,
+        noise: a.noise,
+        mu: a.mu,
+        distances: a.distances.clone(),
+    })?;
+    if a.markdown {
+        eprint!("{}", near_table(&report));
+    }
+    let text = serde_json::to_string_pretty(&report)?;
+    if let Some(dir) = &a.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        crate::write_file_atomic(&dir.join("near.json"), text.as_bytes())?;
+        near_chart(&report, &dir.join("near"))?;
+    }
+    say!("{text}");
+    Ok(())
+}
+
+/// The rows of a near-light sweep as a Markdown table.
+pub(crate) fn near_table(report: &photostereo::eval::near::NearReport) -> String {
+    let mut s = String::from(
+        "| scene | LEDs at (object sizes) | near: normals (°) | near: depth (% of range) | distant: normals (°) | distant: depth (% of range, scale fitted) | alternations | near (s) | distant (s) |\n\
+         |---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+    );
+    for r in &report.rows {
+        let x = &r.result;
+        let _ = writeln!(
+            s,
+            "| {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {} | {:.2} | {:.2} |",
+            r.scene,
+            r.distance,
+            x.near_normal_deg,
+            100.0 * x.near_depth,
+            x.distant_normal_deg,
+            100.0 * x.distant_depth,
+            x.iterations,
+            x.near_seconds,
+            x.distant_seconds
+        );
+    }
+    s
+}
+
+/// The near-light charts: mean normal error (`STEM.svg/.png`) and RMS depth error
+/// (`STEM_depth.svg/.png`) against the LEDs' distance (log-log), near and distant per scene.
+pub(crate) fn near_chart(report: &photostereo::eval::near::NearReport, stem: &Path) -> Result<()> {
+    type Pick = fn(&photostereo::eval::near::NearResult) -> (f64, f64);
+    let charts: [(&str, &str, Pick); 2] = [
+        ("", "mean angular error (°)", |r| {
+            (r.near_normal_deg, r.distant_normal_deg)
+        }),
+        (
+            "_depth",
+            "RMS depth error (% of the depth range; distant: scale fitted)",
+            |r| (100.0 * r.near_depth, 100.0 * r.distant_depth),
+        ),
+    ];
+    for (suffix, y_label, pick) in charts {
+        let mut series = Vec::new();
+        for (k, scene) in photostereo::eval::near::SWEEP_SCENES.iter().enumerate() {
+            let rows: Vec<_> = report
+                .rows
+                .iter()
+                .filter(|r| r.scene == scene.name())
+                .collect();
+            series.push(Series::line(
+                format!("{} near", scene.name()),
+                rows.iter()
+                    .map(|r| (r.distance, pick(&r.result).0))
+                    .collect(),
+                k,
+            ));
+            series.push(
+                Series::line(
+                    format!("{} distant", scene.name()),
+                    rows.iter()
+                        .map(|r| (r.distance, pick(&r.result).1))
+                        .collect(),
+                    k,
+                )
+                .styled(crate::chart::Style::Fit),
+            );
+        }
+        let mut path = stem.as_os_str().to_owned();
+        path.push(suffix);
+        crate::chart::write(
+            &Chart {
+                title: format!(
+                    "Near lights: {} against LED distance ({}², {} LEDs, cos^{} profile, noise {})",
+                    if suffix.is_empty() {
+                        "normal error"
+                    } else {
+                        "depth error"
+                    },
+                    report.options.size,
+                    report.options.lights,
+                    report.options.mu,
+                    report.options.noise
+                ),
+                x_label: "LED distance from the object (object sizes)".into(),
+                y_label: y_label.into(),
+                log: (true, true),
+                series,
+                legend: Legend::UpperRight,
+            },
+            Path::new(&path),
+        )?;
+    }
+    Ok(())
+}
+
 /// The rows of `report` as a Markdown table.
 pub(crate) fn interreflection_table(report: &InterreflectionReport) -> String {
     let mut s = String::from(

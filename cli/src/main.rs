@@ -153,6 +153,7 @@ fn run(cli: Cli) -> Result<()> {
         }
         Some(Command::Bench(args::BenchCommand::Specularity(a))) => bench::specularity(a),
         Some(Command::Bench(args::BenchCommand::Interreflections(a))) => bench::interreflections(a),
+        Some(Command::Bench(args::BenchCommand::Near(a))) => bench::near(a),
         Some(Command::Bench(args::BenchCommand::Stream(a))) => bench::stream(a),
         Some(Command::Bench(args::BenchCommand::Scaling(a))) => {
             say!("{}", serde_json::to_string_pretty(&bench::scaling(&a)?)?);
@@ -802,6 +803,21 @@ fn print_summary(report: &Report, dir: &Path) {
             }
         );
     }
+    if let Some(n) = &report.near {
+        say!(
+            "  near lights: {} alternations of normals and depth{}; the largest part's geometric-mean depth {:.4} (the lights' units), from a start plane at {:.4}; the distant approximation would move the normals by {:.2}° on average (95th pct {:.2}°)",
+            n.iterations,
+            if n.converged {
+                ", converged"
+            } else {
+                ", NOT converged"
+            },
+            n.distance,
+            n.start_distance,
+            n.distant_deviation_deg,
+            n.distant_deviation_p95_deg
+        );
+    }
     // Under a camera the gradients are of log-depth, a thousand times smaller than pixel
     // slopes: four decimals would print zeros.
     let curl = |v: f64| {
@@ -853,6 +869,10 @@ fn flag_hint(w: &photostereo::run::Warning) -> &'static str {
         Warning::Filled { .. } => " (--strict leaves them without a normal)",
         Warning::IntensitiesCorrected { .. } => " (--no-recalibrate keeps it as given)",
         Warning::PoorIntegrability { .. } => " (--integrate bilateral)",
+        Warning::NearLights { .. } => {
+            " (the near-light model needs every light's position, --camera K.txt and depth; --distant-lights turns it off)"
+        }
+        Warning::NearNotConverged { .. } => " (--near-iterations raises the cap)",
         _ => "",
     }
 }

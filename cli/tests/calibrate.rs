@@ -262,6 +262,7 @@ fn matte_sphere_and_grey_card_give_intensities_within_one_percent() {
                 intensity: intensity(k),
                 file: None,
                 position: None,
+                anisotropy: None,
             })
             .collect(),
     )

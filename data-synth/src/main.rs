@@ -24,17 +24,19 @@
 
 use anyhow::{Context, Result, bail, ensure};
 use clap::{Parser, ValueEnum};
+use photostereo::camera::Intrinsics;
 use photostereo::capture::lights::{Lights, MAX_LIGHT_CONDITION};
 use photostereo::synth::area_light::MAX_AREA_LIGHT_SAMPLES;
 use photostereo::synth::interreflection::{
     DEFAULT_BOUNCE_SAMPLES, MAX_BOUNCE_SAMPLES, MAX_BOUNCES,
 };
+use photostereo::synth::near::{NearPlacement, render_near, two_ring_rig};
 use photostereo::synth::reflectance::{
     BlinnPhong, Diffuse, Material, Mirror, Phong, Specular, TorranceSparrow, Ward,
 };
 use photostereo::synth::render::{DEFAULT_LIGHT_RADIUS_DEG, RenderOptions, Rendering, render};
 use photostereo::synth::scene::{Albedo, Scene, SceneKind};
-use photostereo::synth::write::{ImageFormat, write_synthetic};
+use photostereo::synth::write::{ImageFormat, write_synthetic_with_camera};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -257,6 +259,27 @@ struct Cli {
     /// to 1024), for the shading and soft cast shadows with penumbrae [default: point lights].
     #[arg(long, value_name = "N", help_heading = "Light transport")]
     area_light_samples: Option<usize>,
+
+    // --- Near lights ---
+    /// Render an LED rig instead of distant lights: --lights LEDs (default 16), half on a ring
+    /// at 25° and half at 45° from the optical axis, all at this many scene widths from the
+    /// scene's centre, seen by a pinhole camera at the same distance; the images then show the
+    /// inverse-square fall-off and the per-point light directions, lights.json holds each
+    /// LED's `position` (and `principal`, `mu` with --led-mu), and K.txt the camera. Units:
+    /// one scene pixel at the base plane. Not with --light-set, --elevation, --cone-angle,
+    /// --tilt, --light-radius, --pixel-samples, --bounces, --area-light-samples or --brdf
+    /// mirror.
+    #[arg(long, value_name = "SIZES", help_heading = "Near lights")]
+    near_distance: Option<f64>,
+    /// --near-distance: each LED's angular profile cos^MU about the direction to the scene's
+    /// centre (0, the default: isotropic; 1: a Lambertian LED).
+    #[arg(
+        long,
+        value_name = "MU",
+        requires = "near_distance",
+        help_heading = "Near lights"
+    )]
+    led_mu: Option<f64>,
 
     // --- Output ---
     /// Image file format.
@@ -495,6 +518,8 @@ struct Plan {
     output: PathBuf,
     /// Things to tell the user before rendering (e.g. a near-degenerate light set).
     warnings: Vec<String>,
+    /// --near-distance: where the scene stands before the pinhole camera.
+    near: Option<(NearPlacement, Intrinsics)>,
 }
 
 impl Cli {
@@ -506,7 +531,12 @@ impl Cli {
         let render = self.render_options()?;
         let format = self.format()?;
         let mut warnings = Vec::new();
-        let (lights, lights_summary) = self.light_set(&mut warnings)?;
+        let near = self.near_rig(&scene)?;
+        let (lights, lights_summary) = match &near {
+            Some((lights, summary, _)) => (lights.clone(), summary.clone()),
+            None => self.light_set(&mut warnings)?,
+        };
+        let near = near.map(|(_, _, placed)| placed);
         check_no_stale_files(&self.output, lights.len(), format)?;
         Ok(Plan {
             scene,
@@ -518,6 +548,7 @@ impl Cli {
             format,
             output: self.output,
             warnings,
+            near,
         })
     }
 
@@ -835,6 +866,66 @@ impl Cli {
             value_name(self.format)
         );
         Ok(self.format.image_format(self.srgb))
+    }
+
+    /// --near-distance: the LED rig, its summary, the placement and the camera; `None` without
+    /// it.
+    #[allow(clippy::type_complexity)]
+    fn near_rig(
+        &self,
+        scene: &Scene,
+    ) -> Result<Option<(Lights, String, (NearPlacement, Intrinsics))>> {
+        let Some(d) = self.near_distance else {
+            return Ok(None);
+        };
+        ensure!(
+            d.is_finite() && d >= 1.0,
+            "--near-distance {d}: must be at least 1 (scene widths from the scene's centre)"
+        );
+        for (flag, given) in [
+            ("--light-set", self.light_set != LightSetArg::Fibonacci),
+            ("--elevation", self.elevation.is_some()),
+            ("--cone-angle", self.cone_angle.is_some()),
+            ("--tilt", self.tilt.is_some()),
+            ("--light-radius", self.light_radius.is_some()),
+            ("--bounces", self.bounces > 0),
+            ("--area-light-samples", self.area_light_samples.is_some()),
+            ("--pixel-samples", self.pixel_samples > 1),
+            ("--brdf mirror", self.brdf == Brdf::Mirror),
+        ] {
+            if given {
+                bail!("{flag} does not apply to the LED rig of --near-distance");
+            }
+        }
+        let mu = self.led_mu.unwrap_or(0.0);
+        ensure!(
+            mu.is_finite() && (0.0..=1000.0).contains(&mu),
+            "--led-mu {mu}: must be in 0..=1000"
+        );
+        let count = self.lights.unwrap_or(16);
+        ensure!(count >= 4, "--lights {count}: the LED rig needs at least 4");
+        let reach = d * scene.width.max(scene.height) as f64;
+        let placement = NearPlacement {
+            distance: reach,
+            scale: 1.0,
+        };
+        let target = photostereo::nalgebra::Vector3::new(0.0, 0.0, -reach);
+        let lights = two_ring_rig(count, reach, target, mu)?;
+        let summary = format!(
+            "{count} LEDs at {} scene widths ({} units){}, camera at the same distance",
+            num(d),
+            num(reach),
+            if mu > 0.0 {
+                format!(", profile cos^{}", num(mu))
+            } else {
+                String::new()
+            }
+        );
+        Ok(Some((
+            lights,
+            summary,
+            (placement, placement.camera(scene)),
+        )))
     }
 
     /// The lights of `--light-set` and its flags, with a description for the summary. A
@@ -1220,19 +1311,27 @@ fn clipping_warnings(plan: &Plan, rendering: &Rendering) -> Vec<String> {
 
 /// Renders and writes the data set; prints warnings to stderr and returns the summary line.
 fn run(plan: &Plan) -> Result<String> {
-    let rendering = render(&plan.scene, &plan.lights, &plan.render).context("rendering failed")?;
+    let rendering = match &plan.near {
+        Some((placement, camera)) => {
+            render_near(&plan.scene, &plan.lights, camera, placement, &plan.render)
+        }
+        None => render(&plan.scene, &plan.lights, &plan.render),
+    }
+    .context("rendering failed")?;
     ensure!(
         rendering.truth.mask.count() > 0,
         "the scene covers no pixel"
     );
     let warnings = clipping_warnings(plan, &rendering);
-    let written = write_synthetic(&rendering, &plan.lights, &plan.output, plan.format)
-        .with_context(|| format!("cannot write the data set to {}", plan.output.display()))?;
+    let camera = plan.near.as_ref().map(|(_, k)| k);
+    let written =
+        write_synthetic_with_camera(&rendering, &plan.lights, camera, &plan.output, plan.format)
+            .with_context(|| format!("cannot write the data set to {}", plan.output.display()))?;
     for w in warnings {
         eprintln!("warning: {w}");
     }
     Ok(format!(
-        "wrote {} files to {}: {} {} images {}×{} of {}, {}, {}, camera: {}; lights.json, mask.png, ground truth and shadow masks",
+        "wrote {} files to {}: {} {} images {}×{} of {}, {}, {}, camera: {}; lights.json, mask.png{}, ground truth and shadow masks",
         written.len(),
         plan.output.display(),
         plan.lights.len(),
@@ -1248,6 +1347,7 @@ fn run(plan: &Plan) -> Result<String> {
         plan.describe_material(),
         plan.lights_summary,
         plan.describe_camera(),
+        if plan.near.is_some() { ", K.txt" } else { "" },
     ))
 }
 

@@ -428,3 +428,50 @@ fn bounces_brighten_the_inside_of_a_groove() {
     );
     assert_ne!(soft, direct);
 }
+
+/// --near-distance renders an LED rig: lights.json holds each LED's position and profile, K.txt
+/// the camera, and the near-field shading differs from distant lights'; flags that do not apply
+/// to the rig are refused.
+#[test]
+fn near_distance_writes_an_led_rig_with_its_camera() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("rig");
+    let (summary, _) = synth_ok(
+        &[
+            "--size",
+            "48",
+            "--near-distance",
+            "2",
+            "--led-mu",
+            "1",
+            "--lights",
+            "8",
+        ],
+        &dir,
+    );
+    assert!(summary.contains("8 LEDs at 2 scene widths"), "{summary}");
+    assert!(summary.contains("K.txt"), "{summary}");
+    let k = photostereo::camera::Intrinsics::from_file(&dir.join("K.txt")).unwrap();
+    assert_eq!((k.fx, k.cx), (96.0, 23.5));
+    let lights = photostereo::capture::lights::Lights::from_file(&dir.join("lights.json")).unwrap();
+    assert_eq!(lights.positioned(), 8);
+    assert!(
+        lights
+            .lights()
+            .iter()
+            .all(|l| l.anisotropy.is_some_and(|a| a.mu == 1.0))
+    );
+    // Every LED is 96 units from the scene's centre, 96 units in front of the camera.
+    for l in lights.lights() {
+        let p = l.position.unwrap();
+        assert!(
+            ((p - photostereo::nalgebra::Vector3::new(0.0, 0.0, -96.0)).norm() - 96.0).abs() < 1e-9
+        );
+    }
+    synth_fails(
+        &["--near-distance", "2", "--elevation", "40"],
+        "--elevation",
+    );
+    synth_fails(&["--near-distance", "0.5"], "--near-distance");
+    synth_fails(&["--led-mu", "1"], "--near-distance");
+}

@@ -183,6 +183,7 @@ impl TwoBallCalibration {
                 intensity: [1.0; 3],
                 file: None,
                 position: Some(p.position),
+                anisotropy: None,
             })
             .collect();
         Lights::new(lights)

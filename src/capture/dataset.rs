@@ -828,6 +828,7 @@ mod tests {
                     intensity: INTENSITIES[k],
                     file: Some(format!("img_{k}.png")),
                     position: None,
+                    anisotropy: None,
                 })
                 .collect(),
         )

@@ -30,8 +30,25 @@ pub struct Light {
     /// The light's position (camera frame), when it is a near light measured as one (e.g. by
     /// two mirror balls, [`crate::calibrate::near`]); `direction` is then the direction to it
     /// from a point of the scene (from two balls: their midpoint, where the object should be).
-    /// The photometric-stereo solvers use `direction` (the distant approximation).
+    /// The distant-light solvers use `direction` (the distant approximation); the near-light
+    /// solver ([`crate::ps::near`]) uses the position, the inverse-square fall-off and
+    /// [`Light::anisotropy`].
     pub position: Option<Vector3<f64>>,
+    /// The angular profile of a positioned light (an LED), `None` for an isotropic one.
+    pub anisotropy: Option<Anisotropy>,
+}
+
+/// The angular profile of a near light (Quéau, Durix, Wu, Cremers, Lauze and Durou,
+/// "LED-based photometric stereo: modeling, calibration and numerical solution", JMIV 2018):
+/// the light's radiant intensity towards a point X is Φ·cos^μ θ, θ the angle between its
+/// principal direction D and X − P. μ = 0 is an isotropic point source; a Lambertian LED has
+/// μ = 1.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Anisotropy {
+    /// Unit principal direction D (camera frame), the direction the LED points at.
+    pub principal: Vector3<f64>,
+    /// Exponent μ ≥ 0 of the cosine profile.
+    pub mu: f64,
 }
 
 /// An ordered set of distant lights, one per image.
@@ -59,6 +76,12 @@ struct JsonLight {
     intensity: Option<JsonIntensity>,
     #[serde(default)]
     position: Option<[f64; 3]>,
+    /// The principal direction of an anisotropic near light ([`Anisotropy`]).
+    #[serde(default)]
+    principal: Option<[f64; 3]>,
+    /// The exponent of an anisotropic near light's cosine profile ([`Anisotropy`]).
+    #[serde(default)]
+    mu: Option<f64>,
     /// Written by `photostereo calibrate` (informational).
     #[serde(default, rename = "position_uncertainty")]
     _position_uncertainty: Option<f64>,
@@ -93,6 +116,10 @@ struct JsonLightOut<'a> {
     intensity: JsonIntensity,
     #[serde(skip_serializing_if = "Option::is_none")]
     position: Option<[f64; 3]>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    principal: Option<[f64; 3]>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    mu: Option<f64>,
 }
 
 impl Light {
@@ -103,6 +130,20 @@ impl Light {
             intensity: [1.0; 3],
             file: None,
             position: None,
+            anisotropy: None,
+        }
+    }
+
+    /// A near light at `position` (camera frame) of unit intensity, isotropic; its `direction`
+    /// is the direction to it from `target` (where the object is), for the distant
+    /// approximation.
+    pub fn near(position: Vector3<f64>, target: Vector3<f64>) -> Self {
+        Light {
+            direction: position - target,
+            intensity: [1.0; 3],
+            file: None,
+            position: Some(position),
+            anisotropy: None,
         }
     }
 
@@ -175,6 +216,32 @@ impl Lights {
                     reason: format!("position {:?} is not finite", p.as_slice()),
                 });
             }
+            if let Some(a) = &mut light.anisotropy {
+                if light.position.is_none() {
+                    return Err(Error::InvalidLight {
+                        index,
+                        reason: "an angular profile (principal direction and mu) needs a position"
+                            .into(),
+                    });
+                }
+                let norm = a.principal.norm();
+                if !(norm.is_finite() && norm > 1e-12) {
+                    return Err(Error::InvalidLight {
+                        index,
+                        reason: format!(
+                            "principal direction {:?} is zero or not finite",
+                            a.principal.as_slice()
+                        ),
+                    });
+                }
+                a.principal /= norm;
+                if !(a.mu.is_finite() && (0.0..=1000.0).contains(&a.mu)) {
+                    return Err(Error::InvalidLight {
+                        index,
+                        reason: format!("mu {} must be in 0..=1000", a.mu),
+                    });
+                }
+            }
             if let Some(bad) = light
                 .intensity
                 .iter()
@@ -240,10 +307,25 @@ impl Lights {
                 "{e}; expected {{\"lights\": [{{\"file\": \"img.exr\", \"direction\": [x, y, z], \"intensity\": 1.0}}, ...]}}"
             ),
         })?;
-        let lights = parsed
-            .lights
-            .into_iter()
-            .map(|l| Light {
+        let mut lights = Vec::with_capacity(parsed.lights.len());
+        for (index, l) in parsed.lights.into_iter().enumerate() {
+            let anisotropy = match (l.principal, l.mu) {
+                (None, None) => None,
+                (Some(d), Some(mu)) => Some(Anisotropy {
+                    principal: Vector3::from(d),
+                    mu,
+                }),
+                (Some(_), None) | (None, Some(_)) => {
+                    return Err(Error::InvalidLight {
+                        index,
+                        reason: format!(
+                            "{}: `principal` and `mu` describe the light's angular profile together; give both or neither",
+                            source.display()
+                        ),
+                    });
+                }
+            };
+            lights.push(Light {
                 direction: Vector3::from(l.direction),
                 intensity: match l.intensity {
                     None => [1.0; 3],
@@ -252,8 +334,9 @@ impl Lights {
                 },
                 file: l.file,
                 position: l.position.map(Vector3::from),
-            })
-            .collect();
+                anisotropy,
+            });
+        }
         Lights::new(lights)
     }
 
@@ -563,6 +646,10 @@ impl Lights {
                         JsonIntensity::Rgb(l.intensity)
                     },
                     position: l.position.map(|p| [p.x, p.y, p.z]),
+                    principal: l
+                        .anisotropy
+                        .map(|a| [a.principal.x, a.principal.y, a.principal.z]),
+                    mu: l.anisotropy.map(|a| a.mu),
                 })
                 .collect(),
         };
@@ -701,6 +788,44 @@ mod tests {
         assert_eq!(back.lights()[1].position, None);
         let bad = r#"{"lights": [{"direction": [0, 0, 1], "position": [1e400, 0, 0]}]}"#;
         assert!(Lights::from_json_str(bad, Path::new("l.json")).is_err());
+    }
+
+    /// An LED's angular profile is read, normalised, checked and written back; it needs a
+    /// position, both keys, and a sensible exponent.
+    #[test]
+    fn led_profiles_round_trip() {
+        let text = r#"{"lights": [
+            {"direction": [0, 0, 1], "position": [0, 0, 50], "principal": [0, 0, -2], "mu": 1.5},
+            {"direction": [0, 0.6, 0.8], "position": [0, 40, 50]}
+        ]}"#;
+        let l = Lights::from_json_str(text, Path::new("l.json")).unwrap();
+        let a = l.lights()[0].anisotropy.unwrap();
+        assert_eq!(a.principal, Vector3::new(0.0, 0.0, -1.0));
+        assert_eq!(a.mu, 1.5);
+        assert_eq!(l.lights()[1].anisotropy, None);
+        let back = Lights::from_json_str(&l.to_json(), Path::new("back.json")).unwrap();
+        assert_eq!(back, l);
+        for (bad, says) in [
+            (
+                r#"{"lights": [{"direction": [0, 0, 1], "position": [0, 0, 5], "mu": 1}]}"#,
+                "both",
+            ),
+            (
+                r#"{"lights": [{"direction": [0, 0, 1], "principal": [0, 0, -1], "mu": 1}]}"#,
+                "position",
+            ),
+            (
+                r#"{"lights": [{"direction": [0, 0, 1], "position": [0, 0, 5], "principal": [0, 0, 0], "mu": 1}]}"#,
+                "zero",
+            ),
+            (
+                r#"{"lights": [{"direction": [0, 0, 1], "position": [0, 0, 5], "principal": [0, 0, -1], "mu": -1}]}"#,
+                "mu",
+            ),
+        ] {
+            let e = Lights::from_json_str(bad, Path::new("l.json")).unwrap_err();
+            assert!(e.to_string().contains(says), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -6,6 +6,7 @@
 pub mod bench;
 pub mod demo;
 pub mod metrics;
+pub mod near;
 pub mod sweep;
 
 use crate::error::{Error, Result};

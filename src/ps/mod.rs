@@ -22,6 +22,7 @@ pub mod fill;
 pub mod intensities;
 pub mod interreflection;
 pub mod lobes;
+pub mod near;
 pub mod noise;
 pub mod normals;
 pub mod robust;

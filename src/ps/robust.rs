@@ -180,6 +180,15 @@ impl<'a> PixelFitter<'a> {
         }
     }
 
+    /// Sets the direction `view` (unit, towards the camera) of a perspective camera's ray
+    /// through the pixel, for the half vectors of the specular estimator (the default is the
+    /// orthographic view (0, 0, 1)).
+    pub(crate) fn set_view(&mut self, view: &Vector3<f64>) {
+        for (h, l) in self.halves.iter_mut().zip(self.dirs) {
+            *h = (l + view).try_normalize(1e-12).unwrap_or(*view);
+        }
+    }
+
     /// The weights of the last fit (0 for unused samples).
     pub(crate) fn weights(&self) -> &[f64] {
         &self.w

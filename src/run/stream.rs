@@ -966,6 +966,18 @@ impl BandSource for FileBands<'_> {
     }
 }
 
+/// The near-light solve ([`crate::ps::near`]) alternates over the whole capture, so it is not
+/// streamed.
+fn refuse_near(files: &CaptureFiles, config: &Config) -> Result<()> {
+    if crate::run::pipeline::near_applies(&files.lights, config) {
+        return Err(Error::param(
+            "max_memory",
+            "near-light photometric stereo alternates normals and depth over the whole capture, which must then fit in memory; it does not stream in row bands (raise the memory budget, or solve the lights as distant ones)",
+        ));
+    }
+    Ok(())
+}
+
 /// What a streamed run found besides the solutions.
 struct BandRun {
     plan: StreamPlan,
@@ -1058,6 +1070,7 @@ pub fn reconstruct_streamed(
     options: &StreamOptions,
     progress: &dyn Progress,
 ) -> Result<Streamed> {
+    refuse_near(files, config)?;
     let t_all = Instant::now();
     let (sink, run) = run_bands(
         files,
@@ -1119,6 +1132,7 @@ pub fn reconstruct_and_write_streamed(
     dir: &Path,
     progress: &dyn Progress,
 ) -> Result<(Report, StreamPlan)> {
+    refuse_near(files, config)?;
     let mut out = OutputDir::create(dir)?;
     let attrs = |file: &str| exr_attributes(&files.lights, config, file);
     let (sink, run) = run_bands(
@@ -1156,8 +1170,7 @@ pub fn reconstruct_and_write_streamed(
     let curl = integ.curl;
     let finished = finish(
         &mut out,
-        &written.normals,
-        &written.solved,
+        (&written.normals, &written.solved, None),
         &source,
         &capped(config, options, &run.plan),
         progress,
@@ -1179,6 +1192,7 @@ pub fn reconstruct_and_write_streamed(
         residual: written.residual,
         integrability,
         interreflections: None,
+        near: None,
         timings: Timings {
             load: run.read_s,
             solve: run.solve_s,

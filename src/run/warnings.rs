@@ -35,6 +35,13 @@ pub enum Warning {
         /// Lights in all.
         count: usize,
     },
+    /// The near-light solve stopped at its iteration cap.
+    NearNotConverged {
+        /// Alternations made.
+        iterations: usize,
+        /// The last alternation's RMS depth change over the depth range.
+        change: f64,
+    },
     /// JPEG images: lossy, 8-bit, sRGB-encoded.
     Lossy {
         /// JPEG images among the inputs.
@@ -120,7 +127,12 @@ impl fmt::Display for Warning {
             ),
             Warning::NearLights { positioned, count } => write!(
                 f,
-                "{positioned} of {count} lights have a position (near lights), but the solver models distant ones: each was used with its given direction (from two balls: from their midpoint), which is off at a pixel by about the angle the pixel's offset from that point subtends at the light"
+                "{positioned} of {count} lights have a position (near lights), but they were solved as distant ones: each was used with its given direction (from two balls: from their midpoint), which is off at a pixel by about the angle the pixel's offset from that point subtends at the light; the near-light model needs every light's position and the camera's intrinsics"
+            ),
+            Warning::NearNotConverged { iterations, change } => write!(
+                f,
+                "the near-light solve stopped after {iterations} alternations of normals and depth without converging (the depth still moved by {:.3}% of its range); the normals and depth are those of the last alternation",
+                100.0 * change
             ),
             Warning::Lossy { images } => write!(
                 f,

@@ -8,6 +8,7 @@ pub mod area_light;
 pub mod chrome;
 pub mod interreflection;
 pub mod light_sets;
+pub mod near;
 pub mod raymarch;
 pub mod reflectance;
 pub mod render;

@@ -83,6 +83,11 @@ impl HeightBounds {
         }
     }
 
+    /// An upper bound of the scene's height over the whole image.
+    pub(crate) fn zmax(&self) -> f64 {
+        self.zmax
+    }
+
     /// The tile containing (x, y) (clamped to the grid): its bound and its rectangle's origin.
     fn tile_at(&self, x: f64, y: f64) -> (f64, f64, f64) {
         // `as usize` saturates negatives (and NaN) to 0.

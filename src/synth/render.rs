@@ -445,53 +445,79 @@ pub fn render(scene: &Scene, lights: &Lights, options: &RenderOptions) -> Result
                     }
                 }
             }
-            // Camera: shot noise, read noise, clipping.
-            for (ch, plane) in planes.iter_mut().enumerate() {
-                let seed = options.seed.wrapping_add(3 * k as u64 + ch as u64);
-                let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(seed);
-                let read = Normal::new(0.0f32, options.noise_sigma).ok();
-                for (i, v) in plane.data_mut().iter_mut().enumerate() {
-                    if !hf.mask.data()[i] {
-                        continue;
-                    }
-                    if let Some(fw) = options.full_well {
-                        let lambda = f64::from((*v * fw).max(0.0));
-                        *v = match Poisson::new(lambda) {
-                            Ok(p) => p.sample(&mut rng) as f32 / fw,
-                            Err(_) => 0.0,
-                        };
-                    }
-                    if options.noise_sigma > 0.0
-                        && let Some(n) = &read
-                    {
-                        *v += n.sample(&mut rng);
-                    }
-                    if let Some(level) = options.clip
-                        && *v >= level
-                    {
-                        *v = level;
-                        saturated.data_mut()[i] = true;
-                    }
-                }
-            }
+            apply_camera(&mut planes, &hf.mask, &mut saturated, options, k);
             Ok((planes, attached, cast, saturated))
         })
-        .collect::<Result<_>>()?;
-    let mut out = Rendering {
-        truth: hf,
-        channels,
-        images: Vec::with_capacity(per_light.len()),
-        attached: Vec::with_capacity(per_light.len()),
-        cast: Vec::with_capacity(per_light.len()),
-        saturated: Vec::with_capacity(per_light.len()),
-    };
-    for (i, a, c, s) in per_light {
-        out.images.push(i);
-        out.attached.push(a);
-        out.cast.push(c);
-        out.saturated.push(s);
+        .collect::<Result<Vec<LightImages>>>()?;
+    Ok(Rendering::assemble(hf, channels, per_light))
+}
+
+/// Per light: its channel planes, attached-shadow, cast-shadow and saturation masks.
+pub(crate) type LightImages = (Vec<ScalarMap>, Mask, Mask, Mask);
+
+impl Rendering {
+    /// The rendering of `truth` from each light's images and masks, in light order.
+    pub(crate) fn assemble(
+        truth: HeightField,
+        channels: usize,
+        per_light: Vec<LightImages>,
+    ) -> Self {
+        let mut out = Rendering {
+            truth,
+            channels,
+            images: Vec::with_capacity(per_light.len()),
+            attached: Vec::with_capacity(per_light.len()),
+            cast: Vec::with_capacity(per_light.len()),
+            saturated: Vec::with_capacity(per_light.len()),
+        };
+        for (i, a, c, s) in per_light {
+            out.images.push(i);
+            out.attached.push(a);
+            out.cast.push(c);
+            out.saturated.push(s);
+        }
+        out
     }
-    Ok(out)
+}
+
+/// The camera's effect on light `k`'s channel planes inside `mask`: Poisson shot noise, Gaussian
+/// read noise and clipping at the saturation level (clipped pixels marked in `saturated`), each
+/// channel's noise seeded by `seed + 3k + c`.
+pub(crate) fn apply_camera(
+    planes: &mut [ScalarMap],
+    mask: &Mask,
+    saturated: &mut Mask,
+    options: &RenderOptions,
+    k: usize,
+) {
+    for (ch, plane) in planes.iter_mut().enumerate() {
+        let seed = options.seed.wrapping_add(3 * k as u64 + ch as u64);
+        let mut rng = rand::rngs::ChaCha8Rng::seed_from_u64(seed);
+        let read = Normal::new(0.0f32, options.noise_sigma).ok();
+        for (i, v) in plane.data_mut().iter_mut().enumerate() {
+            if !mask.data()[i] {
+                continue;
+            }
+            if let Some(fw) = options.full_well {
+                let lambda = f64::from((*v * fw).max(0.0));
+                *v = match Poisson::new(lambda) {
+                    Ok(p) => p.sample(&mut rng) as f32 / fw,
+                    Err(_) => 0.0,
+                };
+            }
+            if options.noise_sigma > 0.0
+                && let Some(n) = &read
+            {
+                *v += n.sample(&mut rng);
+            }
+            if let Some(level) = options.clip
+                && *v >= level
+            {
+                *v = level;
+                saturated.data_mut()[i] = true;
+            }
+        }
+    }
 }
 
 /// Each surface pixel's diffuse reflectance per channel, ρ·(diffuse colour): what it reflects of

@@ -57,6 +57,22 @@ pub fn write_synthetic(
     dir: &Path,
     format: ImageFormat,
 ) -> Result<Vec<PathBuf>> {
+    write_synthetic_with_camera(rendering, lights, None, dir, format)
+}
+
+/// [`write_synthetic`] for a rendering through a pinhole `camera` (a near-light rendering,
+/// [`crate::synth::near`]): its intrinsics go to `K.txt` (three rows of three numbers, as
+/// `--camera` reads them), and `gt/depth_gt.exr` holds the depth along the optical axis.
+///
+/// # Errors
+/// As [`write_synthetic`].
+pub fn write_synthetic_with_camera(
+    rendering: &crate::synth::render::Rendering,
+    lights: &Lights,
+    camera: Option<&crate::camera::Intrinsics>,
+    dir: &Path,
+    format: ImageFormat,
+) -> Result<Vec<PathBuf>> {
     use crate::io::output::{OutputDir, mask_bytes, normal_planes};
     let t = &rendering.truth;
     let (w, h) = (t.mask.width(), t.mask.height());
@@ -159,5 +175,9 @@ pub fn write_synthetic(
     )?;
     out.stage_exr(&gt("depth_gt.exr"), w, h, &[("Z", t.depth.data())], &[])?;
     out.stage_exr(&gt("albedo_gt.exr"), w, h, &[("Y", t.albedo.data())], &[])?;
+    if let Some(k) = camera {
+        let text = format!("{} 0 {}\n0 {} {}\n0 0 1\n", k.fx, k.cx, k.fy, k.cy);
+        out.stage_bytes("K.txt", text.as_bytes())?;
+    }
     out.commit()
 }

@@ -25,6 +25,8 @@ pub struct SuitePlan {
     pub integration: IntegrationBenchOptions,
     /// Interreflection compensation on rendered concave scenes.
     pub interreflections: InterreflectionBenchOptions,
+    /// Near lights against distant ones as the LEDs move away ([`crate::eval::near::sweep`]).
+    pub near: crate::eval::near::NearSweepOptions,
     /// The DiLiGenT stage timing beside the peer: plain least squares ([`super::stages::PEER_METHOD`]),
     /// normals only.
     pub stages: Config,
@@ -45,6 +47,7 @@ impl SuitePlan {
             scaling: ScalingOptions::default(),
             integration: IntegrationBenchOptions::default(),
             interreflections: InterreflectionBenchOptions::default(),
+            near: crate::eval::near::NearSweepOptions::default(),
             stages: Config {
                 solve: SolveOptions::with_method(super::stages::PEER_METHOD),
                 integration: None,
@@ -55,7 +58,7 @@ impl SuitePlan {
     }
 
     /// A smoke run of the whole chain: small images ([`SweepOptions::quick`]; scaling at 64²
-    /// and 128², integrators at 64² and 128², interreflections at 48² with 12 lights) and single runs, except the sweeps' three.
+    /// and 128², integrators at 64² and 128², interreflections at 48² with 12 lights, near lights at 48² with 8 LEDs at 2 and 10 sizes) and single runs, except the sweeps' three.
     pub fn quick() -> Self {
         let full = Self::full();
         SuitePlan {
@@ -74,6 +77,12 @@ impl SuitePlan {
                 size: 48,
                 lights: 12,
                 ..full.interreflections
+            },
+            near: crate::eval::near::NearSweepOptions {
+                size: 48,
+                lights: 8,
+                distances: vec![2.0, 10.0],
+                ..full.near
             },
             diligent_repeat: 1,
             ..full

@@ -5,6 +5,7 @@
 use super::*;
 
 /// What [`assemble`] needs to know of the input for its warnings.
+#[derive(Clone)]
 pub(crate) struct InputFacts<'a> {
     /// Per image, what loading found.
     pub info: &'a [crate::capture::stack::ImageInfo],
@@ -267,5 +268,6 @@ pub(crate) fn assemble(
         },
         warnings,
         interreflections: None,
+        near: None,
     }
 }

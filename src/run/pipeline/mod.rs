@@ -12,10 +12,12 @@
 
 mod interreflections;
 mod maps;
+mod near;
 mod outputs;
 mod report;
 
 pub use interreflections::{InterreflectionRound, InterreflectionSummary};
+pub use near::{NearConfig, NearSummary, near_applies};
 
 pub use maps::*;
 pub use outputs::*;
@@ -63,6 +65,10 @@ pub struct Config {
     /// default) for none.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub interreflections: Option<InterreflectionOptions>,
+    /// How a capture whose every light has a position is solved when the camera's intrinsics
+    /// are given ([`crate::ps::near`]); `None` solves it with the distant approximation (each
+    /// light's `direction`).
+    pub near: Option<NearConfig>,
 }
 
 impl Default for Config {
@@ -74,6 +80,7 @@ impl Default for Config {
             mesh: false,
             color: ColorSolve::default(),
             interreflections: None,
+            near: Some(NearConfig::default()),
         }
     }
 }
@@ -117,6 +124,8 @@ pub struct Reconstruction {
     pub warnings: Vec<Warning>,
     /// What interreflection compensation did, when it was asked for.
     pub interreflections: Option<InterreflectionSummary>,
+    /// What the near-light solve did, when it ran (depth is then absolute).
+    pub near: Option<NearSummary>,
 }
 
 impl Reconstruction {
@@ -145,15 +154,20 @@ pub fn reconstruct(
     progress: &dyn Progress,
 ) -> Result<Reconstruction> {
     let mut recon = reconstruct_normals(capture, config, progress)?;
-    let (integration, integrate_s) =
-        integrate_stage(&recon.maps.normals, &recon.maps.solved, config, progress)?;
-    recon.integration = integration;
-    recon.timings.integrate = integrate_s;
+    // The near-light solve integrates as it goes.
+    if recon.near.is_none() {
+        let (integration, integrate_s) =
+            integrate_stage(&recon.maps.normals, &recon.maps.solved, config, progress)?;
+        recon.integration = integration;
+        recon.timings.integrate = integrate_s;
+    }
     Ok(recon)
 }
 
 /// [`reconstruct`] up to and including the integrability check, without the depth
-/// (`integration` is `None` and its time 0): what [`reconstruct_and_write`] overlaps with writing.
+/// (`integration` is `None` and its time 0) — except for near lights
+/// ([`near_applies`]), whose solve estimates depth with the normals: what
+/// [`reconstruct_and_write`] overlaps with writing.
 ///
 /// # Errors
 /// As [`reconstruct`], except the integration errors.
@@ -213,6 +227,15 @@ pub fn reconstruct_normals_with_models(
         behind: capture.lights.behind(),
         positioned: capture.lights.positioned(),
     };
+    if near_applies(&capture.lights, config) {
+        if models.is_some() {
+            return Err(Error::param(
+                "models",
+                "the near-light solve estimates normals and depth of the whole capture together; it cannot run on a part under given models",
+            ));
+        }
+        return near::reconstruct_near(capture, &solve_config, config, &facts, progress);
+    }
     let recon = solve_whole(
         (&capture.stack, models),
         capture,
@@ -365,17 +388,19 @@ pub(crate) fn integrate_and_write(
     evaluate: impl FnOnce(&Reconstruction) -> Result<Option<serde_json::Value>>,
 ) -> Result<(Reconstruction, Report)> {
     let mut out = OutputDir::create(dir)?;
+    let given = recon.integration.take();
     let finished = finish(
         &mut out,
-        &recon.maps.normals,
-        &recon.maps.solved,
+        (&recon.maps.normals, &recon.maps.solved, given),
         source,
         config,
         progress,
         |out| stage_maps(out, &recon, source, config),
     )?;
     recon.integration = finished.integration;
-    recon.timings.integrate = finished.integrate_s;
+    if recon.near.is_none() {
+        recon.timings.integrate = finished.integrate_s;
+    }
     recon.timings.write = finished.write_s;
     let evaluation = evaluate(&recon)?;
     let report = commit_with_report(
@@ -400,22 +425,25 @@ pub(crate) struct Finished {
 }
 
 /// The finishing stage of every run that writes its outputs, in memory or streamed: the
-/// integration of `normals` over `solved` runs beside `stage_rest`, which stages what does not
+/// integration of `normals` over `solved` (unless it is `given`, as the near-light solve's
+/// is) runs beside `stage_rest`, which stages what does not
 /// need depth and is not written yet (for an in-memory run, every per-pixel map; for a
 /// streamed run, whose bands wrote their rows already, the curl); then the depth outputs are
 /// staged. The two concurrent parts are the longest after the solve and use about one core
 /// each. The report is the caller's, since it needs what the caller kept.
 pub(crate) fn finish(
     out: &mut OutputDir,
-    normals: &NormalMap,
-    solved: &Mask,
+    (normals, solved, given): (&NormalMap, &Mask, Option<Integration>),
     source: &Described,
     config: &Config,
     progress: &dyn Progress,
     stage_rest: impl FnOnce(&mut OutputDir) -> Result<()> + Send,
 ) -> Result<Finished> {
     let (integrated, staged) = rayon::join(
-        || integrate_stage(normals, solved, config, progress),
+        || match given {
+            Some(i) => Ok((Some(i), 0.0)),
+            None => integrate_stage(normals, solved, config, progress),
+        },
         || {
             let t = Instant::now();
             stage_rest(out).map(|()| t.elapsed().as_secs_f64())

@@ -74,7 +74,24 @@ pub(crate) fn exr_attributes(
             "photostereo:frame",
             "x right, y up, z towards the camera; row 0 at the top".to_string(),
         ),
-        ("photostereo:units", units_of(file, config)),
+        (
+            "photostereo:units",
+            match config.integration.as_ref().and_then(|o| o.camera.as_ref()) {
+                Some(k)
+                    if super::near_applies(lights, config)
+                        && !matches!(
+                            file,
+                            "normal.exr" | "albedo.exr" | "residual.exr" | "curl.exr"
+                        ) =>
+                {
+                    format!(
+                        "Z: absolute depth along the optical axis, in the unit of the light positions (near-light model; pinhole fx={} fy={} cx={} cy={}), larger is farther",
+                        k.fx, k.fy, k.cx, k.cy
+                    )
+                }
+                _ => units_of(file, config),
+            },
+        ),
         ("photostereo:lights", lights.len().to_string()),
         (
             "photostereo:light_directions",

@@ -193,6 +193,9 @@ pub struct Report {
     /// for in-memory runs.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub streaming: Option<serde_json::Value>,
+    /// What the near-light solve did, when it ran ([`crate::ps::near`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub near: Option<super::NearSummary>,
 }
 
 /// The input as the outputs describe it: the lights (for the EXR headers) and the report's
@@ -235,6 +238,8 @@ pub(crate) struct RunSummary {
     pub warnings: Vec<Warning>,
     /// What interreflection compensation did.
     pub interreflections: Option<super::InterreflectionSummary>,
+    /// What the near-light solve did.
+    pub near: Option<super::NearSummary>,
 }
 
 impl RunSummary {
@@ -253,6 +258,7 @@ impl RunSummary {
             timings: recon.timings,
             warnings: recon.warnings.clone(),
             interreflections: recon.interreflections.clone(),
+            near: recon.near.clone(),
         }
     }
 }
@@ -306,6 +312,7 @@ pub(crate) fn commit_with_report(
         evaluation,
         interreflections: run.interreflections,
         streaming: source.streaming.clone(),
+        near: run.near,
     };
     let encode_error = |e: serde_json::Error| Error::Encode {
         path: out.path().join("report.json"),

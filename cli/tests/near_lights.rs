@@ -1,0 +1,145 @@
+//! The main command on a rendered LED rig (every light with a `position`, `--camera K.txt`):
+//! the near-light model runs by default, writes absolute depth and says how far the distant
+//! approximation would have moved the normals; `--distant-lights`, or no camera, solves the
+//! lights as distant ones and warns.
+
+#[path = "../../tests/common/mod.rs"]
+mod common;
+
+use common::{main_args, os, run};
+use photostereo::eval::metrics::angular_errors;
+use photostereo::eval::near::depth_error;
+use photostereo::io::decode::{read_image, read_mask, read_normal_map};
+use photostereo::nalgebra::Vector3;
+use photostereo::synth::Rendering;
+use photostereo::synth::near::{NearPlacement, render_near, two_ring_rig};
+use photostereo::synth::reflectance::Material;
+use photostereo::synth::render::RenderOptions;
+use photostereo::synth::scene::{Albedo, SceneKind};
+use photostereo::synth::write::{ImageFormat, write_synthetic_with_camera};
+use std::path::{Path, PathBuf};
+
+/// A vase under 12 LEDs (μ = 1) at 3 object sizes, 0.5% noise, written as 16-bit PNGs with
+/// lights.json, mask.png and K.txt; returns the images and the rendering.
+fn vase_rig(dir: &Path) -> (Vec<PathBuf>, Rendering) {
+    let size = 96;
+    let scene = SceneKind::Vase.build(size, Albedo::Constant(0.7), Material::lambertian());
+    let reach = 3.0 * size as f64;
+    let placement = NearPlacement {
+        distance: reach,
+        scale: 1.0,
+    };
+    let camera = placement.camera(&scene);
+    let lights = two_ring_rig(12, reach, Vector3::new(0.0, 0.0, -reach), 1.0).unwrap();
+    let options = RenderOptions {
+        noise_sigma: 0.005,
+        seed: 11,
+        ..RenderOptions::default()
+    };
+    let r = render_near(&scene, &lights, &camera, &placement, &options).unwrap();
+    write_synthetic_with_camera(&r, &lights, Some(&camera), dir, ImageFormat::Png16).unwrap();
+    let images = (0..12)
+        .map(|k| dir.join(format!("img_{k:03}.png")))
+        .collect();
+    (images, r)
+}
+
+fn report(out: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap()
+}
+
+#[test]
+fn the_near_model_runs_when_lights_have_positions_and_the_camera_is_given() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("rig");
+    let (images, truth) = vase_rig(&data);
+    let lights = data.join("lights.json");
+    let k = data.join("K.txt");
+    let mask = data.join("mask.png");
+    let out = tmp.path().join("out");
+    let o = run(&main_args(
+        &images,
+        &lights,
+        &[
+            "--mask",
+            mask.to_str().unwrap(),
+            "--camera",
+            k.to_str().unwrap(),
+        ],
+        &out,
+    )
+    .iter()
+    .map(os)
+    .collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = report(&out);
+    let near = &r["near"];
+    assert_eq!(near["converged"], true, "{near}");
+    let deviation = near["distant_deviation_deg"].as_f64().unwrap();
+    let normals = read_normal_map(&out.join("normal.exr")).unwrap();
+    let m = read_mask(&mask).unwrap();
+    let err = angular_errors(&normals, &truth.truth.normals, &m).unwrap();
+    let depth = read_image(&out.join("depth.exr")).unwrap();
+    let depth = photostereo::Grid::from_vec(depth.width, depth.height, depth.data).unwrap();
+    let d = depth_error(&depth, &truth.truth.depth, &m, false);
+    println!(
+        "near: {:.3}° {:.3}% (distant approximation {deviation:.2}° away)",
+        err.mean_deg,
+        100.0 * d
+    );
+    assert!(err.mean_deg < 1.0, "{}°", err.mean_deg);
+    assert!(d < 0.01, "depth {d}");
+    // The distant approximation is far off at 3 object sizes, and the report says by how much.
+    assert!(deviation > 3.0 * err.mean_deg, "{deviation}");
+    let units = photostereo::io::decode::read_exr_text(&out.join("depth.exr"), "photostereo:units")
+        .unwrap()
+        .unwrap_or_default();
+    assert!(units.contains("absolute depth"), "{units}");
+    let warnings = r["warnings"].to_string();
+    assert!(!warnings.contains("near lights"), "{warnings}");
+
+    // --distant-lights: the old model, with its warning.
+    let distant = tmp.path().join("distant");
+    let o = run(&main_args(
+        &images,
+        &lights,
+        &[
+            "--mask",
+            mask.to_str().unwrap(),
+            "--camera",
+            k.to_str().unwrap(),
+            "--distant-lights",
+        ],
+        &distant,
+    )
+    .iter()
+    .map(os)
+    .collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = report(&distant);
+    assert!(r.get("near").is_none());
+    let normals = read_normal_map(&distant.join("normal.exr")).unwrap();
+    let far = angular_errors(&normals, &truth.truth.normals, &m).unwrap();
+    assert!(far.mean_deg > 3.0 * err.mean_deg, "{}", far.mean_deg);
+    assert!(r["warnings"].to_string().contains("near lights"));
+
+    // No camera: distant, and the warning asks for the intrinsics.
+    let plain = tmp.path().join("plain");
+    let o = run(&main_args(
+        &images,
+        &lights,
+        &["--mask", mask.to_str().unwrap()],
+        &plain,
+    )
+    .iter()
+    .map(os)
+    .collect::<Vec<_>>());
+    assert!(o.status.success());
+    let r = report(&plain);
+    assert!(r.get("near").is_none());
+    assert!(
+        r["warnings"].to_string().contains("camera's intrinsics"),
+        "{}",
+        r["warnings"]
+    );
+}
