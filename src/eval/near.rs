@@ -17,6 +17,7 @@ use crate::grid::{Mask, NormalMap, ScalarMap};
 use crate::integrate::{IntegrationOptions, integrate_normals};
 use crate::progress::Silent;
 use crate::ps::near::{NearOptions, NearSolve, solve_near};
+use crate::ps::normals::albedo_and_normals;
 use crate::ps::solve::{SolveOptions, solve};
 use crate::synth::near::{NearPlacement, render_near, two_ring_rig};
 use crate::synth::reflectance::Material;
@@ -131,7 +132,7 @@ pub fn run_case(case: &NearCase, options: &NearOptions) -> Result<NearResult> {
 
     let t = Instant::now();
     let distant = solve(&stack, 0, &lights, mask, &SolveOptions::default(), &Silent)?;
-    let distant_normals = unit(&distant.g);
+    let distant_normals = albedo_and_normals(&distant).1;
     let integration = integrate_normals(
         &distant_normals,
         mask,
@@ -143,7 +144,7 @@ pub fn run_case(case: &NearCase, options: &NearOptions) -> Result<NearResult> {
     )?;
     let distant_seconds = t.elapsed().as_secs_f64();
 
-    let near_normal_deg = angular_errors(&unit(&near.solution.g), &truth.normals, mask)?.mean_deg;
+    let near_normal_deg = angular_errors(&near_normals(&near), &truth.normals, mask)?.mean_deg;
     let distant_normal_deg = angular_errors(&distant_normals, &truth.normals, mask)?.mean_deg;
     Ok(NearResult {
         near_normal_deg,
@@ -159,18 +160,7 @@ pub fn run_case(case: &NearCase, options: &NearOptions) -> Result<NearResult> {
 
 /// The near solve's unit normals.
 pub fn near_normals(near: &NearSolve) -> NormalMap {
-    unit(&near.solution.g)
-}
-
-fn unit(g: &NormalMap) -> NormalMap {
-    g.map(|v| {
-        let n = v.norm();
-        if n.is_finite() && n > 0.0 {
-            v / n
-        } else {
-            Vector3::repeat(f32::NAN)
-        }
-    })
+    albedo_and_normals(&near.solution).1
 }
 
 fn mean_level(planes: &[&ScalarMap]) -> f32 {

@@ -50,7 +50,7 @@ use crate::camera::Intrinsics;
 use crate::capture::lights::{Light, Lights};
 use crate::capture::stack::ImageStack;
 use crate::error::{Error, Result};
-use crate::grid::{Grid, Mask, NormalMap, ScalarMap};
+use crate::grid::{Grid, Mask, ScalarMap};
 use crate::integrate::{Integration, IntegrationOptions, Integrator, integrate_normals};
 use crate::progress::Progress;
 use crate::ps::fill::{PixelData, fill};
@@ -398,14 +398,7 @@ fn integrate(
     mask: &Mask,
     options: &IntegrationOptions,
 ) -> Result<Integration> {
-    let normals: NormalMap = solution.g.map(|g| {
-        let n = g.norm();
-        if n.is_finite() && n > 0.0 {
-            g / n
-        } else {
-            Vector3::repeat(f32::NAN)
-        }
-    });
+    let (_, normals) = crate::ps::normals::albedo_and_normals(solution);
     integrate_normals(&normals, mask, options, &crate::progress::Silent)
 }
 
