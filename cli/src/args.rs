@@ -451,6 +451,10 @@ pub enum BenchCommand {
     /// approximation against the LEDs' distance on rendered scenes (sphere, vase, bumps);
     /// JSON to standard output, a chart in `--out`.
     Near(NearBenchArgs),
+    /// Lights recovered from the object (uncalibrated photometric stereo) against the number
+    /// of lights and the noise, on rendered scenes with two albedos: light and normal errors,
+    /// JSON and a chart.
+    FromObject(FromObjectBenchArgs),
     /// Wall time and peak memory of the in-memory and the streamed (`--max-memory`) run on
     /// the same stack, as child processes, alternating.
     Stream(StreamBenchArgs),
@@ -569,6 +573,26 @@ pub struct InterreflectionBenchArgs {
     #[arg(long, default_value_t = interreflections::DEFAULT_ALBEDO)]
     pub albedo: f64,
     /// Write `interreflections.json` and the chart `interreflections.svg/.png` here.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Also print a Markdown table (to standard error).
+    #[arg(long)]
+    pub markdown: bool,
+}
+
+/// `bench from-object` options.
+#[derive(Debug, Args)]
+pub struct FromObjectBenchArgs {
+    /// Image size (square).
+    #[arg(long, default_value_t = 128)]
+    pub size: usize,
+    /// Light counts; lists are comma- or space-separated.
+    #[arg(long, num_args = 1.., value_delimiter = ',', default_values_t = photostereo::eval::from_object::DEFAULT_COUNTS)]
+    pub counts: Vec<usize>,
+    /// Noise levels (relative to the mean image level).
+    #[arg(long, num_args = 1.., value_delimiter = ',', default_values_t = photostereo::eval::from_object::DEFAULT_NOISES)]
+    pub noises: Vec<f32>,
+    /// Write `from_object.json` and the chart `from_object.svg/.png` here.
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
     /// Also print a Markdown table (to standard error).
@@ -1072,9 +1096,16 @@ impl RunArgs {
 #[derive(Debug, Args)]
 pub struct CalibrateArgs {
     /// Chrome-sphere images, one per light, in the order of the object's images; or one image
-    /// list (`<name>.txt`: the count, the image paths, optionally the mask).
+    /// list (`<name>.txt`: the count, the image paths, optionally the mask). With
+    /// --from-object: the object's own images.
     #[arg(required = true, value_name = "IMAGES")]
     pub images: Vec<PathBuf>,
+    /// Recover the lights from the object's own images, without a calibration object
+    /// (uncalibrated photometric stereo: factorisation, integrability, minimum albedo
+    /// entropy). Needs the object's mask (--mask) and an albedo of a few distinct values;
+    /// expect degrees, not tenths, on real objects.
+    #[arg(long, conflicts_with_all = ["matte", "matte_mask", "card_mask", "camera", "ball_radius"])]
+    pub from_object: bool,
     /// The chrome sphere's mask (pixels > 0; anti-aliased masks are used at half level).
     /// Default: the image list's mask, else the sphere is detected in the images.
     #[arg(long, value_name = "FILE")]
@@ -1121,7 +1152,8 @@ pub struct CalibrateArgs {
     pub ball_radius: Option<f64>,
     /// Write the lights file even when some lights are in doubt (an ambiguous highlight,
     /// one at the rim, or an uncertainty above the accepted one); they keep their
-    /// uncertainty and `"accepted": false` in the file.
+    /// uncertainty and `"accepted": false` in the file. With --from-object: write the lights
+    /// even when the data are not clearly rank 3.
     #[arg(long)]
     pub keep_doubtful: bool,
     /// Output lights file (JSON), written atomically.

@@ -362,6 +362,80 @@ pub fn near(a: crate::args::NearBenchArgs) -> Result<()> {
     Ok(())
 }
 
+/// `bench from-object`: lights recovered from the object against light count and noise.
+pub fn from_object(a: crate::args::FromObjectBenchArgs) -> Result<()> {
+    use photostereo::eval::from_object::{FromObjectSweepOptions, SWEEP_SCENES, sweep};
+    let report = sweep(&FromObjectSweepOptions {
+        size: a.size,
+        counts: a.counts.clone(),
+        noises: a.noises.clone(),
+    })?;
+    if a.markdown {
+        let mut s = String::from(
+            "| scene | lights | noise | lights: mean (°) | lights: max (°) | normals (°) | normals, true lights (°) | halves' spread (°) | time (s) |\n\
+             |---|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        );
+        let f = |v: Option<f64>| v.map_or_else(|| "refused".to_string(), |v| format!("{v:.2}"));
+        for r in &report.rows {
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {} | {} | {} | {:.2} | {} | {:.2} |",
+                r.scene,
+                r.lights,
+                r.noise,
+                f(r.light_deg),
+                f(r.light_max_deg),
+                match (r.light_deg, r.normals_deg) {
+                    (Some(_), None) => "pipeline failed".to_string(),
+                    _ => f(r.normals_deg),
+                },
+                r.calibrated_deg,
+                f(r.reported_deg),
+                r.seconds
+            );
+        }
+        eprint!("{s}");
+    }
+    let text = serde_json::to_string_pretty(&report)?;
+    if let Some(dir) = &a.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        crate::write_file_atomic(&dir.join("from_object.json"), text.as_bytes())?;
+        let mut series = Vec::new();
+        for (k, scene) in SWEEP_SCENES.iter().enumerate() {
+            for (j, &noise) in a.noises.iter().enumerate() {
+                let points: Vec<(f64, f64)> = report
+                    .rows
+                    .iter()
+                    .filter(|r| r.scene == scene.name() && r.noise == noise)
+                    .filter_map(|r| r.light_deg.map(|e| (r.lights as f64, e)))
+                    .collect();
+                let s = Series::line(format!("{} noise {}", scene.name(), noise), points, j);
+                series.push(if k == 0 {
+                    s
+                } else {
+                    s.styled(crate::chart::Style::Markers)
+                });
+            }
+        }
+        crate::chart::write(
+            &Chart {
+                title: format!(
+                    "Lights from the object: light error against light count ({}², two albedos)",
+                    a.size
+                ),
+                x_label: "lights".into(),
+                y_label: "mean light direction error (°)".into(),
+                log: (true, true),
+                series,
+                legend: Legend::UpperRight,
+            },
+            &dir.join("from_object"),
+        )?;
+    }
+    say!("{text}");
+    Ok(())
+}
+
 /// The rows of a near-light sweep as a Markdown table.
 pub(crate) fn near_table(report: &photostereo::eval::near::NearReport) -> String {
     let mut s = String::from(

@@ -2,6 +2,7 @@
 
 use crate::args::CalibrateArgs;
 use anyhow::{Result, bail};
+use photostereo::calibrate::from_object::{FromObjectOptions, lights_from_stack};
 use photostereo::calibrate::intensity::{
     MatteOptions, intensities_from_card, intensities_from_sphere,
 };
@@ -76,7 +77,16 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
         bail!("--ball-radius {r}: must be a positive length");
     }
     let camera = a.camera.as_deref().map(Intrinsics::from_file).transpose()?;
+    if a.from_object && chrome_mask.is_none() {
+        bail!(
+            "--from-object needs the object's mask (--mask): the outline decides between the \
+             convex and the concave surface"
+        );
+    }
     let stack = load_reference_images(&chrome_paths, transfer, a.saturation, progress)?;
+    if a.from_object {
+        return run_from_object(&a, &stack, chrome_mask.as_deref());
+    }
     let mask = chrome_mask.as_deref().map(read_grey_mask).transpose()?;
     let options = ChromeOptions {
         camera,
@@ -103,6 +113,89 @@ pub fn run(a: CalibrateArgs, progress: &dyn Progress) -> Result<()> {
     let json = lights_file_json(&lights, &cal, intensity.as_ref());
     photostereo::io::output::write_bytes(&a.output, crate::overwrite(a.force), json.as_bytes())?;
     say!("wrote {} ({} lights)", a.output.display(), lights.len());
+    Ok(())
+}
+
+/// Lights recovered from the object's own images (`--from-object`).
+fn run_from_object(
+    a: &CalibrateArgs,
+    stack: &photostereo::capture::stack::ImageStack,
+    mask: Option<&Path>,
+) -> Result<()> {
+    let Some(mask_path) = mask else {
+        bail!(
+            "--from-object needs the object's mask (--mask): the outline decides between the \
+             convex and the concave surface"
+        );
+    };
+    let mask = read_mask(mask_path)?;
+    let options = FromObjectOptions {
+        min_rank3_gap: if a.keep_doubtful {
+            0.0
+        } else {
+            FromObjectOptions::default().min_rank3_gap
+        },
+        ..FromObjectOptions::default()
+    };
+    let got = lights_from_stack(stack, &mask, &options).map_err(|e| {
+        if e.to_string().contains("not clearly rank 3") {
+            anyhow::anyhow!("{e} (--keep-doubtful writes them anyway)")
+        } else {
+            e.into()
+        }
+    })?;
+    say!(
+        "lights from the object: {} pixels lit in every image, rank-3 gap {:.1}, bas-relief \
+         (μ, ν, λ) = ({:.3}, {:.3}, {:.3}), entropy drop {:.3} nats, {:.0}% of the outline \
+         facing outwards",
+        got.lit_pixels,
+        got.rank3_gap,
+        got.gbr[0],
+        got.gbr[1],
+        got.gbr[2],
+        got.entropy_drop,
+        100.0 * got.outline_outward
+    );
+    for (k, ((d, i), u)) in got
+        .directions
+        .iter()
+        .zip(&got.intensities)
+        .zip(&got.uncertainty_deg)
+        .enumerate()
+    {
+        let image = file_name(&stack.info()[k].path);
+        let spread = if u.is_finite() {
+            format!("halves {:.2}° apart", 2.0 * u)
+        } else {
+            "no split-half spread".to_string()
+        };
+        say!(
+            "  {k:>3} {image}: direction ({:.4}, {:.4}, {:.4}), intensity {:.4}, {spread}",
+            d[0],
+            d[1],
+            d[2],
+            i
+        );
+    }
+    for s in &got.assumptions {
+        say!("  assumed: {s}");
+    }
+    eprintln!(
+        "note: lights recovered from the object are only as good as its Lambertian fit: on \
+         real objects expect errors of several degrees (the spread between halves is not a \
+         bound: it misses errors both halves share); a chrome ball is better when one can be \
+         photographed"
+    );
+    for w in &got.warnings {
+        eprintln!("warning: {}", crate::printable(w));
+    }
+    let json = got.lights_file_json();
+    photostereo::io::output::write_bytes(&a.output, crate::overwrite(a.force), json.as_bytes())?;
+    say!(
+        "wrote {} ({} lights)",
+        a.output.display(),
+        got.directions.len()
+    );
     Ok(())
 }
 

@@ -1,5 +1,6 @@
 //! Light calibration from reference objects photographed under each light: directions from a
-//! mirror (chrome) sphere, relative intensities from a matte sphere or a grey card.
+//! mirror (chrome) sphere, relative intensities from a matte sphere or a grey card; or, without
+//! a reference, from the object itself ([`from_object`], uncalibrated photometric stereo).
 //!
 //! The chrome sphere's outline comes from its mask ([`sphere::circle_from_mask`], sub-pixel) or
 //! is detected in the images ([`sphere::detect_circles`], then verified against them); each
@@ -50,6 +51,7 @@
 //! # Ok::<(), photostereo::Error>(())
 //! ```
 
+pub mod from_object;
 pub mod highlight;
 pub mod intensity;
 pub mod near;

@@ -5,6 +5,7 @@
 
 pub mod bench;
 pub mod demo;
+pub mod from_object;
 pub mod metrics;
 pub mod near;
 pub mod sweep;
