@@ -51,6 +51,7 @@ use crate::capture::lights::{Light, Lights};
 use crate::capture::stack::ImageStack;
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, ScalarMap};
+use crate::integrate::sparse::Unknowns;
 use crate::integrate::{Integration, IntegrationOptions, Integrator, integrate_normals};
 use crate::progress::Progress;
 use crate::ps::fill::{PixelData, fill};
@@ -597,42 +598,15 @@ fn search_start(ctx: &Context, start: f64) -> Option<f64> {
     minimise_ln(at, start.ln(), FIRST_SPAN, FIRST_GRID).map(|(t, _)| t.exp())
 }
 
-/// Labels the 4-connected parts of the finite pixels of `depth` (u32::MAX elsewhere).
+/// Labels the 4-connected parts of the finite pixels of `depth` (u32::MAX elsewhere), in the
+/// order of their first pixel ([`Unknowns`]' own labelling).
 fn label_parts(depth: &ScalarMap) -> (Vec<u32>, usize) {
-    let (w, h) = (depth.width(), depth.height());
-    let mut label = vec![u32::MAX; w * h];
-    let mut count = 0u32;
-    let mut stack = Vec::new();
-    for s in 0..w * h {
-        if label[s] != u32::MAX || !depth.data()[s].is_finite() {
-            continue;
-        }
-        label[s] = count;
-        stack.push(s);
-        while let Some(p) = stack.pop() {
-            let (c, r) = (p % w, p / w);
-            let mut visit = |q: usize| {
-                if label[q] == u32::MAX && depth.data()[q].is_finite() {
-                    label[q] = count;
-                    stack.push(q);
-                }
-            };
-            if c > 0 {
-                visit(p - 1);
-            }
-            if c + 1 < w {
-                visit(p + 1);
-            }
-            if r > 0 {
-                visit(p - w);
-            }
-            if r + 1 < h {
-                visit(p + w);
-            }
-        }
-        count += 1;
+    let u = Unknowns::new(&depth.map(|v| v.is_finite()));
+    let mut label = vec![u32::MAX; depth.len()];
+    for (&pixel, &part) in u.pixel.iter().zip(&u.part) {
+        label[pixel as usize] = part;
     }
-    (label, count as usize)
+    (label, u.parts)
 }
 
 /// Gives each kept sample the part of its pixel and its relative depth there (samples the
