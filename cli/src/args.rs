@@ -455,6 +455,10 @@ pub enum BenchCommand {
     /// of lights and the noise, on rendered scenes with two albedos: light and normal errors,
     /// JSON and a chart.
     FromObject(FromObjectBenchArgs),
+    /// Shape from shading: normal and depth error against solve time of every method on
+    /// rendered shapes (sphere, vase, peaks, relief, bust) at a frontal and an oblique light;
+    /// JSON to standard output, a chart in `--out`.
+    Sfs(SfsBenchArgs),
     /// Wall time and peak memory of the in-memory and the streamed (`--max-memory`) run on
     /// the same stack, as child processes, alternating.
     Stream(StreamBenchArgs),
@@ -593,6 +597,23 @@ pub struct FromObjectBenchArgs {
     #[arg(long, num_args = 1.., value_delimiter = ',', default_values_t = photostereo::eval::from_object::DEFAULT_NOISES)]
     pub noises: Vec<f32>,
     /// Write `from_object.json` and the chart `from_object.svg/.png` here.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Also print a Markdown table (to standard error).
+    #[arg(long)]
+    pub markdown: bool,
+}
+
+/// `bench sfs` options.
+#[derive(Debug, Args)]
+pub struct SfsBenchArgs {
+    /// Image size (square).
+    #[arg(long, default_value_t = 128)]
+    pub size: usize,
+    /// Light slants from the view, degrees; lists are comma- or space-separated.
+    #[arg(long, num_args = 1.., value_delimiter = ',', default_values_t = photostereo::eval::sfs::DEFAULT_SLANTS)]
+    pub slants: Vec<f64>,
+    /// Write `sfs.json` and the chart `sfs.svg/.png` here.
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
     /// Also print a Markdown table (to standard error).
@@ -1174,17 +1195,50 @@ pub struct SfsArgs {
     /// the image when absent.
     #[arg(long, value_name = "X,Y,Z", value_parser = parse_direction, allow_hyphen_values = true)]
     pub light: Option<[f64; 3]>,
-    /// Albedo × light intensity: the brightness of a surface facing the light; estimated when
-    /// absent.
+    /// Distant light: albedo × light intensity, the brightness of a surface facing the light;
+    /// estimated when absent. Perspective: the diffuse albedo ρ alone (the intensity is
+    /// --light-intensity) [default: 1].
     #[arg(long, value_name = "A")]
     pub albedo: Option<f64>,
     /// Object mask (pixels > 0); default: all but the black background touching the border.
     #[arg(long, value_name = "FILE")]
     pub mask: Option<PathBuf>,
     /// `horn` (any light in front), `tsai-shah` (oblique light), `fast-marching` (light at the
-    /// viewer).
-    #[arg(long, value_enum, default_value_t = SfsMethodArg::Horn)]
-    pub method: SfsMethodArg,
+    /// viewer): a distant light and an orthographic camera; `perspective`: a point light at
+    /// --light-position seen through --camera, whose fall-off makes the problem well posed
+    /// [default: perspective with --light-position, horn otherwise].
+    #[arg(long, value_enum)]
+    pub method: Option<SfsMethodArg>,
+    /// The camera's intrinsics K (9 numbers, three rows of three), for --method perspective.
+    #[arg(long, value_name = "FILE")]
+    pub camera: Option<PathBuf>,
+    /// The point light's position x,y,z in the camera frame (x right, y up, z to the viewer;
+    /// the camera centre is 0,0,0), in the units the depth is wanted in; for --method
+    /// perspective.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_position, allow_hyphen_values = true)]
+    pub light_position: Option<[f64; 3]>,
+    /// The point light's intensity: the brightness of a white Lambertian surface facing it at
+    /// unit distance; for --method perspective [default: 1].
+    #[arg(long, value_name = "PHI")]
+    pub light_intensity: Option<f64>,
+    /// Reflectance model of the surface: any the renderer has but the mirror. Horn and
+    /// Tsai–Shah use its reflectance map; perspective needs the light at the camera centre for
+    /// any but lambertian; fast marching is Lambertian only.
+    #[arg(long, value_enum, default_value_t = SfsBrdfArg::Lambertian)]
+    pub brdf: SfsBrdfArg,
+    /// oren-nayar σ in degrees [default 20]; torrance-sparrow Beckmann m [0.3]; ward α [0.2].
+    #[arg(long, value_name = "R")]
+    pub roughness: Option<f64>,
+    /// phong and blinn-phong exponent [default 40].
+    #[arg(long, value_name = "N")]
+    pub shininess: Option<f64>,
+    /// Specular reflectance k_s of phong, blinn-phong, ward; torrance-sparrow's scale
+    /// [default 0.5].
+    #[arg(long, value_name = "KS")]
+    pub specular: Option<f64>,
+    /// torrance-sparrow's Fresnel reflectance at normal incidence [default 0.04].
+    #[arg(long, value_name = "F0")]
+    pub f0: Option<f64>,
     /// What the mask's edge is: `occluding` (the object turns away there: start convex) or
     /// `free`.
     #[arg(long, value_enum, default_value_t = BoundaryArg::Occluding)]
@@ -1192,7 +1246,9 @@ pub struct SfsArgs {
     /// Final smoothness weight of Horn's method.
     #[arg(long, default_value_t = photostereo::sfs::DEFAULT_SMOOTHNESS, value_name = "LAMBDA")]
     pub smoothness: f64,
-    /// Relative brightness (E/albedo) at or below which a pixel is in shadow.
+    /// Distant light: relative brightness E/albedo at or below which a pixel is in shadow.
+    /// Perspective: a fraction of the image's 99th percentile in the mask (the fall-off makes
+    /// the brightness of a lit pixel depend on its unknown distance).
     #[arg(long, default_value_t = photostereo::sfs::DEFAULT_SHADOW_LEVEL, value_name = "F")]
     pub shadow_level: f64,
     /// Iteration limit (0: the method's default).
@@ -1218,6 +1274,25 @@ pub enum SfsMethodArg {
     TsaiShah,
     /// Kimmel–Sethian 2001, fast marching (light at the viewer).
     FastMarching,
+    /// Prados–Faugeras 2005, perspective camera and a point light with fall-off.
+    Perspective,
+}
+
+/// `sfs --brdf` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum SfsBrdfArg {
+    /// Ideal diffuse.
+    Lambertian,
+    /// Rough diffuse (Oren–Nayar 1994), σ = --roughness degrees.
+    OrenNayar,
+    /// Phong lobe over Lambertian.
+    Phong,
+    /// Blinn–Phong lobe over Lambertian.
+    BlinnPhong,
+    /// Torrance–Sparrow microfacets over Lambertian.
+    TorranceSparrow,
+    /// Ward's isotropic lobe over Lambertian.
+    Ward,
 }
 
 impl From<SfsMethodArg> for photostereo::sfs::SfsMethod {
@@ -1226,6 +1301,7 @@ impl From<SfsMethodArg> for photostereo::sfs::SfsMethod {
             SfsMethodArg::Horn => Self::Horn,
             SfsMethodArg::TsaiShah => Self::TsaiShah,
             SfsMethodArg::FastMarching => Self::FastMarching,
+            SfsMethodArg::Perspective => Self::Perspective,
         }
     }
 }
@@ -1250,6 +1326,15 @@ impl From<BoundaryArg> for photostereo::sfs::Boundary {
 
 /// Parses `x,y,z` into a finite, non-zero direction.
 fn parse_direction(s: &str) -> Result<[f64; 3]> {
+    let [x, y, z] = parse_position(s)?;
+    if x == 0.0 && y == 0.0 && z == 0.0 {
+        bail!("{s:?}: the direction must be non-zero");
+    }
+    Ok([x, y, z])
+}
+
+/// Three finite numbers x,y,z.
+fn parse_position(s: &str) -> Result<[f64; 3]> {
     let v: Vec<f64> = s
         .split(',')
         .map(|t| t.trim().parse::<f64>())
@@ -1258,8 +1343,8 @@ fn parse_direction(s: &str) -> Result<[f64; 3]> {
     let [x, y, z] = v[..] else {
         bail!("{s:?}: expected three numbers x,y,z, found {}", v.len());
     };
-    if !(x.is_finite() && y.is_finite() && z.is_finite()) || x == 0.0 && y == 0.0 && z == 0.0 {
-        bail!("{s:?}: the direction must be finite and non-zero");
+    if !(x.is_finite() && y.is_finite() && z.is_finite()) {
+        bail!("{s:?}: the numbers must be finite");
     }
     Ok([x, y, z])
 }

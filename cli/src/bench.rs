@@ -436,6 +436,95 @@ pub fn from_object(a: crate::args::FromObjectBenchArgs) -> Result<()> {
     Ok(())
 }
 
+/// `bench sfs`: every shape-from-shading method on rendered shapes, error against time.
+pub fn sfs(a: crate::args::SfsBenchArgs) -> Result<()> {
+    use photostereo::eval::sfs::{SfsSweepOptions, sweep};
+    let report = sweep(&SfsSweepOptions {
+        size: a.size,
+        slants: a.slants.clone(),
+        ..SfsSweepOptions::default()
+    })?;
+    if a.markdown {
+        let mut s = String::from(
+            "| scene | light | method | normals, mean (°) | depth RMSE / range | absolute | iterations | time (s) |\n\
+             |---|---|---|---:|---:|---:|---:|---:|\n",
+        );
+        for r in &report.rows {
+            let light = if r.slant_deg == 0.0 {
+                "frontal".to_string()
+            } else {
+                format!("{}° oblique", r.slant_deg)
+            };
+            match (&r.refused, r.normals_deg, r.depth) {
+                (Some(_), _, _) => {
+                    let _ = writeln!(
+                        s,
+                        "| {} | {light} | {} | not applicable | | | | |",
+                        r.scene,
+                        r.method.name()
+                    );
+                }
+                (None, Some(n), Some(d)) => {
+                    let _ = writeln!(
+                        s,
+                        "| {} | {light} | {} | {n:.2} | {:.2}% | {} | {}{} | {:.2} |",
+                        r.scene,
+                        r.method.name(),
+                        100.0 * d,
+                        r.depth_absolute
+                            .map_or_else(String::new, |v| format!("{:.2}%", 100.0 * v)),
+                        r.iterations,
+                        if r.converged { "" } else { " (not converged)" },
+                        r.seconds
+                    );
+                }
+                _ => {}
+            }
+        }
+        eprint!("{s}");
+    }
+    let text = serde_json::to_string_pretty(&report)?;
+    if let Some(dir) = &a.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        crate::write_file_atomic(&dir.join("sfs.json"), text.as_bytes())?;
+        let mut series = Vec::new();
+        for (k, method) in report.options.methods.iter().enumerate() {
+            for (j, &slant) in a.slants.iter().enumerate() {
+                let points: Vec<(f64, f64)> = report
+                    .rows
+                    .iter()
+                    .filter(|r| r.method == *method && r.slant_deg == slant)
+                    .filter_map(|r| r.normals_deg.map(|e| (r.seconds.max(1e-3), e)))
+                    .collect();
+                if points.is_empty() {
+                    continue;
+                }
+                let name = format!("{} at {}°", method.name(), slant);
+                series.push(
+                    Series::line(name, points, k * a.slants.len() + j)
+                        .styled(crate::chart::Style::Markers),
+                );
+            }
+        }
+        crate::chart::write(
+            &Chart {
+                title: format!(
+                    "Shape from shading: normal error against solve time ({}², five shapes)",
+                    a.size
+                ),
+                x_label: "solve time (s)".into(),
+                y_label: "mean normal error (°)".into(),
+                log: (true, true),
+                series,
+                legend: Legend::UpperRight,
+            },
+            &dir.join("sfs"),
+        )?;
+    }
+    say!("{text}");
+    Ok(())
+}
+
 /// The rows of a near-light sweep as a Markdown table.
 pub(crate) fn near_table(report: &photostereo::eval::near::NearReport) -> String {
     let mut s = String::from(

@@ -155,6 +155,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench(args::BenchCommand::Interreflections(a))) => bench::interreflections(a),
         Some(Command::Bench(args::BenchCommand::Near(a))) => bench::near(a),
         Some(Command::Bench(args::BenchCommand::FromObject(a))) => bench::from_object(a),
+        Some(Command::Bench(args::BenchCommand::Sfs(a))) => bench::sfs(a),
         Some(Command::Bench(args::BenchCommand::Stream(a))) => bench::stream(a),
         Some(Command::Bench(args::BenchCommand::Scaling(a))) => {
             say!("{}", serde_json::to_string_pretty(&bench::scaling(&a)?)?);

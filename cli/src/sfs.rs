@@ -1,6 +1,6 @@
 //! `photostereo sfs`: shape from shading of one image.
 
-use crate::args::SfsArgs;
+use crate::args::{SfsArgs, SfsBrdfArg, SfsMethodArg};
 use anyhow::{Context, Result, bail};
 use photostereo::capture::stack::GREY_WEIGHTS;
 use photostereo::grid::Grid;
@@ -8,8 +8,12 @@ use photostereo::io::decode::{read_image, read_mask, srgb_to_linear};
 use photostereo::io::output::{OutputDir, depth_preview, normal_planes, normal_preview};
 use photostereo::nalgebra::Vector3;
 use photostereo::sfs::estimate::{estimate_albedo, estimate_light};
+use photostereo::sfs::perspective::{PerspectiveOptions, PointLight};
 use photostereo::sfs::reflectance_map::ReflectanceMap;
-use photostereo::sfs::{SfsOptions, object_mask, shape_from_shading_with_progress};
+use photostereo::sfs::{SfsOptions, SfsResult, object_mask, shape_from_shading_with_progress};
+use photostereo::synth::reflectance::{
+    BlinnPhong, Diffuse, Material, Phong, Specular, TorranceSparrow, Ward,
+};
 
 /// Contour levels of the reflectance-map drawing.
 const CONTOUR_LEVELS: [f64; 9] = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9];
@@ -17,6 +21,7 @@ const CONTOUR_LEVELS: [f64; 9] = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9];
 pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result<()> {
     let inputs: Vec<&std::path::Path> = std::iter::once(a.image.as_path())
         .chain(a.mask.as_deref())
+        .chain(a.camera.as_deref())
         .collect();
     photostereo::io::output::ensure_apart(&a.output, &inputs)?;
     let _lock = crate::lock_output(&a.output, a.force)?;
@@ -63,6 +68,35 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
             a.image.display()
         );
     }
+    let material = material(&a)?;
+    let method = a.method.unwrap_or(if a.light_position.is_some() {
+        SfsMethodArg::Perspective
+    } else {
+        SfsMethodArg::Horn
+    });
+    if method == SfsMethodArg::Perspective {
+        return perspective(&a, &image, &mask, mask_source, material);
+    }
+    for (flag, given) in [
+        ("--camera", a.camera.is_some()),
+        ("--light-position", a.light_position.is_some()),
+        ("--light-intensity", a.light_intensity.is_some()),
+    ] {
+        if given {
+            bail!(
+                "{flag} is for --method perspective; {} assumes a distant light and an \
+                 orthographic camera",
+                photostereo::sfs::SfsMethod::from(method).name()
+            );
+        }
+    }
+    if a.brdf != SfsBrdfArg::Lambertian && (a.light.is_none() || a.albedo.is_none()) {
+        bail!(
+            "--brdf {}: the light and albedo are estimated for a Lambertian surface only; give \
+             --light and --albedo",
+            brdf_name(a.brdf)
+        );
+    }
     let estimate = if a.light.is_none() {
         Some(estimate_light(&image, &mask)?)
     } else {
@@ -73,14 +107,14 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         (None, Some(e)) => e.light(),
         (None, None) => bail!("no light direction given and none estimated"),
     };
-    let rmap = ReflectanceMap::lambertian(light)?;
+    let rmap = ReflectanceMap::new(light, material)?;
     let albedo = match (a.albedo, &estimate) {
         (Some(v), _) => v,
         (None, Some(e)) => e.albedo,
         (None, None) => estimate_albedo(&image, &mask, rmap.slant_deg())?,
     };
     let options = SfsOptions {
-        method: a.method.into(),
+        method: method.into(),
         boundary: a.boundary.into(),
         max_iterations: a.iterations,
         smoothness: a.smoothness,
@@ -89,54 +123,18 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
     let r = shape_from_shading_with_progress(&image, &mask, &rmap, albedo, &options, progress)?;
     let (w, h) = (image.width(), image.height());
     let method = options.method.name();
-    let attrs = [
-        ("photostereo:sfs-method", method.to_string()),
-        (
-            "photostereo:light_direction",
-            format!("{:.6} {:.6} {:.6}", light.x, light.y, light.z),
-        ),
-        (
-            "photostereo:units",
-            photostereo::run::pipeline::exr_units("depth.exr", None),
-        ),
-    ];
-    let mut normal_attrs = attrs.clone();
-    normal_attrs[2].1 = photostereo::run::pipeline::exr_units("normal.exr", None);
-    let mut out = OutputDir::create(&a.output)?;
-    out.stage_exr(
-        "depth.exr",
-        w,
-        h,
-        &[("Z", r.depth.data()), ("residual", r.residual.data())],
-        &attrs,
-    )?;
-    let [nx, ny, nz] = normal_planes(&r.normals);
-    out.stage_exr(
-        "normal.exr",
-        w,
-        h,
-        &[("R", &nx), ("G", &ny), ("B", &nz)],
-        &normal_attrs,
-    )?;
-    out.stage_png8("normal.png", w, h, 3, &normal_preview(&r.normals))?;
-    out.stage_png8("depth.png", w, h, 1, &depth_preview(&r.depth, None))?;
+    let depth_units = photostereo::run::pipeline::exr_units("depth.exr", None);
     let svg = rmap.contour_svg(3.0, &CONTOUR_LEVELS, 241)?;
-    out.stage_bytes("reflectance_map.svg", svg.as_bytes())?;
     let report = serde_json::json!({
         "image": a.image,
         "mask": mask_source,
         "light_source": if estimate.is_some() { "estimated (Zheng–Chellappa, sphere-like normals assumed)" } else { "given" },
         "albedo_source": if a.albedo.is_some() { "given" } else { "estimated (sphere-like normals assumed)" },
+        "brdf": brdf_name(a.brdf),
         "estimate": estimate,
         "result": r.report,
     });
-    out.stage_bytes(
-        "report.json",
-        serde_json::to_string_pretty(&report)
-            .context("report")?
-            .as_bytes(),
-    )?;
-    out.commit()?;
+    write(&a, &r, light, &depth_units, Some(&svg), &report)?;
     let rep = &r.report;
     say!(
         "{method}: {}x{} image, {} pixels ({} in shadow), light ({:.3}, {:.3}, {:.3}) {} at {:.1}° from the view, albedo {:.4} {}",
@@ -180,4 +178,218 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
     }
     say!("  wrote {}", a.output.display());
     Ok(())
+}
+
+/// Writes depth.exr, normal.exr, their previews, the reflectance map's drawing (distant light)
+/// and report.json into the output folder, atomically.
+fn write(
+    a: &SfsArgs,
+    r: &SfsResult,
+    light: Vector3<f64>,
+    depth_units: &str,
+    svg: Option<&str>,
+    report: &serde_json::Value,
+) -> Result<()> {
+    let (w, h) = (r.depth.width(), r.depth.height());
+    let attrs = [
+        ("photostereo:sfs-method", r.report.method.name().to_string()),
+        (
+            "photostereo:light_direction",
+            format!("{:.6} {:.6} {:.6}", light.x, light.y, light.z),
+        ),
+        ("photostereo:units", depth_units.to_string()),
+    ];
+    let mut normal_attrs = attrs.clone();
+    normal_attrs[2].1 = photostereo::run::pipeline::exr_units("normal.exr", None);
+    let mut out = OutputDir::create(&a.output)?;
+    out.stage_exr(
+        "depth.exr",
+        w,
+        h,
+        &[("Z", r.depth.data()), ("residual", r.residual.data())],
+        &attrs,
+    )?;
+    let [nx, ny, nz] = normal_planes(&r.normals);
+    out.stage_exr(
+        "normal.exr",
+        w,
+        h,
+        &[("R", &nx), ("G", &ny), ("B", &nz)],
+        &normal_attrs,
+    )?;
+    out.stage_png8("normal.png", w, h, 3, &normal_preview(&r.normals))?;
+    out.stage_png8("depth.png", w, h, 1, &depth_preview(&r.depth, None))?;
+    if let Some(svg) = svg {
+        out.stage_bytes("reflectance_map.svg", svg.as_bytes())?;
+    }
+    out.stage_bytes(
+        "report.json",
+        serde_json::to_string_pretty(report)
+            .context("report")?
+            .as_bytes(),
+    )?;
+    out.commit()?;
+    Ok(())
+}
+
+/// `--method perspective`: a pinhole camera and a point light with fall-off.
+fn perspective(
+    a: &SfsArgs,
+    image: &photostereo::grid::ScalarMap,
+    mask: &photostereo::grid::Mask,
+    mask_source: &str,
+    material: Material,
+) -> Result<()> {
+    let Some(camera) = &a.camera else {
+        bail!("--method perspective needs the camera's intrinsics: --camera K.txt");
+    };
+    let Some(position) = a.light_position else {
+        bail!(
+            "--method perspective needs the light's position: --light-position x,y,z (camera \
+             frame; 0,0,0 for a light at the camera centre)"
+        );
+    };
+    if a.light.is_some() {
+        bail!(
+            "--light is a distant light's direction; --method perspective takes --light-position"
+        );
+    }
+    let k = photostereo::camera::Intrinsics::from_file(camera)?;
+    if a.light_intensity.is_none() || a.albedo.is_none() {
+        eprintln!(
+            "warning: {} not given, 1 assumed: the depth's scale goes with 1/√(albedo × \
+             intensity), and a wrong value bends the shape too",
+            match (a.light_intensity.is_none(), a.albedo.is_none()) {
+                (true, true) => "--light-intensity and --albedo",
+                (true, false) => "--light-intensity",
+                _ => "--albedo",
+            }
+        );
+    }
+    let light = PointLight {
+        position: Vector3::from(position),
+        intensity: a.light_intensity.unwrap_or(1.0),
+    };
+    let options = PerspectiveOptions {
+        material,
+        albedo: a.albedo.unwrap_or(1.0),
+        shadow_level: a.shadow_level,
+        max_sweeps: a.iterations,
+        tolerance: 0.0,
+        start: None,
+    };
+    let r = photostereo::sfs::perspective::solve(image, mask, &k, &light, &options)?;
+    let units = format!(
+        "Z: depth along the optical axis in the light position's units (absolute), pinhole \
+         fx={} fy={} cx={} cy={}, larger is farther; residual: (I - I_model) d^2 / (Phi F(1))",
+        k.fx, k.fy, k.cx, k.cy
+    );
+    let report = serde_json::json!({
+        "image": a.image,
+        "mask": mask_source,
+        "camera": camera,
+        "light_position": position,
+        "light_intensity": light.intensity,
+        "albedo_source": if a.albedo.is_some() { "given" } else { "1 (not given)" },
+        "brdf": brdf_name(a.brdf),
+        "result": r.report,
+    });
+    let dir = Vector3::from(r.report.light);
+    write(a, &r, dir, &units, None, &report)?;
+    let rep = &r.report;
+    say!(
+        "perspective: {}x{} image, {} pixels ({} in shadow), light at ({:.4}, {:.4}, {:.4}), {:.1}° \
+         from the view at the surface's centre, albedo {:.4}, intensity {:.4}",
+        image.width(),
+        image.height(),
+        rep.pixels,
+        rep.shadow_pixels,
+        position[0],
+        position[1],
+        position[2],
+        rep.light_slant_deg,
+        options.albedo,
+        light.intensity
+    );
+    say!(
+        "  {} sweeps{} in {:.3} s; mean relative residual {:.4}",
+        rep.iterations,
+        if rep.converged {
+            ""
+        } else {
+            " (not converged)"
+        },
+        rep.seconds,
+        rep.mean_abs_residual
+    );
+    for s in &rep.assumptions {
+        say!("  assumed: {s}");
+    }
+    for s in &rep.warnings {
+        eprintln!("warning: {}", crate::printable(&s.to_string()));
+    }
+    say!("  wrote {}", a.output.display());
+    Ok(())
+}
+
+/// The material of `--brdf` and its parameters; a parameter the model does not use is refused.
+fn material(a: &SfsArgs) -> Result<Material> {
+    use SfsBrdfArg as B;
+    let uses = |flag: &str| match a.brdf {
+        B::Lambertian => false,
+        B::OrenNayar => flag == "--roughness",
+        B::Phong | B::BlinnPhong => matches!(flag, "--shininess" | "--specular"),
+        B::TorranceSparrow => matches!(flag, "--roughness" | "--specular" | "--f0"),
+        B::Ward => matches!(flag, "--roughness" | "--specular"),
+    };
+    for (flag, given) in [
+        ("--roughness", a.roughness.is_some()),
+        ("--shininess", a.shininess.is_some()),
+        ("--specular", a.specular.is_some()),
+        ("--f0", a.f0.is_some()),
+    ] {
+        if given && !uses(flag) {
+            bail!("{flag} has no effect with --brdf {}", brdf_name(a.brdf));
+        }
+    }
+    let ks = a.specular.unwrap_or(0.5);
+    let m = match a.brdf {
+        B::Lambertian => Material::lambertian(),
+        B::OrenNayar => Material {
+            diffuse: Diffuse::OrenNayar {
+                sigma: a.roughness.unwrap_or(20.0).to_radians(),
+            },
+            ..Material::lambertian()
+        },
+        B::Phong => Material::with_specular(Specular::Phong(Phong {
+            ks,
+            exponent: a.shininess.unwrap_or(40.0),
+        })),
+        B::BlinnPhong => Material::with_specular(Specular::BlinnPhong(BlinnPhong {
+            ks,
+            exponent: a.shininess.unwrap_or(40.0),
+        })),
+        B::TorranceSparrow => Material::with_specular(Specular::TorranceSparrow(TorranceSparrow {
+            ks,
+            roughness: a.roughness.unwrap_or(0.3),
+            f0: a.f0.unwrap_or(0.04),
+        })),
+        B::Ward => {
+            let alpha = a.roughness.unwrap_or(0.2);
+            Material::with_specular(Specular::Ward(Ward {
+                ks,
+                alpha_x: alpha,
+                alpha_y: alpha,
+            }))
+        }
+    };
+    m.validate()?;
+    Ok(m)
+}
+
+/// The command-line name of a `--brdf` value.
+fn brdf_name(b: SfsBrdfArg) -> String {
+    use clap::ValueEnum;
+    b.to_possible_value()
+        .map_or_else(|| format!("{b:?}"), |v| v.get_name().to_string())
 }

@@ -321,6 +321,8 @@ enum ShapeArg {
     Relief,
     /// The built-in scene (fixed 320×240): hemisphere, bump, pyramid, dome on a checkered ground.
     Demo,
+    /// A bust-like head: a face of Gaussian features on an ellipsoid, no background.
+    Bust,
 }
 
 impl ShapeArg {
@@ -339,6 +341,7 @@ impl ShapeArg {
             ShapeArg::Bowl => SceneKind::Bowl,
             ShapeArg::Relief => SceneKind::Relief,
             ShapeArg::Demo => SceneKind::Demo,
+            ShapeArg::Bust => SceneKind::Bust,
         }
     }
 }

@@ -361,7 +361,7 @@ def render(
 ) -> Dict[str, np.ndarray]:
     """Renders a named scene (``"sphere"``, ``"vase"``, ``"peaks"``, ``"torus"``, ``"bumps"``,
     ``"groove"``, ``"bowl"``, ``"relief"``, ``"step"``, ``"ramp"``, ``"ellipsoid"``,
-    ``"demo"``) at size x size pixels under ``lights`` (N x 3), with a reflectance model
+    ``"bust"``, ``"demo"``) at size x size pixels under ``lights`` (N x 3), with a reflectance model
     (``"lambert"``, ``"oren-nayar"``, ``"phong"``, ``"blinn-phong"``, ``"torrance-sparrow"``,
     ``"ward"``, ``"mirror"``; parameters ``ks``, ``shininess``, ``roughness``, ``f0``,
     ``alpha_x``, ``alpha_y``, ``sigma``), cast shadows and Gaussian noise. ``light_radius_deg``

@@ -8,6 +8,7 @@ pub mod demo;
 pub mod from_object;
 pub mod metrics;
 pub mod near;
+pub mod sfs;
 pub mod sweep;
 
 use crate::error::{Error, Result};

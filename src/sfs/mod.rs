@@ -9,6 +9,7 @@
 //! | [`SfsMethod::Horn`] | smoothness (decreasing to 0) and integrability; occluding-contour normals | any in front, any BRDF | Horn, "Height and gradient from shading", IJCV 5(1) 1990 |
 //! | [`SfsMethod::TsaiShah`] | linearisation of R in depth, one Newton step per pixel and sweep | oblique, any BRDF | Tsai & Shah, "Shape from shading using linear approximation", IVC 12(8) 1994 |
 //! | [`SfsMethod::FastMarching`] | viscosity solution of the eikonal equation from the singular (brightest) points | at the viewer, Lambertian | Kimmel & Sethian, "Optimal algorithm for shape from shading and path planning", JMIV 14 2001 |
+//! | [`SfsMethod::Perspective`] ([`perspective::solve`]) | a pinhole camera and a near point light whose inverse-square fall-off tells near from far: well posed, no smoothness or boundary prior | a point light at a known position (any isotropic BRDF when at the camera centre, Lambertian elsewhere) | Prados & Faugeras, "Shape from shading: a well-posed problem?", CVPR 2005 |
 //!
 //! When the light or albedo is not known, [`estimate::estimate_light`] estimates both from the
 //! image statistics (after Zheng & Chellappa, PAMI 1991).
@@ -33,6 +34,7 @@
 pub mod estimate;
 mod fast_marching;
 mod horn;
+pub mod perspective;
 pub mod reflectance_map;
 mod tsai_shah;
 
@@ -67,10 +69,13 @@ pub enum SfsMethod {
     TsaiShah,
     /// Kimmel–Sethian 2001: fast marching for a light at the viewer.
     FastMarching,
+    /// Prados–Faugeras 2005: perspective camera, near point light with fall-off
+    /// ([`perspective::solve`]; not a method of the distant-light [`shape_from_shading`]).
+    Perspective,
 }
 
 impl SfsMethod {
-    /// Every method.
+    /// Every method of the distant-light, orthographic model ([`shape_from_shading`]).
     pub const ALL: [SfsMethod; 3] = [
         SfsMethod::Horn,
         SfsMethod::TsaiShah,
@@ -83,6 +88,7 @@ impl SfsMethod {
             SfsMethod::Horn => "horn",
             SfsMethod::TsaiShah => "tsai-shah",
             SfsMethod::FastMarching => "fast-marching",
+            SfsMethod::Perspective => "perspective",
         }
     }
 
@@ -108,6 +114,11 @@ impl SfsMethod {
                     .to_string(),
             ),
             SfsMethod::FastMarching => Ok(()),
+            SfsMethod::Perspective => Err(
+                "the perspective method needs a camera and a light's position, not a distant \
+                 light: use sfs::perspective::solve"
+                    .to_string(),
+            ),
         }
     }
 }
@@ -359,6 +370,12 @@ pub fn shape_from_shading_with_progress(
         SfsMethod::Horn => horn::solve(&shading)?,
         SfsMethod::TsaiShah => tsai_shah::solve(&shading)?,
         SfsMethod::FastMarching => fast_marching::solve(&shading)?,
+        SfsMethod::Perspective => {
+            return Err(Error::param(
+                "method",
+                "perspective is solved by sfs::perspective::solve",
+            ));
+        }
     };
     finish(shading, solved, albedo, too_bright, start)
 }

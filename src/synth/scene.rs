@@ -188,6 +188,64 @@ pub enum Primitive {
         /// Height of the plane.
         base: f64,
     },
+    /// A bust-like head, the classic shape-from-shading test surface in a form with a closed
+    /// expression: the upper half of an ellipsoid (semi-axes [`BUST_HEAD`] times `scale`)
+    /// carrying a face of Gaussian features ([`BUST_FEATURES`]: nose, eye sockets, brows,
+    /// cheeks, lips, mouth and chin), z = base + scale·b(u, v), (u, v) = ((x − cx)/scale,
+    /// (y − cy)/scale), over the head's ellipse. Convex and concave detail on a surface whose
+    /// outline is an occluding contour.
+    Bust {
+        /// Centre x.
+        cx: f64,
+        /// Centre y.
+        cy: f64,
+        /// Pixels per unit of (u, v) (the image size for the named scene).
+        scale: f64,
+        /// Height of the head's base plane.
+        base: f64,
+    },
+}
+
+/// The head of [`Primitive::Bust`]: semi-axes (a, b, c) of its ellipsoid along u, v and the
+/// height, in units of `scale`.
+pub const BUST_HEAD: (f64, f64, f64) = (0.34, 0.44, 0.3);
+
+/// The face of [`Primitive::Bust`]: (u, v, s_u, s_v, a) — centre, widths along u and v and
+/// amplitude of each Gaussian feature, in units of `scale` (v up; negative a: a hollow).
+pub const BUST_FEATURES: [(f64, f64, f64, f64, f64); 13] = [
+    (0.0, 0.0, 0.035, 0.1, 0.06),       // bridge of the nose
+    (0.0, -0.08, 0.04, 0.035, 0.04),    // tip of the nose
+    (-0.12, 0.08, 0.05, 0.035, -0.045), // eye sockets
+    (0.12, 0.08, 0.05, 0.035, -0.045),
+    (-0.12, 0.15, 0.07, 0.03, 0.025), // brows
+    (0.12, 0.15, 0.07, 0.03, 0.025),
+    (-0.17, -0.06, 0.07, 0.07, 0.025), // cheeks
+    (0.17, -0.06, 0.07, 0.07, 0.025),
+    (0.0, -0.16, 0.06, 0.02, 0.015),   // upper lip
+    (0.0, -0.19, 0.07, 0.012, -0.015), // mouth
+    (0.0, -0.22, 0.05, 0.02, 0.012),   // lower lip
+    (0.0, -0.3, 0.07, 0.05, 0.03),     // chin
+    (0.0, 0.3, 0.2, 0.08, -0.01),      // temples' hollow across the forehead
+];
+
+/// The bust function b(u, v) of [`Primitive::Bust`] and its gradient, or `None` outside the
+/// head's ellipse.
+fn bust(u: f64, v: f64) -> Option<(f64, f64, f64)> {
+    let (a, b, c) = BUST_HEAD;
+    let s2 = 1.0 - (u / a).powi(2) - (v / b).powi(2);
+    if s2 < 0.0 {
+        return None;
+    }
+    let root = s2.sqrt().max(1e-12);
+    let (mut r, mut ru, mut rv) = (c * root, -c * u / (a * a * root), -c * v / (b * b * root));
+    for (fu, fv, su, sv, amp) in BUST_FEATURES {
+        let (du, dv) = (u - fu, v - fv);
+        let e = amp * (-(du * du) / (2.0 * su * su) - (dv * dv) / (2.0 * sv * sv)).exp();
+        r += e;
+        ru -= e * du / (su * su);
+        rv -= e * dv / (sv * sv);
+    }
+    Some((r, ru, rv))
 }
 
 /// The round features of [`Primitive::Relief`]: (u, v, s, a) — centre, width and amplitude in
@@ -397,6 +455,18 @@ impl Primitive {
                 top += (height * RELIEF_GROOVE.4).max(0.0);
                 Some(base + scale.abs() * top)
             }
+            // The dome's top plus every raised feature at full height.
+            Primitive::Bust {
+                cx,
+                cy,
+                scale,
+                base,
+            } => {
+                let (a, b, c) = BUST_HEAD;
+                let d2 = near2(cx, cy, a * scale, b * scale);
+                let raised: f64 = BUST_FEATURES.iter().map(|f| f.4.max(0.0)).sum();
+                (d2 <= 1.0).then_some(base + scale.abs() * (c + raised))
+            }
         }
     }
 
@@ -590,6 +660,13 @@ impl Primitive {
                     normal_of_gradient(height * ru, height * rv),
                 ))
             }
+            Primitive::Bust {
+                cx,
+                cy,
+                scale,
+                base,
+            } => bust((x - cx) / scale, (y - cy) / scale)
+                .map(|(r, ru, rv)| (base + scale * r, normal_of_gradient(ru, rv))),
         }
     }
 }
@@ -738,11 +815,13 @@ pub enum SceneKind {
     Relief,
     /// The built-in default scene ([`Scene::default_scene`], 320×240 whatever the size).
     Demo,
+    /// A bust-like head ([`Primitive::Bust`]), no background: a face on an ellipsoid.
+    Bust,
 }
 
 impl SceneKind {
     /// Every kind, for listings.
-    pub const ALL: [SceneKind; 12] = [
+    pub const ALL: [SceneKind; 13] = [
         SceneKind::Sphere,
         SceneKind::Ellipsoid,
         SceneKind::Vase,
@@ -755,6 +834,7 @@ impl SceneKind {
         SceneKind::Bowl,
         SceneKind::Relief,
         SceneKind::Demo,
+        SceneKind::Bust,
     ];
 
     /// The name used on the command line.
@@ -772,6 +852,7 @@ impl SceneKind {
             SceneKind::Bowl => "bowl",
             SceneKind::Relief => "relief",
             SceneKind::Demo => "demo",
+            SceneKind::Bust => "bust",
         }
     }
 
@@ -873,6 +954,12 @@ impl SceneKind {
                 cy: 0.0,
                 scale: s,
                 height: 1.0,
+                base: 0.0,
+            })],
+            SceneKind::Bust => vec![obj(Primitive::Bust {
+                cx: 0.0,
+                cy: 0.0,
+                scale: s,
                 base: 0.0,
             })],
             SceneKind::Demo => {
@@ -1164,6 +1251,12 @@ mod tests {
                 cy: 0.0,
                 scale: 20.0,
                 height: 1.0,
+                base: 0.0,
+            },
+            Primitive::Bust {
+                cx: 0.0,
+                cy: 0.0,
+                scale: 20.0,
                 base: 0.0,
             },
         ];
