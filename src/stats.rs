@@ -86,3 +86,22 @@ pub fn median(mut values: Vec<f64>) -> f64 {
         n => (values[n / 2 - 1] + values[n / 2]) / 2.0,
     }
 }
+
+/// The `q` quantile of `values` by rank, the value at index ⌊(n − 1)·q⌋ in sorted order
+/// (no interpolation), found by selection (the slice is reordered); `None` when empty.
+///
+/// ```
+/// use photostereo::stats::quantile_in_place;
+/// let mut v = [5.0f32, 1.0, 4.0, 2.0, 3.0];
+/// assert_eq!(quantile_in_place(&mut v, 0.99), Some(4.0));
+/// assert_eq!(quantile_in_place(&mut v, 1.0), Some(5.0));
+/// assert_eq!(quantile_in_place(&mut [], 0.5), None);
+/// ```
+pub fn quantile_in_place(values: &mut [f32], q: f64) -> Option<f32> {
+    if values.is_empty() {
+        return None;
+    }
+    let k = ((values.len() - 1) as f64 * q) as usize;
+    let (_, x, _) = values.select_nth_unstable_by(k.min(values.len() - 1), f32::total_cmp);
+    Some(*x)
+}

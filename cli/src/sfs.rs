@@ -170,13 +170,7 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         rep.mean_abs_residual,
         rep.median_abs_curl
     );
-    for s in &rep.assumptions {
-        say!("  assumed: {s}");
-    }
-    for s in &rep.warnings {
-        eprintln!("warning: {}", crate::printable(&s.to_string()));
-    }
-    say!("  wrote {}", a.output.display());
+    tell(rep, &a.output);
     Ok(())
 }
 
@@ -322,13 +316,7 @@ fn perspective(
         rep.seconds,
         rep.mean_abs_residual
     );
-    for s in &rep.assumptions {
-        say!("  assumed: {s}");
-    }
-    for s in &rep.warnings {
-        eprintln!("warning: {}", crate::printable(&s.to_string()));
-    }
-    say!("  wrote {}", a.output.display());
+    tell(rep, &a.output);
     Ok(())
 }
 
@@ -392,4 +380,15 @@ fn brdf_name(b: SfsBrdfArg) -> String {
     use clap::ValueEnum;
     b.to_possible_value()
         .map_or_else(|| format!("{b:?}"), |v| v.get_name().to_string())
+}
+
+/// Prints a run's assumptions and warnings and where it wrote.
+fn tell(rep: &photostereo::sfs::SfsReport, output: &std::path::Path) {
+    for s in &rep.assumptions {
+        say!("  assumed: {s}");
+    }
+    for s in &rep.warnings {
+        eprintln!("warning: {}", crate::printable(&s.to_string()));
+    }
+    say!("  wrote {}", output.display());
 }

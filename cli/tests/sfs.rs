@@ -22,8 +22,7 @@ const ALBEDO: f64 = 0.8;
 
 /// A light at `slant` degrees from the view, azimuth `tilt` degrees (x right, y up).
 fn light(slant: f64, tilt: f64) -> Vector3<f64> {
-    let (s, t) = (slant.to_radians(), tilt.to_radians());
-    Vector3::new(s.sin() * t.cos(), s.sin() * t.sin(), s.cos())
+    photostereo::synth::light_sets::slanted(slant, tilt)
 }
 
 /// One rendered grey image of `kind` (Lambertian, albedo 0.8, cast shadows) under `l`.

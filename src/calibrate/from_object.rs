@@ -184,12 +184,7 @@ fn bright_levels(images: &[ScalarMap], mask: &Mask) -> Vec<f64> {
                 .filter(|(x, m)| **m && x.is_finite())
                 .map(|(x, _)| *x)
                 .collect();
-            if v.is_empty() {
-                return 0.0;
-            }
-            let k = ((v.len() - 1) as f64 * 0.99) as usize;
-            let (_, x, _) = v.select_nth_unstable_by(k, |a, b| a.total_cmp(b));
-            f64::from(*x)
+            crate::stats::quantile_in_place(&mut v, 0.99).map_or(0.0, f64::from)
         })
         .collect()
 }

@@ -99,8 +99,7 @@ pub struct SfsSweepReport {
 
 /// A distant light at `slant_deg` from the view, azimuth [`AZIMUTH_DEG`].
 fn distant(slant_deg: f64) -> Vector3<f64> {
-    let (s, t) = (slant_deg.to_radians(), AZIMUTH_DEG.to_radians());
-    Vector3::new(s.sin() * t.cos(), s.sin() * t.sin(), s.cos())
+    crate::synth::light_sets::slanted(slant_deg, AZIMUTH_DEG)
 }
 
 fn scores(r: &SfsResult, truth: &HeightField) -> Result<(f64, f64)> {

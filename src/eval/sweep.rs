@@ -415,8 +415,7 @@ pub fn normal_sweep(options: &SweepOptions, progress: &dyn Progress) -> Result<V
 
 /// The unit direction at `slant` degrees from the viewer, azimuth 45° (upper right).
 fn slanted(slant_deg: f64) -> Vector3<f64> {
-    let (s, t) = (slant_deg.to_radians(), 45f64.to_radians());
-    Vector3::new(s.sin() * t.cos(), s.sin() * t.sin(), s.cos())
+    crate::synth::light_sets::slanted(slant_deg, 45.0)
 }
 
 /// Shape from shading on a Lambertian sphere (radius 0.4·size, albedo [`SFS_ALBEDO`], given

@@ -302,12 +302,7 @@ pub fn shape_from_shading_with_progress(
             format!("{albedo} must be finite and > 0"),
         ));
     }
-    if !(options.shadow_level.is_finite() && (0.0..1.0).contains(&options.shadow_level)) {
-        return Err(Error::param(
-            "shadow-level",
-            format!("{} is outside [0, 1)", options.shadow_level),
-        ));
-    }
+    check_shadow_level(options.shadow_level)?;
     if !(options.smoothness.is_finite() && options.smoothness >= 0.0) {
         return Err(Error::param(
             "smoothness",
@@ -378,6 +373,18 @@ pub fn shape_from_shading_with_progress(
         }
     };
     finish(shading, solved, albedo, too_bright, start)
+}
+
+/// Checks a shadow level: finite, in [0, 1).
+pub(crate) fn check_shadow_level(level: f64) -> Result<()> {
+    if level.is_finite() && (0.0..1.0).contains(&level) {
+        Ok(())
+    } else {
+        Err(Error::param(
+            "shadow-level",
+            format!("{level} is outside [0, 1)"),
+        ))
+    }
 }
 
 /// Depth, normals, residual and report from a solver's per-unknown output.

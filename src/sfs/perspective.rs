@@ -552,12 +552,7 @@ pub fn solve(
             format!("{} must be finite and > 0", options.albedo),
         ));
     }
-    if !(options.shadow_level.is_finite() && (0.0..1.0).contains(&options.shadow_level)) {
-        return Err(Error::param(
-            "shadow-level",
-            format!("{} is outside [0, 1)", options.shadow_level),
-        ));
-    }
+    crate::sfs::check_shadow_level(options.shadow_level)?;
     if !(options.tolerance.is_finite() && options.tolerance >= 0.0) {
         return Err(Error::param(
             "tolerance",
@@ -628,9 +623,7 @@ pub fn solve(
         .filter(|&i| mask.data()[i])
         .map(|i| image.data()[i])
         .collect();
-    let k99 = ((lit_values.len() - 1) as f64 * 0.99) as usize;
-    let (_, p99, _) = lit_values.select_nth_unstable_by(k99, f32::total_cmp);
-    let p99 = f64::from(*p99);
+    let p99 = crate::stats::quantile_in_place(&mut lit_values, 0.99).map_or(0.0, f64::from);
     if p99 <= 0.0 {
         return Err(Error::param("image", "is black inside the mask"));
     }

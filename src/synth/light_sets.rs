@@ -6,6 +6,13 @@ use crate::capture::lights::{Light, Lights};
 use crate::error::{Error, Result};
 use nalgebra::Vector3;
 
+/// The unit direction at `slant_deg` from the viewing axis (z) and azimuth `azimuth_deg` from
+/// the x axis (x right, y up).
+pub fn slanted(slant_deg: f64, azimuth_deg: f64) -> Vector3<f64> {
+    let (s, t) = (slant_deg.to_radians(), azimuth_deg.to_radians());
+    Vector3::new(s.sin() * t.cos(), s.sin() * t.sin(), s.cos())
+}
+
 impl Lights {
     /// `count` lights evenly spaced in azimuth on a ring at `elevation_deg` above the image
     /// plane (90° is the viewing direction), starting at azimuth `azimuth0_deg`.
