@@ -1254,6 +1254,22 @@ pub struct SfsArgs {
     /// Iteration limit (0: the method's default).
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub iterations: usize,
+    /// Perspective: return the swept viscosity solution without the variational refinement
+    /// (a least-squares fit of the whole image from it).
+    #[arg(long)]
+    pub no_refine: bool,
+    /// Perspective: weight of the refinement's curvature penalty (larger: smoother; default
+    /// 0.01).
+    #[arg(long, value_name = "LAMBDA", conflicts_with = "no_refine")]
+    pub refine_smoothness: Option<f64>,
+    /// Perspective: limit of the refinement's steps (0: its default).
+    #[arg(
+        long,
+        default_value_t = 0,
+        value_name = "N",
+        conflicts_with = "no_refine"
+    )]
+    pub refine_iterations: usize,
     /// 8-bit images hold linear values (default: decoded as sRGB).
     #[arg(long)]
     pub linear: bool,

@@ -446,7 +446,7 @@ pub fn sfs(a: crate::args::SfsBenchArgs) -> Result<()> {
     })?;
     if a.markdown {
         let mut s = String::from(
-            "| scene | light | method | normals, mean (°) | depth RMSE / range | absolute | iterations | time (s) |\n\
+            "| scene | light | method | normals, mean (°) | depth RMSE / range | absolute | iterations (+ refinement steps) | time (s) |\n\
              |---|---|---|---:|---:|---:|---:|---:|\n",
         );
         for r in &report.rows {
@@ -461,19 +461,20 @@ pub fn sfs(a: crate::args::SfsBenchArgs) -> Result<()> {
                         s,
                         "| {} | {light} | {} | not applicable | | | | |",
                         r.scene,
-                        r.method.name()
+                        r.label()
                     );
                 }
                 (None, Some(n), Some(d)) => {
                     let _ = writeln!(
                         s,
-                        "| {} | {light} | {} | {n:.2} | {:.2}% | {} | {}{} | {:.2} |",
+                        "| {} | {light} | {} | {n:.2} | {:.2}% | {} | {}{}{} | {:.2} |",
                         r.scene,
-                        r.method.name(),
+                        r.label(),
                         100.0 * d,
                         r.depth_absolute
                             .map_or_else(String::new, |v| format!("{:.2}%", 100.0 * v)),
                         r.iterations,
+                        r.refined.map_or_else(String::new, |k| format!(" + {k}")),
                         if r.converged { "" } else { " (not converged)" },
                         r.seconds
                     );
@@ -488,18 +489,24 @@ pub fn sfs(a: crate::args::SfsBenchArgs) -> Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         crate::write_file_atomic(&dir.join("sfs.json"), text.as_bytes())?;
         let mut series = Vec::new();
-        for (k, method) in report.options.methods.iter().enumerate() {
+        let mut labels: Vec<String> = Vec::new();
+        for r in &report.rows {
+            if !labels.contains(&r.label()) {
+                labels.push(r.label());
+            }
+        }
+        for (k, label) in labels.iter().enumerate() {
             for (j, &slant) in a.slants.iter().enumerate() {
                 let points: Vec<(f64, f64)> = report
                     .rows
                     .iter()
-                    .filter(|r| r.method == *method && r.slant_deg == slant)
+                    .filter(|r| r.label() == *label && r.slant_deg == slant)
                     .filter_map(|r| r.normals_deg.map(|e| (r.seconds.max(1e-3), e)))
                     .collect();
                 if points.is_empty() {
                     continue;
                 }
-                let name = format!("{} at {}°", method.name(), slant);
+                let name = format!("{label} at {slant}°");
                 series.push(
                     Series::line(name, points, k * a.slants.len() + j)
                         .styled(crate::chart::Style::Markers),

@@ -8,7 +8,7 @@ use photostereo::io::decode::{read_image, read_mask, srgb_to_linear};
 use photostereo::io::output::{OutputDir, depth_preview, normal_planes, normal_preview};
 use photostereo::nalgebra::Vector3;
 use photostereo::sfs::estimate::{estimate_albedo, estimate_light};
-use photostereo::sfs::perspective::{PerspectiveOptions, PointLight};
+use photostereo::sfs::perspective::{PerspectiveOptions, PointLight, RefineOptions};
 use photostereo::sfs::reflectance_map::ReflectanceMap;
 use photostereo::sfs::{SfsOptions, SfsResult, object_mask, shape_from_shading_with_progress};
 use photostereo::synth::reflectance::{
@@ -81,6 +81,9 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         ("--camera", a.camera.is_some()),
         ("--light-position", a.light_position.is_some()),
         ("--light-intensity", a.light_intensity.is_some()),
+        ("--no-refine", a.no_refine),
+        ("--refine-smoothness", a.refine_smoothness.is_some()),
+        ("--refine-iterations", a.refine_iterations != 0),
     ] {
         if given {
             bail!(
@@ -271,6 +274,17 @@ fn perspective(
         max_sweeps: a.iterations,
         tolerance: 0.0,
         start: None,
+        refine: (!a.no_refine).then(|| RefineOptions {
+            smoothness: a
+                .refine_smoothness
+                .unwrap_or(photostereo::sfs::perspective::refine::DEFAULT_SMOOTHNESS),
+            max_iterations: if a.refine_iterations > 0 {
+                a.refine_iterations
+            } else {
+                photostereo::sfs::perspective::refine::DEFAULT_MAX_ITERATIONS
+            },
+            ..RefineOptions::default()
+        }),
     };
     let r = photostereo::sfs::perspective::solve(image, mask, &k, &light, &options)?;
     let units = format!(
@@ -316,6 +330,19 @@ fn perspective(
         rep.seconds,
         rep.mean_abs_residual
     );
+    if let Some(f) = &rep.refinement {
+        say!(
+            "  refined: {} steps{} in {:.3} s over {} cells, energy {:.3e} -> {:.3e}, rms \
+             relative residual {:.4}",
+            f.iterations,
+            if f.converged { "" } else { " (not converged)" },
+            f.seconds,
+            f.cells,
+            f.energy_start,
+            f.energy_end,
+            f.rms_residual
+        );
+    }
     tell(rep, &a.output);
     Ok(())
 }

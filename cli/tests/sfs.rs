@@ -481,8 +481,9 @@ fn shape_from_shading_reports_progress() {
 }
 
 /// `photostereo sfs --method perspective` end to end on a rendered bust lit from the camera
-/// centre (a flash): absolute depth in the light position's units within 5% of its range,
-/// normals within 5°; with `--brdf oren-nayar` on a rough one; and the flags it needs or refuses.
+/// centre (a flash): normals within 5° and depth within 5% of its range (after removing its
+/// mean; with `--no-refine`, the swept solution, absolute depth in the light position's units
+/// within 5% too); with `--brdf oren-nayar` on a rough one; and the flags it needs or refuses.
 #[test]
 fn sfs_perspective_command_end_to_end() {
     use photostereo::synth::near::{NearPlacement, render_near};
@@ -497,6 +498,7 @@ fn sfs_perspective_command_end_to_end() {
     };
     for (name, material, brdf) in [
         ("lambert", Material::lambertian(), &[][..]),
+        ("swept", Material::lambertian(), &["--no-refine"][..]),
         (
             "rough",
             rough,
@@ -583,12 +585,23 @@ fn sfs_perspective_command_end_to_end() {
             }
         }
         let rmse = (se / n).sqrt() / (hi - lo);
+        let relative = depth_errors(&depth, &r.truth.depth, &r.truth.mask)
+            .unwrap()
+            .rmse_over_range;
         println!(
-            "{name}: normals {:.2}°, absolute depth RMSE {:.2}% of range",
+            "{name}: normals {:.2}°, depth RMSE {:.2}% of range ({:.2}% absolute)",
             ne.mean_deg,
+            100.0 * relative,
             100.0 * rmse
         );
-        assert!(ne.mean_deg < 5.0 && rmse < 0.05, "{name}");
+        assert!(ne.mean_deg < 5.0 && relative < 0.05, "{name}");
+        let said = String::from_utf8_lossy(&o.stdout);
+        if name == "swept" {
+            assert!(rmse < 0.05, "{name}");
+            assert!(!said.contains("refined:"), "{said}");
+        } else {
+            assert!(said.contains("refined:"), "{said}");
+        }
         let report: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
                 .unwrap();
@@ -622,6 +635,20 @@ fn sfs_perspective_command_end_to_end() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
         !o.status.success() && err.contains("--method perspective"),
+        "{err}"
+    );
+    let o = cli(&[
+        "sfs",
+        png.to_str().unwrap(),
+        "--method",
+        "horn",
+        "--no-refine",
+        "-o",
+        dir.path().join("w").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("--no-refine is for --method perspective"),
         "{err}"
     );
     let o = cli(&[

@@ -13,7 +13,7 @@ use crate::capture::lights::{Light, Lights};
 use crate::error::{Error, Result};
 use crate::eval::metrics::{angular_errors, depth_errors};
 use crate::nalgebra::Vector3;
-use crate::sfs::perspective::{PerspectiveOptions, PointLight};
+use crate::sfs::perspective::{PerspectiveOptions, PointLight, RefineOptions};
 use crate::sfs::reflectance_map::ReflectanceMap;
 use crate::sfs::{SfsMethod, SfsOptions, SfsResult, shape_from_shading};
 use crate::synth::near::{NearPlacement, render_near};
@@ -82,10 +82,23 @@ pub struct SfsRow {
     pub depth_absolute: Option<f64>,
     /// Iterations (sweeps for the perspective method).
     pub iterations: usize,
-    /// Whether the method met its tolerance.
+    /// Whether the method met its tolerance (and, refined, the refinement too).
     pub converged: bool,
+    /// Perspective: whether the swept solution was refined (and in how many steps); `None`
+    /// for the other methods.
+    pub refined: Option<usize>,
     /// Solve time, seconds.
     pub seconds: f64,
+}
+
+impl SfsRow {
+    /// The method's name, with "swept only" for the perspective method's unrefined solution.
+    pub fn label(&self) -> String {
+        match (self.method, self.refined) {
+            (SfsMethod::Perspective, None) => "perspective, swept only".to_string(),
+            (m, _) => m.name().to_string(),
+        }
+    }
 }
 
 /// The sweep's rows.
@@ -155,7 +168,18 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
                 &placement,
                 &RenderOptions::default(),
             )?;
-            for &method in &options.methods {
+            let runs: Vec<(SfsMethod, bool)> = options
+                .methods
+                .iter()
+                .flat_map(|&m| {
+                    if m == SfsMethod::Perspective {
+                        vec![(m, false), (m, true)]
+                    } else {
+                        vec![(m, false)]
+                    }
+                })
+                .collect();
+            for (method, refine) in runs {
                 let row = |refused: Option<String>| SfsRow {
                     scene: kind.name(),
                     slant_deg: slant,
@@ -166,6 +190,7 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
                     depth_absolute: None,
                     iterations: 0,
                     converged: false,
+                    refined: None,
                     seconds: 0.0,
                 };
                 let (result, truth) = if method == SfsMethod::Perspective {
@@ -179,6 +204,7 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
                         },
                         &PerspectiveOptions {
                             albedo: ALBEDO,
+                            refine: refine.then(RefineOptions::default),
                             ..PerspectiveOptions::default()
                         },
                     )?;
@@ -210,7 +236,13 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
                     depth: Some(depth),
                     depth_absolute,
                     iterations: result.report.iterations,
-                    converged: result.report.converged,
+                    converged: result.report.converged
+                        && result
+                            .report
+                            .refinement
+                            .as_ref()
+                            .is_none_or(|r| r.converged),
+                    refined: result.report.refinement.as_ref().map(|r| r.iterations),
                     seconds: result.report.seconds,
                     ..row(None)
                 });
@@ -245,8 +277,9 @@ fn absolute_rmse(r: &SfsResult, truth: &HeightField) -> Option<f64> {
 mod tests {
     use super::*;
 
-    /// A small sweep runs every method, refuses the inapplicable ones, and the perspective
-    /// method at the camera centre is the best on the bust.
+    /// A small sweep runs every method (the perspective one swept only and refined), refuses
+    /// the inapplicable ones, and the perspective method at the camera centre is the best on
+    /// the bust.
     #[test]
     fn small_sweep() {
         let report = sweep(&SfsSweepOptions {
@@ -259,7 +292,11 @@ mod tests {
             ],
         })
         .unwrap();
-        assert_eq!(report.rows.len(), SFS_SCENES.len() * 2 * 3);
+        assert_eq!(report.rows.len(), SFS_SCENES.len() * 2 * 4);
+        assert_eq!(
+            report.rows.iter().filter(|r| r.refined.is_some()).count(),
+            SFS_SCENES.len() * 2
+        );
         // Tsai–Shah refuses the frontal light, fast marching the oblique one.
         for r in &report.rows {
             let refused = r.refused.is_some();
@@ -273,7 +310,12 @@ mod tests {
             report
                 .rows
                 .iter()
-                .find(|r| r.scene == "bust" && r.slant_deg == 0.0 && r.method == m)
+                .find(|r| {
+                    r.scene == "bust"
+                        && r.slant_deg == 0.0
+                        && r.method == m
+                        && (m != SfsMethod::Perspective || r.refined.is_some())
+                })
                 .and_then(|r| r.normals_deg)
                 .unwrap()
         };

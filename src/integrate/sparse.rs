@@ -271,8 +271,14 @@ fn nested_dissection(u: &Unknowns) -> Vec<usize> {
         .iter()
         .map(|&p| ((p as usize % u.w) as u32, (p as usize / u.w) as u32))
         .collect();
-    let mut order = Vec::with_capacity(u.len());
-    let mut todo: Vec<Vec<u32>> = vec![(0..u.len() as u32).collect()];
+    nested_dissection_of(&coords, 1)
+}
+
+/// The same ordering for unknowns at pixel positions `coords` (column, row) coupled up to
+/// `width` pixels apart along each axis: the separators are `width` lines of pixels thick.
+pub(crate) fn nested_dissection_of(coords: &[(u32, u32)], width: u32) -> Vec<usize> {
+    let mut order = Vec::with_capacity(coords.len());
+    let mut todo: Vec<Vec<u32>> = vec![(0..coords.len() as u32).collect()];
     // Iterative post-order: regions are emitted as (halves…, separator) by pushing markers.
     enum Task {
         Split(Vec<u32>),
@@ -309,10 +315,13 @@ fn nested_dissection(u: &Unknowns) -> Vec<usize> {
                 let m = *m;
                 let (mut lo, mut hi, mut sep) = (Vec::new(), Vec::new(), Vec::new());
                 for k in set {
-                    match key(k).cmp(&m) {
-                        std::cmp::Ordering::Less => lo.push(k),
-                        std::cmp::Ordering::Greater => hi.push(k),
-                        std::cmp::Ordering::Equal => sep.push(k),
+                    let v = key(k);
+                    if v < m {
+                        lo.push(k);
+                    } else if v >= m + width {
+                        hi.push(k);
+                    } else {
+                        sep.push(k);
                     }
                 }
                 // Processed in stack order: lo, then hi, then the separator.
@@ -338,7 +347,8 @@ pub(crate) struct Direct {
     anchors: Vec<usize>,
 }
 
-fn faer_err(e: impl std::fmt::Display) -> Error {
+/// A faer factorisation error as the crate's error (parameter `solver`).
+pub(crate) fn faer_err(e: impl std::fmt::Display) -> Error {
     Error::param("solver", format!("sparse factorisation failed: {e}"))
 }
 

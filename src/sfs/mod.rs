@@ -176,15 +176,17 @@ pub struct SfsReport {
     pub albedo: f64,
     /// Pixels solved.
     pub pixels: usize,
-    /// Pixels darker than the shadow level.
+    /// Pixels darker than the shadow level (perspective: pixels whose depth was not fitted to
+    /// their own brightness, see [`perspective::solve`]).
     pub shadow_pixels: usize,
     /// Pixels brighter than the albedo allows (E/ρ > 1).
     pub too_bright_pixels: usize,
     /// Singular points (E/ρ ≈ 1) used as sources (fast marching).
     pub singular_points: usize,
-    /// Iterations run.
+    /// Iterations run (perspective: sweeps, at the resolution swept; the refinement's steps are
+    /// in `refinement`).
     pub iterations: usize,
-    /// Whether the iteration met its tolerance.
+    /// Whether the iteration met its tolerance (perspective: the sweeps').
     pub converged: bool,
     /// Mean |E/ρ − R(p, q)| over lit pixels: how well the result explains the image.
     pub mean_abs_residual: f64,
@@ -196,6 +198,8 @@ pub struct SfsReport {
     pub assumptions: Vec<String>,
     /// What looks wrong.
     pub warnings: Vec<String>,
+    /// The variational refinement's report (perspective only; `None` when not run).
+    pub refinement: Option<perspective::RefineReport>,
 }
 
 /// The result of [`shape_from_shading`].
@@ -470,6 +474,7 @@ fn finish(
         seconds: start.elapsed().as_secs_f64(),
         assumptions: solved.assumptions,
         warnings,
+        refinement: None,
     };
     Ok(SfsResult {
         depth,

@@ -47,6 +47,13 @@
 //! no pixel's ln Z moves by more than the tolerance; a run that hits the sweep limit first says
 //! so.
 //!
+//! # Refinement
+//! The swept solution is first order and, where the light grazes the surface or cast shadows
+//! cut the characteristics, determined only by what flows in from upstream. [`refine`] then
+//! fits the whole image from it (least squares over 2×2 cells of lit pixels plus a small
+//! curvature penalty, Gauss–Newton with a sparse Cholesky factorisation): on the rendered test
+//! shapes with the light 30° off the axis, 5–9° → 1.8–3.3° (see `docs/shape-from-shading.md`).
+//!
 //! # Assumptions and failure modes
 //! - The light's position and intensity, the camera and the albedo are known, in consistent
 //!   units: the depth comes out absolute, in the units of the light's position. A wrong albedo
@@ -67,6 +74,9 @@ use crate::sfs::{SfsMethod, SfsReport, SfsResult};
 use crate::synth::reflectance::{Diffuse, Material};
 use nalgebra::Vector3;
 use std::time::Instant;
+
+pub mod refine;
+pub use refine::{RefineOptions, RefineReport};
 
 /// Default sweep limit of [`solve`].
 pub const DEFAULT_MAX_SWEEPS: usize = 400;
@@ -114,6 +124,9 @@ pub struct PerspectiveOptions {
     /// warm start, for example the result at a lower resolution. Values above the bound are
     /// lowered to it; NaN pixels start at the bound.
     pub start: Option<ScalarMap>,
+    /// The variational refinement of the swept depth ([`refine`]); `None` returns the
+    /// viscosity solution as swept.
+    pub refine: Option<RefineOptions>,
 }
 
 impl Default for PerspectiveOptions {
@@ -125,6 +138,7 @@ impl Default for PerspectiveOptions {
             max_sweeps: 0,
             tolerance: 0.0,
             start: None,
+            refine: Some(RefineOptions::default()),
         }
     }
 }
@@ -184,6 +198,25 @@ impl Brightness {
                 let x = c * (t.len() - 1) as f64;
                 let k = (x as usize).min(t.len() - 2);
                 t[k] + (t[k + 1] - t[k]) * (x - k as f64)
+            }
+        }
+    }
+
+    /// F(c) continued linearly beyond [0, 1] (with its slope at each end): smooth, so that a
+    /// fit can pull a lit pixel whose current normal faces away from the light back towards
+    /// it, where the clamped F would give it no gradient.
+    fn eval_extended(&self, c: f64) -> f64 {
+        match self {
+            Brightness::Lambert(r) => r * c,
+            Brightness::Table(t) => {
+                let n = (t.len() - 1) as f64;
+                if c < 0.0 {
+                    t[0] + (t[1] - t[0]) * n * c
+                } else if c > 1.0 {
+                    t[t.len() - 1] + (t[t.len() - 1] - t[t.len() - 2]) * n * (c - 1.0)
+                } else {
+                    self.eval(c)
+                }
             }
         }
     }
@@ -513,20 +546,26 @@ fn solve_frozen(
 /// Perspective shape from shading of `image` (linear brightness) inside `mask`, seen by
 /// `camera` under the point `light` (see the module documentation).
 ///
+/// The swept solution is refined by [`refine`] unless [`PerspectiveOptions::refine`] is `None`;
+/// with the refinement on, a mask of more than 2¹⁴ pixels is swept at half resolution
+/// (recursively), refined there, and upsampled as the start of the refinement.
+///
 /// Returns depth along the optical axis (positive, in the units of the light's position),
 /// unit normals in the camera frame (z towards the viewer), the orthographic gradients of
 /// those normals (p = −n_x/n_z, q = −n_y/n_z), the residual (I − I_model)·d²/(Φ F(1)), the
-/// pixels whose depth was interpolated from their neighbours (`shadow`: in shadow, or lit where
-/// the scheme has no solution; counted together in the report's `shadow_pixels`; lit pixels of
-/// the occluding contour, extrapolated in a straight line from inside, are not among them), and
-/// a report whose `light` is the unit direction from the surface's centre to the light.
+/// pixels whose depth was not fitted to their own brightness (`shadow`, counted in the report's
+/// `shadow_pixels`: refined, the pixels that are a corner of no 2×2 block of lit pixels; swept
+/// only, those in shadow or lit where the scheme has no solution, while lit pixels of the
+/// occluding contour, extrapolated in a straight line from inside, are not among them), and a
+/// report whose `light` is the unit direction from the surface's centre to the light and whose
+/// `refinement` says what the refinement did.
 ///
 /// # Errors
 /// [`Error::InvalidParameter`] when the sizes differ, the mask is empty or holds a non-finite
-/// or negative brightness, the light's intensity, the albedo, the shadow level or the
-/// tolerance is out of range, the light is not in front of the camera's plane, the material is
-/// non-Lambertian and the light is not at the camera centre, or the material's brightness does
-/// not grow with cos θ.
+/// or negative brightness, the light's intensity, the albedo, the shadow level, the tolerance or
+/// a refinement option is out of range, the light is not in front of the camera's plane, the
+/// material is non-Lambertian and the light is not at the camera centre, or the material's
+/// brightness does not grow with cos θ.
 pub fn solve(
     image: &ScalarMap,
     mask: &Mask,
@@ -695,7 +734,9 @@ pub fn solve(
         fy: camera.fy,
     };
 
-    // Start: the brightness bound (a supersolution), or the warm start below it.
+    // The swept solution on the whole mask: at this resolution, or (for a large mask that is
+    // to be refined) the refined solution of the half-resolution image, upsampled.
+    // The brightness bound of each lit pixel: where cos θ = 1, the largest depth it allows.
     let mut too_bright = 0usize;
     let upper: Vec<f64> = pixels
         .iter()
@@ -718,156 +759,237 @@ pub fn solve(
             ),
         ));
     }
-    let lower: Vec<f64> = pixels
-        .iter()
-        .zip(&upper)
-        .map(|(p, &u)| model.lower(p).min(u))
-        .collect();
-    let mut z = upper.clone();
-    if let Some(start) = &options.start {
-        start.check_same_size(mask, "start depth")?;
-        for (k, &pix) in u.pixel.iter().enumerate() {
-            let v = f64::from(start.data()[pix as usize]);
-            if v.is_finite() && v > 0.0 {
-                z[k] = v.ln().min(upper[k]);
+    if let Some(r) = &options.refine {
+        r.validate()?;
+    }
+    let sweep = || -> Result<Swept> {
+        // Start: the brightness bound (a supersolution), or the warm start below it.
+        let lower: Vec<f64> = pixels
+            .iter()
+            .zip(&upper)
+            .map(|(p, &u)| model.lower(p).min(u))
+            .collect();
+        let mut z = upper.clone();
+        if let Some(start) = &options.start {
+            start.check_same_size(mask, "start depth")?;
+            for (k, &pix) in u.pixel.iter().enumerate() {
+                let v = f64::from(start.data()[pix as usize]);
+                if v.is_finite() && v > 0.0 {
+                    z[k] = v.ln().min(upper[k]);
+                }
             }
         }
-    }
 
-    // Fast sweeping: Gauss–Seidel in the four raster directions.
-    let index = {
-        let mut idx = vec![NONE; w * h];
-        for (k, &p) in u.pixel.iter().enumerate() {
-            idx[p as usize] = k as u32;
-        }
-        idx
-    };
-    let nb = |z: &[f64], k: usize| {
-        let get = |j: u32| (j != NONE).then(|| z[j as usize]);
-        [
-            get(u.left[k]),
-            get(u.right[k]),
-            get(u.up[k]),
-            get(u.down[k]),
-        ]
-    };
-    let Some(window) = domain.bounding_box() else {
-        return Err(Error::param(
-            "image",
-            "every pixel of the mask is in shadow",
-        ));
-    };
-    let (c0, c1, r0, r1) = (window.x0, window.x1 - 1, window.y0, window.y1 - 1);
-    let mut rootless = vec![false; n];
-    // A pixel is revisited only when a neighbour moved since its last update (its own
-    // equation was then solved exactly): later sweeps touch only the pixels still moving.
-    let mut dirty = vec![true; n];
-    let settled = 0.01 * tolerance;
-    let mut sweeps = 0;
-    let mut converged = false;
-    let mut last_change = f64::INFINITY;
-    while sweeps < max_sweeps {
-        let (rev_r, rev_c) =
-            [(false, false), (true, true), (false, true), (true, false)][sweeps % 4];
-        let mut change = 0f64;
-        for ri in 0..=(r1 - r0) {
-            let r = if rev_r { r1 - ri } else { r0 + ri };
-            for ci in 0..=(c1 - c0) {
-                let c = if rev_c { c1 - ci } else { c0 + ci };
-                let k = index[r * w + c];
-                if k == NONE {
-                    continue;
-                }
-                let k = k as usize;
-                if !dirty[k] {
-                    continue;
-                }
-                dirty[k] = false;
-                // No root with these neighbours: the pixel waits for them to settle.
-                let Some(new) =
-                    solve_pixel(&model, &pixels[k], z[k], (lower[k], upper[k]), nb(&z, k))
-                else {
-                    rootless[k] = true;
-                    continue;
-                };
-                rootless[k] = false;
-                let moved = (new - z[k]).abs();
-                change = change.max(moved);
-                z[k] = new;
-                if moved > settled {
-                    for j in [u.left[k], u.right[k], u.up[k], u.down[k]] {
-                        if j != NONE {
-                            dirty[j as usize] = true;
+        // Fast sweeping: Gauss–Seidel in the four raster directions.
+        let index = {
+            let mut idx = vec![NONE; w * h];
+            for (k, &p) in u.pixel.iter().enumerate() {
+                idx[p as usize] = k as u32;
+            }
+            idx
+        };
+        let nb = |z: &[f64], k: usize| {
+            let get = |j: u32| (j != NONE).then(|| z[j as usize]);
+            [
+                get(u.left[k]),
+                get(u.right[k]),
+                get(u.up[k]),
+                get(u.down[k]),
+            ]
+        };
+        let Some(window) = domain.bounding_box() else {
+            return Err(Error::param(
+                "image",
+                "every pixel of the mask is in shadow",
+            ));
+        };
+        let (c0, c1, r0, r1) = (window.x0, window.x1 - 1, window.y0, window.y1 - 1);
+        let mut rootless = vec![false; n];
+        // A pixel is revisited only when a neighbour moved since its last update (its own
+        // equation was then solved exactly): later sweeps touch only the pixels still moving.
+        let mut dirty = vec![true; n];
+        let settled = 0.01 * tolerance;
+        let mut sweeps = 0;
+        let mut converged = false;
+        let mut last_change = f64::INFINITY;
+        while sweeps < max_sweeps {
+            let (rev_r, rev_c) =
+                [(false, false), (true, true), (false, true), (true, false)][sweeps % 4];
+            let mut change = 0f64;
+            for ri in 0..=(r1 - r0) {
+                let r = if rev_r { r1 - ri } else { r0 + ri };
+                for ci in 0..=(c1 - c0) {
+                    let c = if rev_c { c1 - ci } else { c0 + ci };
+                    let k = index[r * w + c];
+                    if k == NONE {
+                        continue;
+                    }
+                    let k = k as usize;
+                    if !dirty[k] {
+                        continue;
+                    }
+                    dirty[k] = false;
+                    // No root with these neighbours: the pixel waits for them to settle.
+                    let Some(new) =
+                        solve_pixel(&model, &pixels[k], z[k], (lower[k], upper[k]), nb(&z, k))
+                    else {
+                        rootless[k] = true;
+                        continue;
+                    };
+                    rootless[k] = false;
+                    let moved = (new - z[k]).abs();
+                    change = change.max(moved);
+                    z[k] = new;
+                    if moved > settled {
+                        for j in [u.left[k], u.right[k], u.up[k], u.down[k]] {
+                            if j != NONE {
+                                dirty[j as usize] = true;
+                            }
                         }
                     }
                 }
             }
+            sweeps += 1;
+            last_change = change;
+            if change <= tolerance {
+                converged = true;
+                break;
+            }
         }
-        sweeps += 1;
-        last_change = change;
-        if change <= tolerance {
-            converged = true;
-            break;
-        }
-    }
 
-    // Depth on the whole mask: shadowed pixels filled harmonically from the solved ones.
-    let mut lnz = vec![f64::NAN; all.len()];
-    let mut known = vec![false; all.len()];
-    {
-        let mut pos = vec![NONE; w * h];
-        for (k, &p) in all.pixel.iter().enumerate() {
-            pos[p as usize] = k as u32;
-        }
-        for (k, &p) in u.pixel.iter().enumerate() {
-            if !rootless[k] {
-                let j = pos[p as usize] as usize;
-                lnz[j] = z[k];
-                known[j] = true;
+        // Depth on the whole mask: shadowed pixels filled harmonically from the solved ones.
+        let mut lnz = vec![f64::NAN; all.len()];
+        let mut known = vec![false; all.len()];
+        {
+            let mut pos = vec![NONE; w * h];
+            for (k, &p) in all.pixel.iter().enumerate() {
+                pos[p as usize] = k as u32;
+            }
+            for (k, &p) in u.pixel.iter().enumerate() {
+                if !rootless[k] {
+                    let j = pos[p as usize] as usize;
+                    lnz[j] = z[k];
+                    known[j] = true;
+                }
             }
         }
-    }
-    // Contour pixels: the straight line through the two pixels inside, along each axis that
-    // leaves the mask (their mean where two do).
-    let mut extrapolated = 0usize;
-    let mut line_fill = Vec::new();
-    for k in 0..all.len() {
-        let pix = all.pixel[k] as usize;
-        if known[k] || !contour.data()[pix] || f64::from(image.data()[pix]) <= shadow_at {
-            continue;
-        }
-        let inner = |j: u32, step: fn(&Unknowns, usize) -> u32| -> Option<f64> {
-            if j == NONE || !known[j as usize] {
-                return None;
+        // Contour pixels: the straight line through the two pixels inside, along each axis that
+        // leaves the mask (their mean where two do).
+        let mut extrapolated = 0usize;
+        let mut line_fill = Vec::new();
+        for k in 0..all.len() {
+            let pix = all.pixel[k] as usize;
+            if known[k] || !contour.data()[pix] || f64::from(image.data()[pix]) <= shadow_at {
+                continue;
             }
-            let j2 = step(&all, j as usize);
-            if j2 == NONE || !known[j2 as usize] {
-                return None;
+            let inner = |j: u32, step: fn(&Unknowns, usize) -> u32| -> Option<f64> {
+                if j == NONE || !known[j as usize] {
+                    return None;
+                }
+                let j2 = step(&all, j as usize);
+                if j2 == NONE || !known[j2 as usize] {
+                    return None;
+                }
+                Some(2.0 * lnz[j as usize] - lnz[j2 as usize])
+            };
+            let mut candidates = Vec::with_capacity(2);
+            if all.left[k] == NONE || all.right[k] == NONE {
+                candidates.extend(
+                    inner(all.right[k], |u, j| u.right[j])
+                        .or_else(|| inner(all.left[k], |u, j| u.left[j])),
+                );
             }
-            Some(2.0 * lnz[j as usize] - lnz[j2 as usize])
-        };
-        let mut candidates = Vec::with_capacity(2);
-        if all.left[k] == NONE || all.right[k] == NONE {
-            candidates.extend(
-                inner(all.right[k], |u, j| u.right[j])
-                    .or_else(|| inner(all.left[k], |u, j| u.left[j])),
-            );
+            if all.up[k] == NONE || all.down[k] == NONE {
+                candidates.extend(
+                    inner(all.down[k], |u, j| u.down[j])
+                        .or_else(|| inner(all.up[k], |u, j| u.up[j])),
+                );
+            }
+            if !candidates.is_empty() {
+                line_fill.push((k, candidates.iter().sum::<f64>() / candidates.len() as f64));
+            }
         }
-        if all.up[k] == NONE || all.down[k] == NONE {
-            candidates.extend(
-                inner(all.down[k], |u, j| u.down[j]).or_else(|| inner(all.up[k], |u, j| u.up[j])),
-            );
+        for (k, v) in line_fill {
+            lnz[k] = v;
+            known[k] = true;
+            extrapolated += 1;
         }
-        if !candidates.is_empty() {
-            line_fill.push((k, candidates.iter().sum::<f64>() / candidates.len() as f64));
+        let unfilled = fill_harmonic(&all, &mut lnz, &known);
+        let singular = z
+            .iter()
+            .zip(&upper)
+            .filter(|(a, b)| (*b - *a) < 1e-6)
+            .count();
+        Ok(Swept {
+            lnz,
+            known,
+            sweeps,
+            converged,
+            last_change,
+            grazing: rootless.iter().filter(|&&b| b).count(),
+            extrapolated,
+            unfilled,
+            singular,
+            coarse: None,
+        })
+    };
+    let Swept {
+        mut lnz,
+        mut known,
+        sweeps,
+        converged,
+        last_change,
+        grazing,
+        extrapolated,
+        unfilled,
+        singular,
+        coarse,
+    } = match coarse_start(image, mask, camera, light, options, &all)? {
+        Some(swept) => swept,
+        None => sweep()?,
+    };
+
+    // The variational refinement, from the swept and filled depth, on every pixel with one.
+    let refinement = match &options.refine {
+        None => None,
+        Some(refine_options) => {
+            let keep: Vec<usize> = (0..all.len()).filter(|&k| lnz[k].is_finite()).collect();
+            let sites: Vec<refine::Site> = keep
+                .iter()
+                .map(|&k| {
+                    let pix = all.pixel[k] as usize;
+                    let px = pixel_of(pix);
+                    refine::Site {
+                        xi: px.xi,
+                        eta: px.eta,
+                        i: px.i,
+                        lit: px.i > shadow_at,
+                    }
+                })
+                .collect();
+            let grid: Vec<(usize, usize)> = keep
+                .iter()
+                .map(|&k| {
+                    let pix = all.pixel[k] as usize;
+                    (pix / w, pix % w)
+                })
+                .collect();
+            let problem = refine::Problem::new(&model, &sites, &grid, w, h);
+            let mut zk: Vec<f64> = keep.iter().map(|&k| lnz[k]).collect();
+            let report = refine::refine(&problem, &mut zk, refine_options)?;
+            let fitted = problem.fitted();
+            if report.cells > 0 {
+                for k in known.iter_mut() {
+                    *k = false;
+                }
+                for (t, &k) in keep.iter().enumerate() {
+                    lnz[k] = zk[t];
+                    known[k] = fitted[t];
+                }
+            }
+            Some(report)
         }
-    }
-    for (k, v) in line_fill {
-        lnz[k] = v;
-        known[k] = true;
-        extrapolated += 1;
-    }
-    let unfilled = fill_harmonic(&all, &mut lnz, &known);
+    };
     let depth_v: Vec<f64> = lnz.iter().map(|v| v.exp()).collect();
     let depth = all.to_map(&depth_v);
 
@@ -929,11 +1051,6 @@ pub fn solve(
         .to_degrees();
     let light_dir = [to_light.x, -to_light.y, -to_light.z];
     let mean_abs_residual = if lit > 0 { abs_sum / lit as f64 } else { 0.0 };
-    let singular = z
-        .iter()
-        .zip(&upper)
-        .filter(|(a, b)| (*b - *a) < 1e-6)
-        .count();
     let curl = crate::ps::normals::integrability(&pmap, &qmap).summary;
     let mut assumptions = vec![
         "perspective camera, point light with inverse-square fall-off: the unique viscosity \
@@ -944,10 +1061,24 @@ pub fn solve(
             options.albedo, light.intensity
         ),
     ];
-    if extrapolated > 0 {
+    if extrapolated > 0 && refinement.is_none() {
         assumptions.push(format!(
             "{extrapolated} pixels on the occluding contour continue the depth inside in a \
              straight line"
+        ));
+    }
+    if let Some((cw, ch)) = &coarse {
+        assumptions.push(format!(
+            "swept at {cw}×{ch} (halving the resolution until the mask has at most \
+             {SWEEP_AT_MOST} pixels), refined at each resolution from the one below"
+        ));
+    }
+    if let Some(r) = &refinement {
+        assumptions.push(format!(
+            "refined: the depth of least squared image residual over {} cells of lit pixels \
+             plus {} times its squared second differences, from the swept solution (a local \
+             minimum near it); shadowed pixels continue the lit surface with least curvature",
+            r.cells, r.smoothness
         ));
     }
     if at_camera {
@@ -959,8 +1090,9 @@ pub fn solve(
     }
     let mut warnings = Vec::new();
     if !converged {
+        let at = coarse.map_or(String::new(), |(cw, ch)| format!(" at {cw}×{ch}"));
         warnings.push(format!(
-            "perspective stopped at its limit of {max_sweeps} sweeps without converging \
+            "perspective stopped at its limit of {max_sweeps} sweeps{at} without converging \
              (last change of ln Z {last_change:.2e}, tolerance {tolerance:.1e})"
         ));
     }
@@ -968,6 +1100,16 @@ pub fn solve(
         warnings.push(format!(
             "{too_bright} of {n} pixels are brighter than the light can make them at any \
              depth: the albedo or the light's intensity is too low, or the light is misplaced"
+        ));
+    }
+    if let Some(r) = refinement.as_ref().filter(|r| !r.converged) {
+        warnings.push(format!(
+            "the refinement stopped at its limit of {} step{} without converging (energy \
+             {:.3e} from {:.3e})",
+            r.iterations,
+            if r.iterations == 1 { "" } else { "s" },
+            r.energy_end,
+            r.energy_start
         ));
     }
     let shadow_pixels = shadow.count();
@@ -978,8 +1120,7 @@ pub fn solve(
             all.len()
         ));
     }
-    let grazing = rootless.iter().filter(|&&b| b).count();
-    if grazing > 0 {
+    if grazing > 0 && refinement.is_none() {
         let what = format!(
             "{grazing} of {n} lit pixels have no solution of the scheme (typically where the \
              light grazes the surface): their depth is interpolated from their neighbours"
@@ -1017,6 +1158,7 @@ pub fn solve(
         seconds: started.elapsed().as_secs_f64(),
         assumptions,
         warnings,
+        refinement,
     };
     Ok(SfsResult {
         depth,
@@ -1027,6 +1169,158 @@ pub fn solve(
         shadow,
         report,
     })
+}
+
+/// Masks of more pixels than this are swept at half resolution (recursively) when the result
+/// is refined: the refinement needs only a start on the right branch, and the sweeps cost
+/// more per pixel than the refinement's steps from an upsampled start.
+const SWEEP_AT_MOST: usize = 1 << 14;
+
+/// The swept (or upsampled) ln-depth on every pixel of the mask, and what the sweeps did.
+struct Swept {
+    /// ln Z per pixel of the mask (NaN where no value could be filled).
+    lnz: Vec<f64>,
+    /// Whether the value was solved (not interpolated).
+    known: Vec<bool>,
+    /// Sweeps (at the resolution swept).
+    sweeps: usize,
+    converged: bool,
+    last_change: f64,
+    /// Lit pixels with no root of the scheme.
+    grazing: usize,
+    /// Contour pixels extrapolated.
+    extrapolated: usize,
+    /// Pixels left without a value.
+    unfilled: usize,
+    singular: usize,
+    /// For an upsampled start: the size swept (half resolution, or less recursively).
+    coarse: Option<(usize, usize)>,
+}
+
+/// For a large mask whose result is to be refined: the solution of the half-resolution image
+/// (each 2×2 block of mask pixels averaged, the camera scaled), upsampled bilinearly in ln Z to
+/// every pixel of `all`. `None` when the mask is small enough to sweep, refinement is off, a
+/// start is given, or no 2×2 block lies in the mask.
+fn coarse_start(
+    image: &ScalarMap,
+    mask: &Mask,
+    camera: &Intrinsics,
+    light: &PointLight,
+    options: &PerspectiveOptions,
+    all: &Unknowns,
+) -> Result<Option<Swept>> {
+    if options.refine.is_none() || options.start.is_some() || all.len() <= SWEEP_AT_MOST {
+        return Ok(None);
+    }
+    let (w, h) = (image.width(), image.height());
+    let (cw, ch) = (w / 2, h / 2);
+    if cw < 2 || ch < 2 {
+        return Ok(None);
+    }
+    let block = |c: usize, r: usize| {
+        [
+            (2 * c, 2 * r),
+            (2 * c + 1, 2 * r),
+            (2 * c, 2 * r + 1),
+            (2 * c + 1, 2 * r + 1),
+        ]
+    };
+    let cmask = Grid::from_fn(cw, ch, |c, r| {
+        block(c, r).iter().all(|&(x, y)| *mask.at(x, y))
+    });
+    if cmask.count() == 0 {
+        return Ok(None);
+    }
+    let cimage = Grid::from_fn(cw, ch, |c, r| {
+        if *cmask.at(c, r) {
+            block(c, r)
+                .iter()
+                .map(|&(x, y)| *image.at(x, y))
+                .sum::<f32>()
+                / 4.0
+        } else {
+            0.0
+        }
+    });
+    // Block (c, r) covers pixels 2c and 2c + 1: its centre is pixel 2c + 0.5.
+    let ccam = Intrinsics {
+        fx: camera.fx / 2.0,
+        fy: camera.fy / 2.0,
+        cx: (camera.cx - 0.5) / 2.0,
+        cy: (camera.cy - 0.5) / 2.0,
+    };
+    // Whatever fails at half resolution (a mask too thin to have lit blocks, say) is swept at
+    // full resolution instead.
+    let Ok(coarse) = solve(&cimage, &cmask, &ccam, light, options) else {
+        return Ok(None);
+    };
+    let clnz = coarse.depth.map(|&d| {
+        let d = f64::from(d);
+        if d.is_finite() && d > 0.0 {
+            d.ln()
+        } else {
+            f64::NAN
+        }
+    });
+    let mut lnz = vec![f64::NAN; all.len()];
+    let mut known = vec![false; all.len()];
+    for (k, &pix) in all.pixel.iter().enumerate() {
+        let (c, r) = (pix as usize % w, pix as usize / w);
+        // Pixel c sits at (c − 0.5)/2 on the half-resolution grid.
+        let x = ((c as f64 - 0.5) / 2.0).clamp(0.0, (cw - 1) as f64);
+        let y = ((r as f64 - 0.5) / 2.0).clamp(0.0, (ch - 1) as f64);
+        let (x0, y0) = ((x as usize).min(cw - 2), (y as usize).min(ch - 2));
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let (mut sum, mut weight) = (0.0, 0.0);
+        for (dx, dy, wt) in [
+            (0, 0, (1.0 - fx) * (1.0 - fy)),
+            (1, 0, fx * (1.0 - fy)),
+            (0, 1, (1.0 - fx) * fy),
+            (1, 1, fx * fy),
+        ] {
+            let v = *clnz.at(x0 + dx, y0 + dy);
+            if v.is_finite() && wt > 0.0 {
+                sum += wt * v;
+                weight += wt;
+            }
+        }
+        if weight > 1e-9 {
+            lnz[k] = sum / weight;
+            known[k] = true;
+        }
+    }
+    // A part of the mask with no 2×2 block has no value at half resolution: sweep it all.
+    if fill_harmonic(all, &mut lnz, &known) > 0 {
+        return Ok(None);
+    }
+    let r = &coarse.report;
+    Ok(Some(Swept {
+        lnz,
+        known,
+        sweeps: r.iterations,
+        converged: r.converged,
+        last_change: 0.0,
+        grazing: 0,
+        extrapolated: 0,
+        unfilled: 0,
+        singular: r.singular_points,
+        coarse: Some(swept_size(r, cw, ch)),
+    }))
+}
+
+/// The size actually swept below a half-resolution solve of `cw × ch`: read back from its
+/// assumptions when it too was swept at half resolution.
+fn swept_size(report: &SfsReport, cw: usize, ch: usize) -> (usize, usize) {
+    report
+        .assumptions
+        .iter()
+        .find_map(|a| {
+            let rest = a.strip_prefix("swept at ")?;
+            let (size, _) = rest.split_once(' ')?;
+            let (x, y) = size.split_once('×')?;
+            Some((x.parse().ok()?, y.parse().ok()?))
+        })
+        .unwrap_or((cw, ch))
 }
 
 /// Fills the unknown entries of `v` (on `u`'s pixels) with the harmonic interpolation of the
