@@ -610,57 +610,37 @@ fn sfs_perspective_command_end_to_end() {
     }
     // What the method needs, and what the others refuse.
     let png = dir.path().join("lambert.png");
-    let o = cli(&[
-        "sfs",
-        png.to_str().unwrap(),
-        "--method",
-        "perspective",
-        "--light-position",
-        "0,0,0",
-        "-o",
-        dir.path().join("x").to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("--camera"), "{err}");
-    let o = cli(&[
-        "sfs",
-        png.to_str().unwrap(),
-        "--method",
-        "horn",
-        "--light-position",
-        "0,0,0",
-        "-o",
-        dir.path().join("y").to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        !o.status.success() && err.contains("--method perspective"),
-        "{err}"
-    );
-    let o = cli(&[
-        "sfs",
-        png.to_str().unwrap(),
-        "--method",
-        "horn",
-        "--no-refine",
-        "-o",
-        dir.path().join("w").to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        !o.status.success() && err.contains("--no-refine is for --method perspective"),
-        "{err}"
-    );
-    let o = cli(&[
-        "sfs",
-        png.to_str().unwrap(),
-        "--shininess",
-        "10",
-        "-o",
-        dir.path().join("z").to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("--shininess"), "{err}");
+    let png = png.to_str().unwrap();
+    // Each refused with the flag it needs or does not accept named.
+    for (k, (args, needle)) in [
+        (
+            &["--method", "perspective", "--light-position", "0,0,0"][..],
+            "--camera",
+        ),
+        (
+            &["--method", "horn", "--light-position", "0,0,0"][..],
+            "--method perspective",
+        ),
+        (
+            &["--method", "horn", "--no-refine"][..],
+            "--no-refine is for --method perspective",
+        ),
+        (&["--shininess", "10"][..], "--shininess"),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let out = dir.path().join(format!("refused_{k}"));
+        let mut all = vec!["sfs", png];
+        all.extend_from_slice(args);
+        all.extend_from_slice(&["-o", out.to_str().unwrap()]);
+        let o = cli(&all);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && err.contains(needle),
+            "{args:?}: {err}"
+        );
+    }
 }
 
 /// `--brdf` reaches the distant-light methods: a rough (Oren–Nayar) sphere at an oblique light

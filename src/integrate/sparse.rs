@@ -337,7 +337,6 @@ pub(crate) fn nested_dissection_of(coords: &[(u32, u32)], width: u32) -> Vec<usi
 /// A sparse Cholesky factorisation of stencils with the sparsity of `Unknowns`, analysed once
 /// (ordering and symbolic factorisation) and refactorised numerically for each new matrix.
 pub(crate) struct Direct {
-    n: usize,
     /// Which of (right, down) each column stores below its diagonal.
     neighbours: Vec<(bool, bool)>,
     col_ptr: Vec<usize>,
@@ -347,8 +346,80 @@ pub(crate) struct Direct {
     anchors: Vec<usize>,
 }
 
+/// The symbolic Cholesky factorisation of the symmetric matrices whose lower triangle has the
+/// pattern (`col_ptr`, `row_idx`; rows sorted in each column), in the fill-reducing `order`.
+///
+/// # Errors
+/// [`Error::InvalidParameter`] (`solver`) when faer refuses the pattern.
+pub(crate) fn symbolic_cholesky(
+    col_ptr: &[usize],
+    row_idx: &[usize],
+    order: Vec<usize>,
+) -> Result<SymbolicCholesky<usize>> {
+    let n = order.len();
+    let mut inverse = vec![0usize; n];
+    for (k, &p) in order.iter().enumerate() {
+        inverse[p] = k;
+    }
+    let sym = SymbolicSparseColMat::new_checked(n, n, col_ptr.to_vec(), None, row_idx.to_vec());
+    let perm = faer::perm::PermRef::new_checked(&order, &inverse, n);
+    factorize_symbolic_cholesky(
+        sym.as_ref(),
+        Side::Lower,
+        SymmetricOrdering::Custom(perm),
+        Default::default(),
+    )
+    .map_err(faer_err)
+}
+
+/// Factorises the symmetric positive definite matrix whose lower triangle has the pattern
+/// (`col_ptr`, `row_idx`) analysed by `symbolic` and the `values`, and solves A x = b in place
+/// (`x` holds b on entry).
+///
+/// # Errors
+/// [`Error::InvalidParameter`] (`solver`) when the factorisation fails (the matrix is not
+/// positive definite) or its scratch cannot be allocated.
+pub(crate) fn cholesky_solve(
+    symbolic: &SymbolicCholesky<usize>,
+    col_ptr: &[usize],
+    row_idx: &[usize],
+    values: &[f64],
+    par: Par,
+    x: &mut [f64],
+) -> Result<()> {
+    let n = x.len();
+    let mat = SparseColMatRef::new(
+        faer::sparse::SymbolicSparseColMatRef::new_checked(n, n, col_ptr, None, row_idx),
+        values,
+    );
+    let mut l_values = crate::buffer::zeroed_f64(symbolic.len_val());
+    let mut mem =
+        MemBuffer::try_new(symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default()))
+            .map_err(faer_err)?;
+    let llt = symbolic
+        .factorize_numeric_llt(
+            &mut l_values,
+            mat,
+            Side::Lower,
+            Default::default(),
+            par,
+            MemStack::new(&mut mem),
+            Default::default(),
+        )
+        .map_err(faer_err)?;
+    let mut mem =
+        MemBuffer::try_new(symbolic.solve_in_place_scratch::<f64>(1, par)).map_err(faer_err)?;
+    llt.solve_in_place_with_conj(
+        Conj::No,
+        MatMut::from_column_major_slice_mut(x, n, 1),
+        par,
+        MemStack::new(&mut mem),
+    );
+    Ok(())
+}
+
 /// A faer factorisation error as the crate's error (parameter `solver`).
-pub(crate) fn faer_err(e: impl std::fmt::Display) -> Error {
+fn faer_err(e: impl std::fmt::Display) -> Error {
     Error::param("solver", format!("sparse factorisation failed: {e}"))
 }
 
@@ -371,20 +442,7 @@ impl Direct {
             neighbours.push((u.right[j] != NONE, u.down[j] != NONE));
             col_ptr.push(row_idx.len());
         }
-        let forward = nested_dissection(u);
-        let mut inverse = vec![0usize; n];
-        for (k, &p) in forward.iter().enumerate() {
-            inverse[p] = k;
-        }
-        let sym = SymbolicSparseColMat::new_checked(n, n, col_ptr.clone(), None, row_idx.clone());
-        let perm = faer::perm::PermRef::new_checked(&forward, &inverse, n);
-        let symbolic = factorize_symbolic_cholesky(
-            sym.as_ref(),
-            Side::Lower,
-            SymmetricOrdering::Custom(perm),
-            Default::default(),
-        )
-        .map_err(faer_err)?;
+        let symbolic = symbolic_cholesky(&col_ptr, &row_idx, nested_dissection(u))?;
         let mut anchors = vec![usize::MAX; u.parts];
         for k in 0..n {
             let p = u.part[k] as usize;
@@ -393,7 +451,6 @@ impl Direct {
             }
         }
         Ok(Direct {
-            n,
             neighbours,
             col_ptr,
             row_idx,
@@ -418,42 +475,15 @@ impl Direct {
                 values.push(a.down[j]);
             }
         }
-        let sym = faer::sparse::SymbolicSparseColMatRef::new_checked(
-            self.n,
-            self.n,
-            &self.col_ptr,
-            None,
-            &self.row_idx,
-        );
-        let mat = SparseColMatRef::new(sym, &values);
-        let par = Par::rayon(0);
-        let mut l_values = crate::buffer::zeroed_f64(self.symbolic.len_val());
-        let mut mem = MemBuffer::try_new(
-            self.symbolic
-                .factorize_numeric_llt_scratch::<f64>(par, Default::default()),
-        )
-        .map_err(faer_err)?;
-        let llt = self
-            .symbolic
-            .factorize_numeric_llt(
-                &mut l_values,
-                mat,
-                Side::Lower,
-                Default::default(),
-                par,
-                MemStack::new(&mut mem),
-                Default::default(),
-            )
-            .map_err(faer_err)?;
         let mut x = b.to_vec();
-        let mut mem = MemBuffer::try_new(self.symbolic.solve_in_place_scratch::<f64>(1, par))
-            .map_err(faer_err)?;
-        llt.solve_in_place_with_conj(
-            Conj::No,
-            MatMut::from_column_major_slice_mut(&mut x, self.n, 1),
-            par,
-            MemStack::new(&mut mem),
-        );
+        cholesky_solve(
+            &self.symbolic,
+            &self.col_ptr,
+            &self.row_idx,
+            &values,
+            Par::rayon(0),
+            &mut x,
+        )?;
         Ok(x)
     }
 }

@@ -573,6 +573,18 @@ pub fn solve(
     light: &PointLight,
     options: &PerspectiveOptions,
 ) -> Result<SfsResult> {
+    solve_swept(image, mask, camera, light, options).map(|(r, _)| r)
+}
+
+/// [`solve`], and the size of the image the sweeps ran on (smaller than the image's when they
+/// ran at half resolution, recursively).
+fn solve_swept(
+    image: &ScalarMap,
+    mask: &Mask,
+    camera: &Intrinsics,
+    light: &PointLight,
+    options: &PerspectiveOptions,
+) -> Result<(SfsResult, (usize, usize))> {
     let started = Instant::now();
     image.check_same_size(mask, "mask")?;
     let (w, h) = (image.width(), image.height());
@@ -1160,15 +1172,19 @@ pub fn solve(
         warnings,
         refinement,
     };
-    Ok(SfsResult {
-        depth,
-        normals,
-        p: pmap,
-        q: qmap,
-        residual,
-        shadow,
-        report,
-    })
+    let swept_size = coarse.unwrap_or((w, h));
+    Ok((
+        SfsResult {
+            depth,
+            normals,
+            p: pmap,
+            q: qmap,
+            residual,
+            shadow,
+            report,
+        },
+        swept_size,
+    ))
 }
 
 /// Masks of more pixels than this are swept at half resolution (recursively) when the result
@@ -1251,7 +1267,7 @@ fn coarse_start(
     };
     // Whatever fails at half resolution (a mask too thin to have lit blocks, say) is swept at
     // full resolution instead.
-    let Ok(coarse) = solve(&cimage, &cmask, &ccam, light, options) else {
+    let Ok((coarse, swept_size)) = solve_swept(&cimage, &cmask, &ccam, light, options) else {
         return Ok(None);
     };
     let clnz = coarse.depth.map(|&d| {
@@ -1304,23 +1320,8 @@ fn coarse_start(
         extrapolated: 0,
         unfilled: 0,
         singular: r.singular_points,
-        coarse: Some(swept_size(r, cw, ch)),
+        coarse: Some(swept_size),
     }))
-}
-
-/// The size actually swept below a half-resolution solve of `cw × ch`: read back from its
-/// assumptions when it too was swept at half resolution.
-fn swept_size(report: &SfsReport, cw: usize, ch: usize) -> (usize, usize) {
-    report
-        .assumptions
-        .iter()
-        .find_map(|a| {
-            let rest = a.strip_prefix("swept at ")?;
-            let (size, _) = rest.split_once(' ')?;
-            let (x, y) = size.split_once('×')?;
-            Some((x.parse().ok()?, y.parse().ok()?))
-        })
-        .unwrap_or((cw, ch))
 }
 
 /// Fills the unknown entries of `v` (on `u`'s pixels) with the harmonic interpolation of the

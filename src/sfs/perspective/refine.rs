@@ -48,12 +48,8 @@
 //!   recovered.
 
 use crate::error::{Error, Result};
-use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::sparse::linalg::cholesky::{
-    LltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
-};
-use faer::sparse::{SparseColMatRef, SymbolicSparseColMat, SymbolicSparseColMatRef};
-use faer::{Conj, MatMut, Par, Side};
+use crate::integrate::sparse::{cholesky_solve, nested_dissection_of, symbolic_cholesky};
+use faer::Par;
 use nalgebra::Vector3;
 use rayon::prelude::*;
 use serde::Serialize;
@@ -189,8 +185,8 @@ pub(super) struct Problem<'a> {
     row_idx: Vec<usize>,
     /// Position in the values of each column's diagonal.
     diag_at: Vec<usize>,
-    /// Fill-reducing ordering (nested dissection) and its inverse.
-    order: (Vec<usize>, Vec<usize>),
+    /// Fill-reducing ordering (nested dissection).
+    order: Vec<usize>,
     /// Unknowns.
     n: usize,
 }
@@ -270,7 +266,7 @@ impl<'a> Problem<'a> {
             col_ptr,
             row_idx,
             diag_at,
-            order: (Vec::new(), Vec::new()),
+            order: Vec::new(),
             n,
         };
         for cell in &mut cells {
@@ -294,14 +290,10 @@ impl<'a> Problem<'a> {
             }
         }
         let coords: Vec<(u32, u32)> = grid.iter().map(|&(r, c)| (c as u32, r as u32)).collect();
-        let forward = crate::integrate::sparse::nested_dissection_of(&coords, 2);
-        let mut inverse = vec![0usize; n];
-        for (k, &p) in forward.iter().enumerate() {
-            inverse[p] = k;
-        }
+        let order = nested_dissection_of(&coords, 2);
         problem.cells = cells;
         problem.seconds = seconds;
-        problem.order = (forward, inverse);
+        problem.order = order;
         problem
     }
 
@@ -464,30 +456,10 @@ pub(super) fn refine(
         report.seconds = started.elapsed().as_secs_f64();
         return Ok(report);
     }
-    let sym = SymbolicSparseColMat::new_checked(
-        n,
-        n,
-        problem.col_ptr.clone(),
-        None,
-        problem.row_idx.clone(),
-    );
-    let perm = faer::perm::PermRef::new_checked(&problem.order.0, &problem.order.1, n);
-    let symbolic: SymbolicCholesky<usize> = factorize_symbolic_cholesky(
-        sym.as_ref(),
-        Side::Lower,
-        SymmetricOrdering::Custom(perm),
-        Default::default(),
-    )
-    .map_err(crate::integrate::sparse::faer_err)?;
+    let symbolic = symbolic_cholesky(&problem.col_ptr, &problem.row_idx, problem.order.clone())?;
     // Sequential: on these sizes (10⁴–10⁵ unknowns) faer's parallel factorisation was slower
     // on 2 cores (34 000 unknowns: 0.10 s against 0.17 s).
     let par = Par::Seq;
-    let mut l_values = vec![0.0; symbolic.len_val()];
-    let mut factor_mem =
-        MemBuffer::try_new(symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default()))
-            .map_err(crate::integrate::sparse::faer_err)?;
-    let mut solve_mem = MemBuffer::try_new(symbolic.solve_in_place_scratch::<f64>(1, par))
-        .map_err(crate::integrate::sparse::faer_err)?;
 
     let mut energy = energy_start;
     let mut candidate = vec![0.0; n];
@@ -500,36 +472,15 @@ pub(super) fn refine(
         for &p in &problem.diag_at {
             values[p] += DAMPING * values[p] + floor;
         }
-        {
-            let mat = SparseColMatRef::new(
-                SymbolicSparseColMatRef::new_checked(
-                    n,
-                    n,
-                    &problem.col_ptr,
-                    None,
-                    &problem.row_idx,
-                ),
-                &values,
-            );
-            symbolic
-                .factorize_numeric_llt(
-                    &mut l_values,
-                    mat,
-                    Side::Lower,
-                    Default::default(),
-                    par,
-                    MemStack::new(&mut factor_mem),
-                    Default::default(),
-                )
-                .map_err(crate::integrate::sparse::faer_err)?;
-        }
         let mut step: Vec<f64> = g.iter().map(|v| -v).collect();
-        LltRef::new(&symbolic, &l_values).solve_in_place_with_conj(
-            Conj::No,
-            MatMut::from_column_major_slice_mut(&mut step, n, 1),
+        cholesky_solve(
+            &symbolic,
+            &problem.col_ptr,
+            &problem.row_idx,
+            &values,
             par,
-            MemStack::new(&mut solve_mem),
-        );
+            &mut step,
+        )?;
         report.iterations += 1;
         // Backtracking along the Gauss–Newton step: the first of 1, 1/2, 1/4, … that lowers E.
         let mut kept = None;
