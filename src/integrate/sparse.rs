@@ -263,15 +263,17 @@ impl Stencil {
 }
 
 /// A nested-dissection ordering of the unknowns by recursive coordinate bisection: each region
-/// is split along its longer side by the line of pixels at the median, which separates a
-/// 4-connected grid; the separator is numbered after both halves (George 1973).
-fn nested_dissection(u: &Unknowns) -> Vec<usize> {
+/// is split along its longer side by `width` lines of pixels at the median, which separate it
+/// when the matrix couples unknowns at most `width` pixels apart along an axis (one line for a
+/// 4-connected grid); the separator is numbered after both halves (George 1973). See
+/// [`nested_dissection_of`].
+pub(crate) fn nested_dissection(u: &Unknowns, width: u32) -> Vec<usize> {
     let coords: Vec<(u32, u32)> = u
         .pixel
         .iter()
         .map(|&p| ((p as usize % u.w) as u32, (p as usize / u.w) as u32))
         .collect();
-    nested_dissection_of(&coords, 1)
+    nested_dissection_of(&coords, width)
 }
 
 /// The same ordering for unknowns at pixel positions `coords` (column, row) coupled up to
@@ -442,7 +444,7 @@ impl Direct {
             neighbours.push((u.right[j] != NONE, u.down[j] != NONE));
             col_ptr.push(row_idx.len());
         }
-        let symbolic = symbolic_cholesky(&col_ptr, &row_idx, nested_dissection(u))?;
+        let symbolic = symbolic_cholesky(&col_ptr, &row_idx, nested_dissection(u, 1))?;
         let mut anchors = vec![usize::MAX; u.parts];
         for k in 0..n {
             let p = u.part[k] as usize;
@@ -710,7 +712,7 @@ mod tests {
     fn nested_dissection_is_a_permutation() {
         let mask = Grid::from_fn(300, 200, |x, y| (x * y) % 7 != 3);
         let u = Unknowns::new(&mask);
-        let mut order = nested_dissection(&u);
+        let mut order = nested_dissection(&u, 1);
         assert_eq!(order.len(), u.len());
         order.sort_unstable();
         assert!(order.iter().enumerate().all(|(i, k)| i == *k));

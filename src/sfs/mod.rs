@@ -6,7 +6,7 @@
 //!
 //! | method | adds | light | reference |
 //! | --- | --- | --- | --- |
-//! | [`SfsMethod::Horn`] | smoothness (decreasing to 0) and integrability; occluding-contour normals | any in front, any BRDF | Horn, "Height and gradient from shading", IJCV 5(1) 1990 |
+//! | [`SfsMethod::Horn`] | smoothness (decreasing to a small floor, 1e-4 by default) and integrability; occluding-contour normals | any in front, any BRDF | Horn, "Height and gradient from shading", IJCV 5(1) 1990 |
 //! | [`SfsMethod::TsaiShah`] | linearisation of R in depth, one Newton step per pixel and sweep | oblique, any BRDF | Tsai & Shah, "Shape from shading using linear approximation", IVC 12(8) 1994 |
 //! | [`SfsMethod::FastMarching`] | viscosity solution of the eikonal equation from the singular (brightest) points | at the viewer, Lambertian | Kimmel & Sethian, "Optimal algorithm for shape from shading and path planning", JMIV 14 2001 |
 //! | [`SfsMethod::Perspective`] ([`perspective::solve`]) | a pinhole camera and a near point light whose inverse-square fall-off tells near from far: well posed, no smoothness or boundary prior | a point light at a known position (any isotropic BRDF when at the camera centre, Lambertian elsewhere) | Prados & Faugeras, "Shape from shading: a well-posed problem?", CVPR 2005 |
@@ -34,6 +34,7 @@
 pub mod estimate;
 mod fast_marching;
 mod horn;
+mod line_search;
 pub mod perspective;
 pub mod reflectance_map;
 mod tsai_shah;
@@ -63,7 +64,7 @@ pub(crate) const MAX_GRADIENT: f64 = 100.0;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SfsMethod {
-    /// Horn 1990: gradients and height with integrability, smoothness relaxed to 0.
+    /// Horn 1990: gradients and height with integrability, smoothness relaxed to a small floor.
     Horn,
     /// Tsai–Shah 1994: per-pixel Newton iteration of the depth-linearised brightness equation.
     TsaiShah,
@@ -145,7 +146,8 @@ pub struct SfsOptions {
     pub boundary: Boundary,
     /// Iteration limit (0: the method's default).
     pub max_iterations: usize,
-    /// Final smoothness weight λ of Horn's method (it starts at 1 and decreases to this).
+    /// Final smoothness weight λ of Horn's method (it starts at 0.1, or at this if larger, and
+    /// is halved every iteration down to this).
     pub smoothness: f64,
     /// Relative brightness E/ρ below which a pixel is in shadow.
     pub shadow_level: f64,

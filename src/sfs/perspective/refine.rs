@@ -31,12 +31,13 @@
 //! second differences also remove the checkerboard that the cells' mean differences cannot see.
 //!
 //! # Solve
-//! Gauss–Newton with a backtracking line search: each step solves (JᵀJ + λLᵀL)δ = −∇E/2 (its
-//! diagonal raised by 10⁻⁶ of itself) by a sparse Cholesky factorisation (`faer`, nested
-//! dissection ordering analysed once), with the cells' Jacobian by central differences (so any
-//! reflectance the model holds can be fitted), and keeps the first of δ, δ/2, δ/4, … that lowers
-//! E. It stops when a step lowers E by less than the tolerance relative to E, when no step
-//! lowers it, or at the iteration limit, which the report says.
+//! Gauss–Newton with a line search: each step solves (JᵀJ + λLᵀL)δ = −∇E/2 (its diagonal
+//! raised by 10⁻⁶ of itself) by a sparse Cholesky factorisation (`faer`, nested dissection
+//! ordering analysed once), with the cells' Jacobian by central differences (so any reflectance
+//! the model holds can be fitted), and searches the length along δ by quadratic interpolation
+//! of E (backtracking while E has not fallen, and one shorter length when the parabola puts the
+//! minimum well short of a full step). It stops when a step lowers E by less than the tolerance
+//! relative to E, when no step lowers it, or at the iteration limit, which the report says.
 //!
 //! # Assumptions and failure modes
 //! - A local method: it finds the minimum nearest its start, so it inherits the start's
@@ -55,6 +56,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use super::Model;
+use crate::sfs::line_search;
 
 /// Default weight λ of the curvature penalty. Chosen on the rendered shapes of `photostereo
 /// bench sfs` (sphere, vase, peaks, relief, bust; 128², the light at the camera and 30° off the
@@ -71,8 +73,6 @@ const STEP: f64 = 1e-6;
 /// Relative damping added to the normal equations' diagonal (and, times their mean, to every
 /// diagonal entry): keeps them definite where only the penalty reaches a pixel.
 const DAMPING: f64 = 1e-6;
-/// Halvings of a step tried before the start counts as a minimum.
-const BACKTRACKS: usize = 12;
 
 /// Options of the refinement.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -482,28 +482,24 @@ pub(super) fn refine(
             &mut step,
         )?;
         report.iterations += 1;
-        // Backtracking along the Gauss–Newton step: the first of 1, 1/2, 1/4, … that lowers E.
-        let mut kept = None;
-        let mut alpha = 1.0;
-        for _ in 0..BACKTRACKS {
+        // The length along the step (quadratic interpolation; see `sfs::line_search`).
+        let slope = 2.0 * g.iter().zip(&step).map(|(a, b)| a * b).sum::<f64>();
+        let kept = line_search::search(energy, slope, true, |alpha| {
             for k in 0..n {
                 candidate[k] = z[k] + alpha * step[k];
             }
-            let e = problem.energy(&candidate, lambda);
-            if e.is_finite() && e < energy {
-                kept = Some(e);
-                break;
-            }
-            alpha *= 0.5;
-        }
-        let Some(e) = kept else {
+            problem.energy(&candidate, lambda)
+        });
+        let Some((alpha, e)) = kept else {
             // No step lowers the energy: z is a minimum to rounding (unless the energy is not a
             // number, which is no minimum).
             report.converged = energy.is_finite();
             break;
         };
         let fell = (energy - e) / energy;
-        z.copy_from_slice(&candidate);
+        for k in 0..n {
+            z[k] += alpha * step[k];
+        }
         energy = e;
         if fell < options.tolerance {
             report.converged = true;
