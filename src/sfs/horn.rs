@@ -61,8 +61,8 @@ const DAMPING_START: f64 = 1e-3;
 /// its mean).
 const DAMPING: f64 = 1e-6;
 /// Convergence at the final λ: a step lowers the energy by less than this fraction of it (the
-/// shape-from-shading refinement's test, [`super::perspective::refine::DEFAULT_TOLERANCE`]).
-const TOLERANCE: f64 = 1e-3;
+/// shape-from-shading refinement's default test).
+const TOLERANCE: f64 = super::perspective::refine::DEFAULT_TOLERANCE;
 
 /// ∂p/∂z and ∂q/∂z of a cell for its corners (top-left, top-right, bottom-left, bottom-right).
 const DP: [f64; 4] = [-0.5, 0.5, -0.5, 0.5];
@@ -320,7 +320,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
                     }
                     energy(&trial, lambda)
                 })
-                .map(|(alpha, e)| (delta.iter().map(|d| alpha * d).collect::<Vec<f64>>(), e));
+                .map(|(alpha, e)| (delta, alpha, e));
             }
         }
         if !newton {
@@ -337,7 +337,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
                 let e = energy(&trial, lambda);
                 if delta.iter().all(|v| v.is_finite()) && e <= e0 {
                     damping = (damping / 3.0).max(1e-9);
-                    lowered = Some((delta, e));
+                    lowered = Some((delta, 1.0, e));
                     break;
                 }
                 damping *= 4.0;
@@ -350,9 +350,9 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
             lambda = floor;
         }
         match lowered {
-            Some((delta, e)) => {
+            Some((delta, alpha, e)) => {
                 for k in 0..n {
-                    z[k] += delta[k];
+                    z[k] += alpha * delta[k];
                 }
                 if at_floor && e0 - e < TOLERANCE * e0 {
                     converged = true;
