@@ -591,9 +591,19 @@ pub(crate) fn pcg(
     let mut ax = vec![0f64; n];
     a.apply(u, x, &mut ax);
     let mut r: Vec<f64> = b.iter().zip(&ax).map(|(b, a)| b - a).collect();
+    // Convergence is tested as soon as a residual is known, before it is preconditioned: the
+    // preconditioner (a multigrid cycle) is most of an iteration's cost, and its output is
+    // needed only when the solve goes on.
+    if norm(&r) <= tol * bn {
+        return 0;
+    }
     let mut grid = match pre {
         Preconditioner::Dct(_) => vec![0f64; u.w * u.h],
         Preconditioner::Jacobi | Preconditioner::Multigrid(_) => Vec::new(),
+    };
+    let mut cycle_work = match pre {
+        Preconditioner::Multigrid(m) => m.work(),
+        Preconditioner::Jacobi | Preconditioner::Dct(_) => Vec::new(),
     };
     let mut precondition = |r: &[f64], z: &mut [f64]| match pre {
         Preconditioner::Jacobi => {
@@ -611,7 +621,7 @@ pub(crate) fn pcg(
                 z[k] = grid[p as usize];
             }
         }
-        Preconditioner::Multigrid(m) => m.apply(r, z),
+        Preconditioner::Multigrid(m) => m.apply(r, z, &mut cycle_work),
     };
     let flexible = matches!(pre, Preconditioner::Multigrid(_));
     let mut r_prev = if flexible { vec![0f64; n] } else { Vec::new() };
@@ -620,14 +630,11 @@ pub(crate) fn pcg(
     let mut p = z.clone();
     let mut rz = dot(&r, &z);
     let mut ap = vec![0f64; n];
-    for it in 0..max_iter {
-        if norm(&r) <= tol * bn {
-            return it;
-        }
+    for it in 1..=max_iter {
         a.apply(u, &p, &mut ap);
         let pap = dot(&p, &ap);
         if pap <= 0.0 || !pap.is_finite() {
-            return it;
+            return it - 1;
         }
         let alpha = rz / pap;
         if flexible {
@@ -637,6 +644,9 @@ pub(crate) fn pcg(
         r.par_iter_mut()
             .zip(&ap)
             .for_each(|(r, ap)| *r -= alpha * ap);
+        if norm(&r) <= tol * bn {
+            return it;
+        }
         precondition(&r, &mut z);
         let rz_new = dot(&r, &z);
         // Flexible (Polak–Ribière) β, for preconditioners that are not a fixed linear map (the

@@ -39,7 +39,10 @@
 //! in `f64`, so the residual the solve carries stays the true one (a 1024² test grid reaches a
 //! relative residual of 1e-8 in 11 iterations, within 1e-7 of the solution's range).
 
-use super::{COARSEST, Coarsest, Csr, KCYCLE_MIN_RATIO, KCYCLE_T, STALLED_SWEEPS, dense_factor};
+use super::{
+    COARSEST, Coarsest, Csr, KCYCLE_MIN_RATIO, KCYCLE_T, KVectors, STALLED_SWEEPS, Work,
+    dense_factor, second_step,
+};
 use crate::integrate::sparse::{NONE, dot};
 use faer::MatMut;
 use faer::linalg::solvers::Solve;
@@ -653,41 +656,28 @@ impl GridMultigrid {
     }
 
     /// The scratch vectors of the cycle, kept between cycles (see [`Work`]).
-    pub fn work(&self) -> Vec<Work> {
+    pub fn work(&self) -> Vec<Work<f32>> {
         self.levels[1..]
             .iter()
-            .map(|level| {
-                let n = level.len();
-                Work {
-                    rc: vec![0.0; n],
-                    xc: vec![0.0; n],
-                    k: KVectors {
-                        c1: vec![0.0; n],
-                        v1: vec![0.0; n],
-                        r2: vec![0.0; n],
-                        c2: vec![0.0; n],
-                        v2: vec![0.0; n],
-                    },
-                }
-            })
+            .map(|level| Work::zeros(level.len()))
             .collect()
     }
 
     /// z = M⁻¹ r: one cycle from zero, with the scratch of [`Self::work`].
-    pub fn apply<B: Rhs>(&self, r: &[B], z: &mut [f32], work: &mut [Work]) {
+    pub fn apply<B: Rhs>(&self, r: &[B], z: &mut [f32], work: &mut [Work<f32>]) {
         self.cycle(0, r, z, work);
     }
 
-    /// The K-cycle's coarse correction on `level` (Notay 2010, as the parent module's
-    /// [`kcycle`] but on grids, with the scratch of `own` and the deeper levels' in `deeper`,
-    /// and each matrix product fused with the dot products that follow it).
+    /// The K-cycle's coarse correction on `level` (Notay 2010): as the aggregation hierarchy's
+    /// (`Multigrid::krylov`) but on grids, with the scratch of `own` and the deeper levels' in
+    /// `deeper`, and each matrix product fused with the dot products that follow it.
     fn krylov(
         &self,
         level: usize,
         b: &[f32],
         x: &mut [f32],
-        own: &mut KVectors,
-        deeper: &mut [Work],
+        own: &mut KVectors<f32>,
+        deeper: &mut [Work<f32>],
     ) {
         if level + 1 == self.levels.len() {
             self.cycle(level, b, x, deeper);
@@ -727,15 +717,10 @@ impl GridMultigrid {
         }
         self.cycle(level, r2, c2, deeper);
         let (beta, [gamma, alpha2]) = a.multiply_dots(c2, v2, [v1, r2]);
-        let rho2 = beta - gamma * gamma / rho1;
-        if rho2.is_nan() || rho2 <= 0.0 {
+        let Some((k1, k2)) = second_step(alpha1, rho1, gamma, beta, alpha2) else {
             first_only(x, c1);
             return;
-        }
-        let (k1, k2) = (
-            alpha1 / rho1 - gamma * alpha2 / (rho1 * rho2),
-            alpha2 / rho2,
-        );
+        };
         elementwise(x, |i, x| {
             for ((x, &c1), &c2) in x.iter_mut().zip(&c1[i..]).zip(&c2[i..]) {
                 *x = (k1 * f64::from(c1) + k2 * f64::from(c2)) as f32;
@@ -744,7 +729,7 @@ impl GridMultigrid {
     }
 
     /// One cycle on `level` from x = 0; `work` holds the scratch of the levels below it.
-    fn cycle<B: Rhs>(&self, level: usize, b: &[B], x: &mut [f32], work: &mut [Work]) {
+    fn cycle<B: Rhs>(&self, level: usize, b: &[B], x: &mut [f32], work: &mut [Work<f32>]) {
         let a = &self.levels[level];
         x.fill(0.0);
         if level + 1 == self.levels.len() {
@@ -798,24 +783,6 @@ struct Block<'a> {
     rows: &'a mut [f32],
     first: usize,
     halo: &'a Halo,
-}
-
-/// The scratch of one coarse level, kept between cycles: the restricted residual and the
-/// correction of the finer level's cycle, and the K-cycle's vectors.
-pub(crate) struct Work {
-    rc: Vec<f32>,
-    xc: Vec<f32>,
-    k: KVectors,
-}
-
-/// The K-cycle's vectors on one level: two cycles' corrections, their products with A, and the
-/// residual after the first.
-pub(crate) struct KVectors {
-    c1: Vec<f32>,
-    v1: Vec<f32>,
-    r2: Vec<f32>,
-    c2: Vec<f32>,
-    v2: Vec<f32>,
 }
 
 /// Calls `f(offset, chunk)` on fixed chunks of `x`, in parallel when there are several.
@@ -947,10 +914,11 @@ pub(crate) fn solve(
     }
     let mut x = vec![0f64; n];
     let bn = dot(&b, &b).sqrt();
-    if bn == 0.0 {
+    if bn == 0.0 || bn <= tol * bn {
         return (x, 0);
     }
-    // The residual, from x = 0.
+    // The residual, from x = 0. Convergence is tested as soon as a residual is known, before
+    // the cycle that would precondition it (most of an iteration's cost).
     let mut r = b;
     let mut z = vec![0f32; n];
     let mut work = mg.work();
@@ -958,13 +926,10 @@ pub(crate) fn solve(
     let mut p = z.clone();
     let mut rz = dot(&r, &z);
     let w = a.w;
-    for it in 0..max_iter {
-        if dot(&r, &r).sqrt() <= tol * bn {
-            return (x, it);
-        }
+    for it in 1..=max_iter {
         let pap = a.dot_product_with(&p, &p);
         if pap <= 0.0 || !pap.is_finite() {
-            return (x, it);
+            return (x, it - 1);
         }
         let alpha = rz / pap;
         let dir: &[f32] = &p;
@@ -984,6 +949,9 @@ pub(crate) fn solve(
                     }
                 },
             );
+        if dot(&r, &r).sqrt() <= tol * bn {
+            return (x, it);
+        }
         mg.apply(&r, &mut z, &mut work);
         let rz_new = dot(&r, &z);
         // Flexible (Polak–Ribière) β for the K-cycle, which is not a fixed linear map:

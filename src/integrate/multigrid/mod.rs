@@ -15,10 +15,11 @@
 //! - **piecewise-constant prolongation** P and the Galerkin coarse matrix PᵀAP, which for a graph
 //!   Laplacian is again a graph Laplacian: the weight between two aggregates is the sum of the
 //!   weights between their nodes;
-//! - a **symmetric V-cycle**: one forward Gauss–Seidel sweep before the coarse correction, one
-//!   backward sweep after it, so that the cycle is a symmetric positive definite operator and
-//!   can precondition conjugate gradients; the coarsest level (at most [`COARSEST`] nodes) is
-//!   solved by dense Cholesky with one node per connected part pinned.
+//! - a **K-cycle** (Notay 2010): one forward Gauss–Seidel sweep before the coarse correction,
+//!   one backward sweep after it, and the coarse correction itself up to two steps of flexible
+//!   conjugate gradients on the next level, preconditioned by that level's cycle (a nonlinear
+//!   preconditioner, hence the flexible outer conjugate gradients); the coarsest level (at most
+//!   [`COARSEST`] nodes) is solved by dense Cholesky with one node per connected part pinned.
 //!
 //! Time and memory are linear in the pixels (each level has about a quarter of the previous
 //! one's nodes). Measured iteration counts and times are in `docs/integration.md`.
@@ -242,10 +243,12 @@ impl Csr {
         }
     }
 
-    /// r = b − A x.
-    fn residual(&self, b: &[f64], x: &[f64], r: &mut [f64]) {
-        for (i, r) in r.iter_mut().enumerate() {
-            *r = b[i] - self.diag[i] * x[i] - self.off_diagonal(i, x);
+    /// The residual b − A x summed over each aggregate of `agg`, into `rc` (one entry per
+    /// aggregate), without storing it.
+    fn restricted_residual(&self, b: &[f64], x: &[f64], agg: &[u32], rc: &mut [f64]) {
+        rc.iter_mut().for_each(|v| *v = 0.0);
+        for (i, &c) in agg.iter().enumerate() {
+            rc[c as usize] += b[i] - self.diag[i] * x[i] - self.off_diagonal(i, x);
         }
     }
 
@@ -328,36 +331,82 @@ impl Multigrid {
         self.levels.iter().map(Csr::len).collect()
     }
 
-    /// z = M⁻¹ r: one symmetric V-cycle from zero.
-    pub fn apply(&self, r: &[f64], z: &mut [f64]) {
-        self.cycle(0, r, z);
+    /// The scratch vectors of the cycle, allocated once and kept between cycles: for each
+    /// level below the finest, its restricted residual, its correction and the K-cycle's five
+    /// vectors.
+    pub fn work(&self) -> Vec<Work<f64>> {
+        self.levels[1..]
+            .iter()
+            .map(|level| Work::zeros(level.len()))
+            .collect()
     }
 
-    /// The coarse correction of Notay's K-cycle: on a level above the coarsest, up to two
-    /// steps of flexible conjugate gradients preconditioned by that level's cycle (the second
-    /// only when the first leaves more than [`KCYCLE_T`] of the residual); on the coarsest,
-    /// its solve.
-    fn krylov(&self, level: usize, b: &[f64], x: &mut [f64]) {
+    /// z = M⁻¹ r: one symmetric cycle from zero, with the scratch of [`Self::work`].
+    pub fn apply(&self, r: &[f64], z: &mut [f64], work: &mut [Work<f64>]) {
+        self.cycle(0, r, z, work);
+    }
+
+    /// The coarse correction of Notay's K-cycle on `level` (above the coarsest): up to two
+    /// steps of flexible conjugate gradients on A x = b preconditioned by the level's cycle
+    /// (from zero), the second only where the level is at least [`KCYCLE_MIN_RATIO`] times
+    /// the next and the first step leaves more than [`KCYCLE_T`] of the residual; with `k` as
+    /// its vectors (c₁, v₁ = A c₁, r₂, c₂, v₂ = A c₂) and `deeper` as the scratch of the levels
+    /// below. On the coarsest level, its solve.
+    fn krylov(
+        &self,
+        level: usize,
+        b: &[f64],
+        x: &mut [f64],
+        k: &mut KVectors<f64>,
+        deeper: &mut [Work<f64>],
+    ) {
         if level + 1 == self.levels.len() {
-            self.cycle(level, b, x);
+            self.cycle(level, b, x, deeper);
             return;
         }
         let a = &self.levels[level];
         let dot = |p: &[f64], q: &[f64]| p.iter().zip(q).map(|(a, b)| a * b).sum::<f64>();
         // The second inner step doubles the visits of every coarser level: affordable only
         // where coarsening is fast enough for the work to stay linear.
-        let ratio = a.len() as f64 / self.levels[level + 1].len() as f64;
-        kcycle(
-            b,
-            x,
-            |b, x| self.cycle(level, b, x),
-            |x, y| a.multiply(x, y),
-            dot,
-            ratio >= KCYCLE_MIN_RATIO,
-        );
+        let second = a.len() as f64 / self.levels[level + 1].len() as f64 >= KCYCLE_MIN_RATIO;
+        let KVectors { c1, v1, r2, c2, v2 } = k;
+        self.cycle(level, b, c1, deeper);
+        a.multiply(c1, v1);
+        let rho1 = dot(c1, v1);
+        let alpha1 = dot(c1, b);
+        if rho1.is_nan() || rho1 <= 0.0 {
+            x.copy_from_slice(c1);
+            return;
+        }
+        let s1 = alpha1 / rho1;
+        let first_only = |x: &mut [f64], c1: &[f64]| {
+            for (x, &c) in x.iter_mut().zip(c1) {
+                *x = s1 * c;
+            }
+        };
+        for ((r, &b), &v) in r2.iter_mut().zip(b).zip(v1.iter()) {
+            *r = b - s1 * v;
+        }
+        if !second || dot(r2, r2) <= KCYCLE_T * KCYCLE_T * dot(b, b) {
+            first_only(x, c1);
+            return;
+        }
+        self.cycle(level, r2, c2, deeper);
+        a.multiply(c2, v2);
+        let gamma = dot(c2, v1);
+        let beta = dot(c2, v2);
+        let alpha2 = dot(c2, r2);
+        let Some((k1, k2)) = second_step(alpha1, rho1, gamma, beta, alpha2) else {
+            first_only(x, c1);
+            return;
+        };
+        for ((x, &c1), &c2) in x.iter_mut().zip(c1.iter()).zip(c2.iter()) {
+            *x = k1 * c1 + k2 * c2;
+        }
     }
 
-    fn cycle(&self, level: usize, b: &[f64], x: &mut [f64]) {
+    /// One cycle on `level` from x = 0; `work` holds the scratch of the levels below it.
+    fn cycle(&self, level: usize, b: &[f64], x: &mut [f64], work: &mut [Work<f64>]) {
         let a = &self.levels[level];
         x.iter_mut().for_each(|v| *v = 0.0);
         if level + 1 == self.levels.len() {
@@ -375,100 +424,75 @@ impl Multigrid {
             }
             return;
         }
+        let Some((next, deeper)) = work.split_first_mut() else {
+            return;
+        };
         a.sweep(b, x, true);
-        let mut r = vec![0f64; a.len()];
-        a.residual(b, x, &mut r);
-        let agg = &self.aggregates[level];
-        let m = self.levels[level + 1].len();
-        let mut rc = vec![0f64; m];
-        for (i, &c) in agg.iter().enumerate() {
-            rc[c as usize] += r[i];
-        }
-        let mut xc = vec![0f64; m];
-        self.krylov(level + 1, &rc, &mut xc);
-        for (i, &c) in agg.iter().enumerate() {
-            x[i] += xc[c as usize];
+        a.restricted_residual(b, x, &self.aggregates[level], &mut next.rc);
+        let Work { rc, xc, k } = next;
+        self.krylov(level + 1, rc, xc, k, deeper);
+        for (x, &c) in x.iter_mut().zip(&self.aggregates[level]) {
+            *x += xc[c as usize];
         }
         a.sweep(b, x, false);
     }
 }
 
-/// A vector element of a hierarchy's levels: `f64` for the aggregation hierarchy, `f32` for
-/// the grid's (`grid.rs`).
-pub(super) trait Element: Copy + Default + Into<f64> {
-    /// The element nearest to `v`.
-    fn of(v: f64) -> Self;
-}
-
-impl Element for f64 {
-    fn of(v: f64) -> Self {
-        v
-    }
-}
-
-impl Element for f32 {
-    fn of(v: f64) -> Self {
-        v as f32
-    }
-}
-
-/// Notay's K-cycle coarse correction on a level above the coarsest, for both hierarchies: up
-/// to two steps of flexible conjugate gradients on A x = b preconditioned by the level's
-/// `cycle` (from zero), with the level's matrix `multiply` and `dot`; the second step only
-/// when `second` allows it and the first leaves more than [`KCYCLE_T`] of the residual.
-/// Coefficients are computed in `f64` and each element is rounded once.
-pub(super) fn kcycle<T: Element>(
-    b: &[T],
-    x: &mut [T],
-    cycle: impl Fn(&[T], &mut [T]),
-    multiply: impl Fn(&[T], &mut [T]),
-    dot: impl Fn(&[T], &[T]) -> f64,
-    second: bool,
-) {
-    let n = b.len();
-    let mut c1 = vec![T::default(); n];
-    cycle(b, &mut c1);
-    let mut v1 = vec![T::default(); n];
-    multiply(&c1, &mut v1);
-    let rho1 = dot(&c1, &v1);
-    let alpha1 = dot(&c1, b);
-    if rho1.is_nan() || rho1 <= 0.0 {
-        x.copy_from_slice(&c1);
-        return;
-    }
-    let s1 = alpha1 / rho1;
-    let first_only = |x: &mut [T]| {
-        for (x, &c) in x.iter_mut().zip(&c1) {
-            *x = T::of(s1 * c.into());
-        }
-    };
-    let r2: Vec<T> = b
-        .iter()
-        .zip(&v1)
-        .map(|(&b, &v)| T::of(b.into() - s1 * v.into()))
-        .collect();
-    if !second || dot(&r2, &r2) <= KCYCLE_T * KCYCLE_T * dot(b, b) {
-        first_only(x);
-        return;
-    }
-    let mut c2 = vec![T::default(); n];
-    cycle(&r2, &mut c2);
-    let mut v2 = vec![T::default(); n];
-    multiply(&c2, &mut v2);
-    let gamma = dot(&c2, &v1);
-    let beta = dot(&c2, &v2);
-    let alpha2 = dot(&c2, &r2);
+/// The K-cycle's combination x = k₁c₁ + k₂c₂ after its second step, from α₁ = c₁ᵀb,
+/// ρ₁ = c₁ᵀAc₁, γ = c₂ᵀAc₁, β = c₂ᵀAc₂ and α₂ = c₂ᵀr₂ (the minimiser of the energy over the two
+/// corrections, Notay 2010), for both hierarchies; `None` where the second correction adds no
+/// positive curvature (ρ₂ = β − γ²/ρ₁ ≤ 0 or not a number), so that only the first is kept.
+pub(super) fn second_step(
+    alpha1: f64,
+    rho1: f64,
+    gamma: f64,
+    beta: f64,
+    alpha2: f64,
+) -> Option<(f64, f64)> {
     let rho2 = beta - gamma * gamma / rho1;
     if rho2.is_nan() || rho2 <= 0.0 {
-        first_only(x);
-        return;
+        return None;
     }
-    let (k1, k2) = (
+    Some((
         alpha1 / rho1 - gamma * alpha2 / (rho1 * rho2),
         alpha2 / rho2,
-    );
-    for ((x, &c1), &c2) in x.iter_mut().zip(&c1).zip(&c2) {
-        *x = T::of(k1 * c1.into() + k2 * c2.into());
+    ))
+}
+
+/// The scratch of one coarse level in a cycle of either hierarchy, kept between cycles: the
+/// residual restricted to it and the correction solved on it (by the finer level's cycle), and
+/// the K-cycle's vectors on it.
+pub(crate) struct Work<T> {
+    rc: Vec<T>,
+    xc: Vec<T>,
+    k: KVectors<T>,
+}
+
+/// The K-cycle's vectors on one level: two cycles' corrections, their products with A, and the
+/// residual after the first.
+pub(crate) struct KVectors<T> {
+    c1: Vec<T>,
+    v1: Vec<T>,
+    r2: Vec<T>,
+    c2: Vec<T>,
+    v2: Vec<T>,
+}
+
+impl<T: Copy + Default> Work<T> {
+    /// Zeros for a level of `n` nodes.
+    fn zeros(n: usize) -> Self {
+        let z = || vec![T::default(); n];
+        Work {
+            rc: z(),
+            xc: z(),
+            k: KVectors {
+                c1: z(),
+                v1: z(),
+                r2: z(),
+                c2: z(),
+                v2: z(),
+            },
+        }
     }
 }
 
