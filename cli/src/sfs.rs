@@ -7,9 +7,8 @@ use photostereo::grid::Grid;
 use photostereo::io::decode::{read_image, read_mask, srgb_to_linear};
 use photostereo::io::output::{OutputDir, depth_preview, normal_planes, normal_preview};
 use photostereo::nalgebra::Vector3;
-use photostereo::sfs::estimate::{estimate_albedo, estimate_light};
+use photostereo::sfs::estimate::illumination;
 use photostereo::sfs::perspective::{PerspectiveOptions, PointLight, RefineOptions};
-use photostereo::sfs::reflectance_map::ReflectanceMap;
 use photostereo::sfs::{SfsOptions, SfsResult, object_mask, shape_from_shading_with_progress};
 use photostereo::synth::reflectance::{
     BlinnPhong, Diffuse, Material, Phong, Specular, TorranceSparrow, Ward,
@@ -100,22 +99,14 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
             brdf_name(a.brdf)
         );
     }
-    let estimate = if a.light.is_none() {
-        Some(estimate_light(&image, &mask)?)
-    } else {
-        None
-    };
-    let light = match (a.light, &estimate) {
-        (Some(l), _) => Vector3::from(l),
-        (None, Some(e)) => e.light(),
-        (None, None) => bail!("no light direction given and none estimated"),
-    };
-    let rmap = ReflectanceMap::new(light, material)?;
-    let albedo = match (a.albedo, &estimate) {
-        (Some(v), _) => v,
-        (None, Some(e)) => e.albedo,
-        (None, None) => estimate_albedo(&image, &mask, rmap.slant_deg())?,
-    };
+    let (rmap, lit) = illumination(
+        &image,
+        &mask,
+        a.light.map(Vector3::from),
+        a.albedo,
+        material,
+    )?;
+    let (light, albedo, estimate) = (Vector3::from(lit.light), lit.albedo, lit.estimate);
     let options = SfsOptions {
         method: method.into(),
         boundary: a.boundary.into(),

@@ -13,7 +13,7 @@ use photostereo::nalgebra::Vector3;
 use photostereo::sfs::estimate::estimate_light;
 use photostereo::sfs::reflectance_map::ReflectanceMap;
 use photostereo::sfs::{Boundary, SfsMethod, SfsOptions, SfsResult, shape_from_shading};
-use photostereo::synth::reflectance::Material;
+use photostereo::synth::reflectance::{Diffuse, Material, Mirror, Specular};
 use photostereo::synth::render::{RenderOptions, render};
 use photostereo::synth::scene::{Albedo, HeightField, SceneKind};
 
@@ -360,6 +360,16 @@ fn bad_inputs_are_refused_with_the_parameter_named() {
     assert_eq!(
         name(shape_from_shading(&image, &truth.mask, &behind, ALBEDO, &o)),
         "light"
+    );
+    // A pure mirror's reflectance map is dark everywhere: no shading to read.
+    let mirror = Material {
+        diffuse: Diffuse::None,
+        ..Material::with_specular(Specular::Mirror(Mirror { f0: 0.9 }))
+    };
+    let dark = ReflectanceMap::new(l, mirror).unwrap();
+    assert_eq!(
+        name(shape_from_shading(&image, &truth.mask, &dark, ALBEDO, &o)),
+        "material"
     );
     let empty = truth.mask.map(|_| false);
     assert_eq!(

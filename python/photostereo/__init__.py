@@ -56,6 +56,8 @@ __all__ = [
     "light_ring",
     "reflectance_map",
     "calibrate",
+    "sfs",
+    "SFS_METHODS",
     "read_image",
     "read_mask",
     "read_exr",
@@ -412,6 +414,118 @@ def reflectance_map(
     return _native.reflectance_map(
         light, material, material_params, float(extent), _int(size, "size", 2, 8192)
     )
+
+
+#: The shape-from-shading methods (``method`` of :func:`sfs`).
+SFS_METHODS = ("horn", "tsai-shah", "fast-marching", "perspective")
+
+
+def _vec3(value: Any, name: str) -> Optional[List[float]]:
+    if value is None:
+        return None
+    v = np.asarray(value, dtype=np.float64).ravel()
+    if v.shape != (3,):
+        raise ValueError(f"{name}: {v.size} values; x, y, z expected")
+    return [float(x) for x in v]
+
+
+def _float(value: Any, name: str) -> Optional[float]:
+    if value is None:
+        return None
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: got {value!r}; a number expected") from None
+
+
+def sfs(
+    image: np.ndarray,
+    mask: Optional[np.ndarray] = None,
+    *,
+    light: Optional[Sequence[float]] = None,
+    albedo: Optional[float] = None,
+    method: Optional[str] = None,
+    material: str = "lambert",
+    material_params: Optional[Dict[str, float]] = None,
+    transfer: str = "auto",
+    boundary: str = "occluding",
+    iterations: int = 0,
+    smoothness: Optional[float] = None,
+    shadow_level: Optional[float] = None,
+    camera: Any = None,
+    light_position: Optional[Sequence[float]] = None,
+    light_intensity: Optional[float] = None,
+    refine: bool = True,
+    refine_smoothness: Optional[float] = None,
+    refine_iterations: int = 0,
+) -> Dict[str, Any]:
+    """Shape from shading of one image, as the ``photostereo sfs`` command.
+
+    ``image``: H x W, or H x W x 3 mixed to grey (BT.601) as the command mixes a colour file;
+    uint8, uint16, float32 or float64, integers scaled to [0, 1] by their largest code and
+    ``transfer`` as :func:`solve`'s (``"auto"``: uint8 decoded from sRGB, everything else
+    linear; ``"linear"``; ``"srgb"``).
+
+    Distant light, orthographic camera (``method`` ``"horn"``, the default without
+    ``light_position``; ``"tsai-shah"``; ``"fast-marching"`` for a light at the viewer):
+    ``light`` is the direction towards the light (x right, y up, z towards the camera) and
+    ``albedo`` the surface's; either one left out is estimated from the image (Zheng and
+    Chellappa 1991: a Lambertian surface with sphere-like normals assumed), and a reflectance
+    other than Lambert's needs both. ``boundary``: ``"occluding"`` (the mask's edge is an
+    occluding contour) or ``"free"``; ``smoothness``: Horn's final weight (1e-4);
+    ``shadow_level``: pixels darker than this fraction of the albedo are in shadow (0.01).
+
+    Pinhole camera and a point light with fall-off (``"perspective"``, Prados and Faugeras
+    2005, the default when ``light_position`` is given): ``camera`` is the 3 x 3 intrinsics K,
+    ``light_position`` the light in the camera frame (in the unit of depth; (0, 0, 0) at the
+    camera centre), ``light_intensity`` and ``albedo`` its intensity and the surface's (1 when
+    not given, which a warning says); ``shadow_level`` is then a fraction of the image's 99th
+    percentile. The swept solution is refined variationally unless ``refine=False``
+    (``refine_smoothness``, 0.01; ``refine_iterations``).
+
+    ``material`` and ``material_params`` as :func:`render`, with its parameter defaults (so that
+    a scene rendered and solved with the same material agrees; the command's ``--brdf``
+    defaults differ: Oren-Nayar 20 degrees, specular 0.5, shininess 40). Any of them but the
+    mirror, whose reflection shading does not show; a non-Lambertian one with the perspective
+    method needs the light at the camera centre. ``mask``: H x W bool; None: the non-black
+    pixels connected inside the image's border (a warning says so: attached shadows touching
+    the background are left out).
+
+    Returns ``{"depth": H x W (orthographic: height towards the camera in pixels; perspective:
+    absolute depth along the optical axis), "normals": H x W x 3, "residual", "shadow": H x W
+    bool, "mask", "method", "light": the direction used (perspective: from the surface's
+    centre to the light), "albedo", "light_source" and "albedo_source" ("given", "estimated"
+    or "assumed"), "estimate": dict or None, "report": dict (iterations, convergence,
+    assumptions, warnings, and the refinement), "warnings": list}``; NaN outside the mask.
+    Each warning is also issued as a :class:`PhotostereoWarning`.
+    """
+    image = _check_array(image, "image")
+    r = _native.sfs(
+        image,
+        _mask(mask),
+        _vec3(light, "light"),
+        _float(albedo, "albedo"),
+        method,
+        material,
+        material_params,
+        transfer,
+        boundary,
+        _int(iterations, "iterations", 0, 1_000_000),
+        _float(smoothness, "smoothness"),
+        _float(shadow_level, "shadow_level"),
+        None if camera is None else _f64_2d(camera, "camera"),
+        _vec3(light_position, "light_position"),
+        _float(light_intensity, "light_intensity"),
+        bool(refine),
+        _float(refine_smoothness, "refine_smoothness"),
+        _int(refine_iterations, "refine_iterations", 0, 1_000_000),
+    )
+    r["report"] = json.loads(r["report"])
+    if r["estimate"] is not None:
+        r["estimate"] = json.loads(r["estimate"])
+    for w in r["warnings"]:
+        _warnings.warn(w, PhotostereoWarning, stacklevel=2)
+    return r
 
 
 def calibrate(

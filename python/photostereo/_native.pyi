@@ -70,6 +70,26 @@ def calibrate(
     camera: Optional[np.ndarray],
     ball_radius: Optional[float],
 ) -> Tuple[Optional[np.ndarray], Optional[np.ndarray], str]: ...
+def sfs(
+    image: np.ndarray,
+    mask: Optional[np.ndarray],
+    light: Optional[List[float]],
+    albedo: Optional[float],
+    method: Optional[str],
+    material: str,
+    material_params: Optional[Dict[str, float]],
+    transfer: str,
+    boundary: str,
+    iterations: int,
+    smoothness: Optional[float],
+    shadow_level: Optional[float],
+    camera: Optional[np.ndarray],
+    light_position: Optional[List[float]],
+    light_intensity: Optional[float],
+    refine: bool,
+    refine_smoothness: Optional[float],
+    refine_iterations: int,
+) -> Dict[str, Any]: ...
 def read_image(path: str) -> np.ndarray: ...
 def read_mask(path: str) -> np.ndarray: ...
 def resolve(

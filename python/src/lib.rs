@@ -15,7 +15,7 @@ use numpy::{
 use photostereo::calibrate::near::{NearOptions, calibrate_two_balls};
 use photostereo::calibrate::{ChromeOptions, calibrate_chrome};
 use photostereo::capture::arrays::{Sample, normals_from_array, normals_to_array};
-use photostereo::capture::stack::{ColorMode, LoadOptions, Transfer};
+use photostereo::capture::stack::{ColorMode, GREY_WEIGHTS, LoadOptions, Transfer};
 use photostereo::capture::{Capture, CaptureFiles, ImageStack, Lights};
 use photostereo::grid::{Grid, Mask, ScalarMap};
 use photostereo::integrate::{IntegrationOptions, Integrator, integrate_normals};
@@ -285,6 +285,18 @@ fn lights_arg(
     ))
 }
 
+/// The `transfer` argument: how sample values map to linear radiance.
+fn transfer_arg(transfer: &str) -> PyRes<Transfer> {
+    match transfer {
+        "auto" => Ok(Transfer::Auto),
+        "linear" => Ok(Transfer::Linear),
+        "srgb" => Ok(Transfer::Srgb),
+        other => Err(PyValueError::new_err(format!(
+            "transfer: {other:?}; \"auto\" (sRGB for uint8, linear otherwise), \"linear\" or \"srgb\" expected"
+        ))),
+    }
+}
+
 fn load_options(
     color: &str,
     transfer: &str,
@@ -300,16 +312,7 @@ fn load_options(
             )));
         }
     };
-    let transfer = match transfer {
-        "auto" => Transfer::Auto,
-        "linear" => Transfer::Linear,
-        "srgb" => Transfer::Srgb,
-        other => {
-            return Err(PyValueError::new_err(format!(
-                "transfer: {other:?}; \"auto\" (sRGB for uint8, linear otherwise), \"linear\" or \"srgb\" expected"
-            )));
-        }
-    };
+    let transfer = transfer_arg(transfer)?;
     if let Some(s) = saturation
         && !(s.is_finite() && s > 0.0)
     {
@@ -607,6 +610,21 @@ fn convert<'py>(
     ))
 }
 
+/// The `mask` argument as a mask of `w`×`h` pixels, or a ValueError saying whose size it
+/// differs from (`of`, e.g. "the image's").
+fn sized_mask(obj: Option<&Bound<'_, PyAny>>, w: usize, h: usize, of: &str) -> PyRes<Option<Mask>> {
+    let Some(m) = mask_arg(obj, "mask")? else {
+        return Ok(None);
+    };
+    if m.dim() != (h, w) {
+        return Err(PyValueError::new_err(format!(
+            "mask: shape {:?} differs from {of} {h}×{w}",
+            m.dim()
+        )));
+    }
+    Ok(Some(Grid::from_array(m.view())))
+}
+
 fn integrator_arg(name: &str) -> PyRes<Integrator> {
     let all = [
         Integrator::Auto,
@@ -637,18 +655,8 @@ fn integrate<'py>(
 ) -> PyRes<Bound<'py, PyDict>> {
     check_map_size(normals.shape(), "normals")?;
     let map = lib(normals_from_array(normals.as_array()))?;
-    let mask: Mask = match mask_arg(mask, "mask")? {
-        Some(m) => {
-            if m.dim() != (map.height(), map.width()) {
-                return Err(PyValueError::new_err(format!(
-                    "mask: shape {:?} differs from the normals' {}×{}",
-                    m.dim(),
-                    map.height(),
-                    map.width()
-                )));
-            }
-            Grid::from_array(m.view())
-        }
+    let mask = match sized_mask(mask, map.width(), map.height(), "the normals'")? {
+        Some(m) => m,
         None => map.map(|n| n.iter().all(|v| v.is_finite())),
     };
     let camera = intrinsics_arg(k.as_ref(), "K")?;
@@ -987,6 +995,294 @@ fn calibrate<'py>(
     })
 }
 
+/// One image as grey linear intensities, converted as the `sfs` command converts an image
+/// file of the same samples: integers scaled to [0, 1] by their largest code, three channels
+/// mixed to grey with [`GREY_WEIGHTS`], then decoded from sRGB where `transfer` says so
+/// (`auto`: uint8 only).
+fn grey_image_arg(obj: &Bound<'_, PyAny>, transfer: Transfer) -> PyRes<ScalarMap> {
+    fn grey<T: numpy::Element + Copy>(
+        a: PyReadonlyArrayDyn<'_, T>,
+        scale: impl Fn(T) -> f32,
+        srgb: bool,
+    ) -> PyRes<ScalarMap> {
+        let a = a.as_array();
+        let (h, w, c) = match *a.shape() {
+            [h, w] => (h, w, 0),
+            [h, w, c @ (1 | 3)] => (h, w, c),
+            ref other => {
+                return Err(PyValueError::new_err(format!(
+                    "image: shape {other:?}; one image, H x W or H x W x 3 (mixed to grey), \
+                     expected"
+                )));
+            }
+        };
+        check_map_size(&[h, w], "image")?;
+        Ok(Grid::from_fn(w, h, |x, y| {
+            let v = match c {
+                0 => scale(a[[y, x].as_slice()]),
+                1 => scale(a[[y, x, 0].as_slice()]),
+                _ => (0..3)
+                    .map(|k| scale(a[[y, x, k].as_slice()]) * GREY_WEIGHTS[k])
+                    .sum(),
+            };
+            if srgb {
+                photostereo::io::decode::srgb_to_linear(v)
+            } else {
+                v
+            }
+        }))
+    }
+    let srgb = |eight_bit: bool| match transfer {
+        Transfer::Auto => eight_bit,
+        Transfer::Linear => false,
+        Transfer::Srgb => true,
+    };
+    if let Ok(a) = obj.extract::<PyReadonlyArrayDyn<'_, f32>>() {
+        return grey(a, |v| v, srgb(false));
+    }
+    if let Ok(a) = obj.extract::<PyReadonlyArrayDyn<'_, f64>>() {
+        return grey(a, |v| v as f32, srgb(false));
+    }
+    if let Ok(a) = obj.extract::<PyReadonlyArrayDyn<'_, u16>>() {
+        return grey(a, |v| f32::from(v) / 65535.0, srgb(false));
+    }
+    if let Ok(a) = obj.extract::<PyReadonlyArrayDyn<'_, u8>>() {
+        return grey(a, |v| f32::from(v) / 255.0, srgb(true));
+    }
+    Err(PyTypeError::new_err(format!(
+        "image: {}; a numpy array of uint8, uint16, float32 or float64 expected",
+        describe(obj)
+    )))
+}
+
+/// Shape from shading of one grey image: a distant light (`horn`, `tsai-shah`,
+/// `fast-marching`; the light and albedo estimated where not given) or a pinhole camera with a
+/// point light (`perspective`).
+#[pyfunction]
+#[pyo3(signature = (image, mask=None, light=None, albedo=None, method=None, material="lambert", material_params=None, transfer="auto", boundary="occluding", iterations=0, smoothness=None, shadow_level=None, camera=None, light_position=None, light_intensity=None, refine=true, refine_smoothness=None, refine_iterations=0))]
+#[allow(clippy::too_many_arguments)]
+fn sfs<'py>(
+    py: Python<'py>,
+    image: &Bound<'py, PyAny>,
+    mask: Option<&Bound<'py, PyAny>>,
+    light: Option<[f64; 3]>,
+    albedo: Option<f64>,
+    method: Option<&str>,
+    material: &str,
+    material_params: Option<&Bound<'py, PyDict>>,
+    transfer: &str,
+    boundary: &str,
+    iterations: usize,
+    smoothness: Option<f64>,
+    shadow_level: Option<f64>,
+    camera: Option<PyReadonlyArray2<'py, f64>>,
+    light_position: Option<[f64; 3]>,
+    light_intensity: Option<f64>,
+    refine: bool,
+    refine_smoothness: Option<f64>,
+    refine_iterations: usize,
+) -> PyRes<Bound<'py, PyDict>> {
+    use photostereo::sfs::perspective::{PerspectiveOptions, PointLight, RefineOptions, refine};
+    use photostereo::sfs::{Boundary, SfsMethod, SfsOptions};
+    let image = grey_image_arg(image, transfer_arg(transfer)?)?;
+    let mut warnings: Vec<String> = Vec::new();
+    let mask = match sized_mask(mask, image.width(), image.height(), "the image's")? {
+        Some(m) => m,
+        None => {
+            warnings.push(
+                "no mask: the object is every pixel but the black background touching the \
+                 border, so attached shadows that touch it are left out; give a mask for \
+                 shadowed objects"
+                    .to_string(),
+            );
+            photostereo::sfs::object_mask(&image)
+        }
+    };
+    let material = material_arg(material, material_params)?;
+    let all: Vec<SfsMethod> = SfsMethod::ALL
+        .into_iter()
+        .chain([SfsMethod::Perspective])
+        .collect();
+    let method = match method {
+        None if light_position.is_some() => SfsMethod::Perspective,
+        None => SfsMethod::Horn,
+        Some(name) => all
+            .iter()
+            .copied()
+            .find(|m| m.name() == name)
+            .ok_or_else(|| {
+                let names: Vec<&str> = all.iter().map(|m| m.name()).collect();
+                PyValueError::new_err(format!("method: {name:?}; one of {names:?} expected"))
+            })?,
+    };
+    let out = PyDict::new(py);
+    let result = if method == SfsMethod::Perspective {
+        let Some(position) = light_position else {
+            return Err(PyValueError::new_err(
+                "light_position: the perspective method needs the light's position (camera \
+                 frame, the unit of depth; (0, 0, 0) for a light at the camera centre)",
+            ));
+        };
+        if light.is_some() {
+            return Err(PyValueError::new_err(
+                "light: a distant light's direction; the perspective method takes \
+                 light_position",
+            ));
+        }
+        if smoothness.is_some() || boundary != "occluding" {
+            return Err(PyValueError::new_err(format!(
+                "{}: for the distant-light methods; the perspective method's curvature weight \
+                 is refine_smoothness",
+                if smoothness.is_some() {
+                    "smoothness"
+                } else {
+                    "boundary"
+                }
+            )));
+        }
+        if !refine && (refine_smoothness.is_some() || refine_iterations != 0) {
+            return Err(PyValueError::new_err(format!(
+                "{}: sets the refinement, which refine=False turns off",
+                if refine_smoothness.is_some() {
+                    "refine_smoothness"
+                } else {
+                    "refine_iterations"
+                }
+            )));
+        }
+        let Some(k) = intrinsics_arg(camera.as_ref(), "camera")? else {
+            return Err(PyValueError::new_err(
+                "camera: the perspective method needs the camera's 3 x 3 intrinsics",
+            ));
+        };
+        let mut assumed = Vec::new();
+        if light_intensity.is_none() {
+            assumed.push("light_intensity");
+        }
+        if albedo.is_none() {
+            assumed.push("albedo");
+        }
+        if !assumed.is_empty() {
+            warnings.push(format!(
+                "{} not given, 1 assumed: the depth's scale goes with 1/sqrt(albedo x \
+                 intensity), and a wrong value bends the shape too",
+                assumed.join(" and ")
+            ));
+        }
+        let options = PerspectiveOptions {
+            material,
+            albedo: albedo.unwrap_or(1.0),
+            shadow_level: shadow_level.unwrap_or(PerspectiveOptions::default().shadow_level),
+            max_sweeps: iterations,
+            refine: refine.then(|| RefineOptions {
+                smoothness: refine_smoothness.unwrap_or(refine::DEFAULT_SMOOTHNESS),
+                max_iterations: if refine_iterations > 0 {
+                    refine_iterations
+                } else {
+                    refine::DEFAULT_MAX_ITERATIONS
+                },
+                ..RefineOptions::default()
+            }),
+            ..PerspectiveOptions::default()
+        };
+        let point = PointLight {
+            position: nalgebra_vec(position),
+            intensity: light_intensity.unwrap_or(1.0),
+        };
+        let r =
+            lib(py.detach(|| {
+                photostereo::sfs::perspective::solve(&image, &mask, &k, &point, &options)
+            }))?;
+        out.set_item("light", r.report.light)?;
+        out.set_item("albedo", options.albedo)?;
+        out.set_item("light_source", "given")?;
+        out.set_item(
+            "albedo_source",
+            if albedo.is_some() { "given" } else { "assumed" },
+        )?;
+        out.set_item("estimate", py.None())?;
+        r
+    } else {
+        for (name, given) in [
+            ("camera", camera.is_some()),
+            ("light_position", light_position.is_some()),
+            ("light_intensity", light_intensity.is_some()),
+            ("refine", !refine),
+            ("refine_smoothness", refine_smoothness.is_some()),
+            ("refine_iterations", refine_iterations != 0),
+        ] {
+            if given {
+                return Err(PyValueError::new_err(format!(
+                    "{name}: for the perspective method; {} assumes a distant light and an \
+                     orthographic camera",
+                    method.name()
+                )));
+            }
+        }
+        let boundary = match boundary {
+            "occluding" => Boundary::Occluding,
+            "free" => Boundary::Free,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "boundary: {other:?}; \"occluding\" or \"free\" expected"
+                )));
+            }
+        };
+        let defaults = SfsOptions::default();
+        let options = SfsOptions {
+            method,
+            boundary,
+            max_iterations: iterations,
+            smoothness: smoothness.unwrap_or(defaults.smoothness),
+            shadow_level: shadow_level.unwrap_or(defaults.shadow_level),
+        };
+        let (r, lit) = lib(py.detach(|| {
+            let (rmap, lit) = photostereo::sfs::estimate::illumination(
+                &image,
+                &mask,
+                light.map(nalgebra_vec),
+                albedo,
+                material,
+            )?;
+            photostereo::sfs::shape_from_shading(&image, &mask, &rmap, lit.albedo, &options)
+                .map(|r| (r, lit))
+        }))?;
+        out.set_item("light", lit.light)?;
+        out.set_item("albedo", lit.albedo)?;
+        out.set_item(
+            "light_source",
+            if lit.light_estimated {
+                "estimated"
+            } else {
+                "given"
+            },
+        )?;
+        out.set_item(
+            "albedo_source",
+            if lit.albedo_estimated {
+                "estimated"
+            } else {
+                "given"
+            },
+        )?;
+        out.set_item("estimate", lit.estimate.as_ref().map(json).transpose()?)?;
+        r
+    };
+    warnings.extend(result.report.warnings.iter().cloned());
+    out.set_item("method", method.name())?;
+    out.set_item("depth", result.depth.into_array().into_pyarray(py))?;
+    out.set_item(
+        "normals",
+        normals_to_array(&result.normals).into_pyarray(py),
+    )?;
+    out.set_item("residual", result.residual.into_array().into_pyarray(py))?;
+    out.set_item("shadow", result.shadow.into_array().into_pyarray(py))?;
+    out.set_item("mask", mask.into_array().into_pyarray(py))?;
+    out.set_item("report", json(&result.report)?)?;
+    out.set_item("warnings", warnings)?;
+    Ok(out)
+}
+
 /// One ball's calibration, or two balls' with light positions.
 enum Calibration {
     One(photostereo::calibrate::ChromeCalibration),
@@ -1164,6 +1460,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(light_ring, m)?)?;
     m.add_function(wrap_pyfunction!(reflectance_map, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate, m)?)?;
+    m.add_function(wrap_pyfunction!(sfs, m)?)?;
     m.add_function(wrap_pyfunction!(read_image, m)?)?;
     m.add_function(wrap_pyfunction!(read_mask, m)?)?;
     m.add_function(wrap_pyfunction!(resolve, m)?)?;

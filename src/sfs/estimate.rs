@@ -173,6 +173,71 @@ pub fn estimate_albedo(image: &ScalarMap, mask: &Mask, slant_deg: f64) -> Result
     Ok(sum / count as f64 / sphere_moments(slant_deg.clamp(0.0, 89.5)).0)
 }
 
+/// The distant light and albedo of a shape-from-shading run, and where each came from.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Illumination {
+    /// The light direction used: as given (not normalised), or the estimate's unit direction.
+    pub light: [f64; 3],
+    /// The albedo used.
+    pub albedo: f64,
+    /// Whether the light was estimated from the image (not given).
+    pub light_estimated: bool,
+    /// Whether the albedo was estimated from the image (not given).
+    pub albedo_estimated: bool,
+    /// The estimate of light and albedo ([`estimate_light`]), when the light was not given.
+    pub estimate: Option<LightEstimate>,
+}
+
+/// The reflectance map and [`Illumination`] of a distant-light shape-from-shading run: the
+/// light and albedo given, and whichever is missing estimated from `image` over `mask` — the
+/// light with [`estimate_light`] (which gives the albedo too), the albedo alone with
+/// [`estimate_albedo`] at the given light's slant.
+///
+/// # Errors
+/// [`Error::InvalidParameter`] naming `light` when the light or the albedo is missing and
+/// `material` is not Lambertian (both estimates assume Lambert's law); the errors of [`ReflectanceMap::new`](super::reflectance_map::ReflectanceMap::new),
+/// [`estimate_light`] and [`estimate_albedo`].
+pub fn illumination(
+    image: &ScalarMap,
+    mask: &Mask,
+    light: Option<Vector3<f64>>,
+    albedo: Option<f64>,
+    material: crate::synth::reflectance::Material,
+) -> Result<(super::reflectance_map::ReflectanceMap, Illumination)> {
+    if (light.is_none() || albedo.is_none())
+        && material != crate::synth::reflectance::Material::lambertian()
+    {
+        return Err(Error::param(
+            if light.is_none() { "light" } else { "albedo" },
+            "the light and albedo are estimated for a Lambertian surface only; give both for \
+             this reflectance",
+        ));
+    }
+    let (light, estimate) = match light {
+        Some(l) => (l, None),
+        None => {
+            let e = estimate_light(image, mask)?;
+            (e.light(), Some(e))
+        }
+    };
+    let rmap = super::reflectance_map::ReflectanceMap::new(light, material)?;
+    let albedo_used = match (albedo, &estimate) {
+        (Some(v), _) => v,
+        (None, Some(e)) => e.albedo,
+        (None, None) => estimate_albedo(image, mask, rmap.slant_deg())?,
+    };
+    Ok((
+        rmap,
+        Illumination {
+            light: [light.x, light.y, light.z],
+            albedo: albedo_used,
+            light_estimated: estimate.is_some(),
+            albedo_estimated: albedo.is_none(),
+            estimate,
+        },
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -190,5 +255,53 @@ mod tests {
             "{f1}"
         );
         assert!((f2 - 0.125).abs() < 1e-4, "{f2}");
+    }
+
+    /// What is given is used as given; what is missing is estimated (the light with the
+    /// albedo, or the albedo alone at the given light's slant); a reflectance other than
+    /// Lambert's is refused without both.
+    #[test]
+    fn illumination_estimates_only_what_is_missing() {
+        use crate::synth::reflectance::{Diffuse, Material};
+        use crate::synth::scene::{Albedo, Scene};
+        let l = Vector3::new(0.3, 0.25, 0.92).normalize();
+        let rmap = super::super::reflectance_map::ReflectanceMap::lambertian(l).unwrap();
+        let truth = Scene::sphere(80, 30.0, Albedo::Constant(0.7)).height_field();
+        let image = truth.normals.map(|n| {
+            let n = n.cast::<f64>();
+            if n.x.is_nan() {
+                0.0
+            } else {
+                (0.7 * rmap.eval(-n.x / n.z, -n.y / n.z)) as f32
+            }
+        });
+        let lambert = Material::lambertian();
+        let (_, given) = illumination(&image, &truth.mask, Some(l), Some(0.5), lambert).unwrap();
+        assert_eq!((given.albedo, given.light_estimated), (0.5, false));
+        assert!(!given.albedo_estimated && given.estimate.is_none());
+        let (_, albedo_only) = illumination(&image, &truth.mask, Some(l), None, lambert).unwrap();
+        assert!(albedo_only.albedo_estimated && !albedo_only.light_estimated);
+        assert!(
+            (albedo_only.albedo - 0.7).abs() < 0.02,
+            "{}",
+            albedo_only.albedo
+        );
+        let (rm, both) = illumination(&image, &truth.mask, None, None, lambert).unwrap();
+        let off = Vector3::from(both.light).angle(&l).to_degrees();
+        assert!(both.light_estimated && off < 3.0, "{off}°");
+        assert!((rm.slant_deg() - both.estimate.unwrap().slant_deg).abs() < 1e-9);
+        let rough = Material {
+            diffuse: Diffuse::OrenNayar { sigma: 0.3 },
+            ..lambert
+        };
+        let named = |e: Error| match e {
+            Error::InvalidParameter { name, .. } => name,
+            other => panic!("{other}"),
+        };
+        let e = illumination(&image, &truth.mask, Some(l), None, rough).unwrap_err();
+        assert_eq!(named(e), "albedo");
+        let e = illumination(&image, &truth.mask, None, Some(0.7), rough).unwrap_err();
+        assert_eq!(named(e), "light");
+        assert!(illumination(&image, &truth.mask, Some(l), Some(0.7), rough).is_ok());
     }
 }

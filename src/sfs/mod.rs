@@ -315,6 +315,22 @@ pub fn shape_from_shading_with_progress(
             format!("{} must be finite and ≥ 0", options.smoothness),
         ));
     }
+    // A surface facing the light is at its brightest for every reflectance the crate has;
+    // where even it is dark (a pure mirror, whose delta lobe the map leaves out), the image
+    // holds no shading.
+    let l = rmap.light();
+    let facing = if l.z > 0.0 {
+        rmap.eval(-l.x / l.z, -l.y / l.z)
+    } else {
+        1.0
+    };
+    if facing.is_nan() || facing <= 0.0 {
+        return Err(Error::param(
+            "material",
+            "its reflectance map is dark everywhere (a pure mirror's reflection is a delta the \
+             map leaves out): shape from shading needs a diffuse or glossy reflectance",
+        ));
+    }
     if rmap.light().z <= 0.0 {
         return Err(Error::param(
             "light",

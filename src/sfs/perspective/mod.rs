@@ -134,7 +134,7 @@ impl Default for PerspectiveOptions {
         PerspectiveOptions {
             material: Material::lambertian(),
             albedo: 1.0,
-            shadow_level: 0.01,
+            shadow_level: crate::sfs::DEFAULT_SHADOW_LEVEL,
             max_sweeps: 0,
             tolerance: 0.0,
             start: None,

@@ -1,0 +1,160 @@
+"""Shape from shading from Python (`photostereo.sfs`): rendered spheres under a distant light
+with the light given and estimated, a reflectance other than Lambert's, a plane through a
+pinhole camera under a light at its centre (closed form), and refusals that name what is
+wrong. The bounds are those of the command's tests (`cli/tests/sfs.rs`)."""
+
+import numpy as np
+import pytest
+
+import photostereo as ps
+
+SIZE = 96
+ALBEDO = 0.8
+
+
+def slanted(slant_deg, azimuth_deg):
+    s, a = np.radians(slant_deg), np.radians(azimuth_deg)
+    return np.array([np.sin(s) * np.cos(a), np.sin(s) * np.sin(a), np.cos(s)])
+
+
+LIGHT = slanted(30.0, 40.0)
+
+
+def mean_angle(normals, truth, mask):
+    cos = np.clip(np.sum(normals[mask] * truth[mask], axis=1), -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos)).mean())
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return ps.render("sphere", SIZE, LIGHT[None, :], albedo=ALBEDO)
+
+
+def test_a_sphere_under_an_oblique_light(sphere):
+    r = ps.sfs(sphere["images"][0], sphere["mask"], light=LIGHT, albedo=ALBEDO)
+    m = sphere["mask"]
+    assert r["method"] == "horn" and r["report"]["converged"]
+    assert np.isfinite(r["normals"][m]).all() and np.isnan(r["depth"][~m]).all()
+    err = mean_angle(r["normals"], sphere["normals"], m)
+    print(f"horn, light given: {err:.2f}° in {r['report']['iterations']} iterations")
+    assert err < 2.0
+    # Height up to an offset, against the true height's range.
+    d, t = r["depth"][m], sphere["depth"][m]
+    rmse = np.sqrt(np.mean(((d - d.mean()) - (t - t.mean())) ** 2))
+    assert rmse < 0.05 * (t.max() - t.min())
+    assert r["light_source"] == "given" and r["albedo_source"] == "given"
+
+
+def test_light_and_albedo_are_estimated_when_not_given(sphere):
+    r = ps.sfs(sphere["images"][0], sphere["mask"])
+    assert r["light_source"] == "estimated" and r["albedo_source"] == "estimated"
+    light = np.asarray(r["light"]) / np.linalg.norm(r["light"])
+    off = np.degrees(np.arccos(np.clip(light @ LIGHT, -1.0, 1.0)))
+    print(f"estimated light {off:.2f}° off, albedo {r['albedo']:.4f}")
+    assert off < 3.0 and abs(r["albedo"] - ALBEDO) / ALBEDO < 0.03
+    assert r["estimate"]["slant_deg"] == pytest.approx(np.degrees(np.arccos(light[2])), abs=1e-6)
+    assert mean_angle(r["normals"], sphere["normals"], sphere["mask"]) < 3.0
+
+
+def test_the_reflectance_is_the_one_given():
+    on = ps.render("sphere", SIZE, LIGHT[None, :], albedo=ALBEDO, material="oren-nayar")
+    m = on["mask"]
+    right = ps.sfs(on["images"][0], m, light=LIGHT, albedo=ALBEDO, material="oren-nayar")
+    lambert = ps.sfs(on["images"][0], m, light=LIGHT, albedo=ALBEDO)
+    a = mean_angle(right["normals"], on["normals"], m)
+    b = mean_angle(lambert["normals"], on["normals"], m)
+    print(f"Oren-Nayar sphere: {a:.2f}° with its reflectance, {b:.2f}° assuming Lambert's")
+    assert a < 2.0 and a < 0.5 * b
+
+
+def test_a_plane_through_a_pinhole_under_a_light_at_its_centre():
+    # A plane facing the camera at depth Z0, the light at the camera centre: a pixel's ray
+    # meets it at distance r = Z0 sqrt(1 + x² + y²) (x, y normalised), where cos θ = Z0 / r
+    # and the fall-off is 1/r², so I = ρ Φ Z0 / r³.
+    n, f, z0, phi = 64, 80.0, 100.0, 1.0e4
+    k = np.array([[f, 0.0, (n - 1) / 2], [0.0, f, (n - 1) / 2], [0.0, 0.0, 1.0]])
+    v, u = np.mgrid[0:n, 0:n]
+    r = z0 * np.sqrt(1 + ((u - k[0, 2]) / f) ** 2 + ((v - k[1, 2]) / f) ** 2)
+    image = (phi * z0 / r**3).astype(np.float32)
+    out = ps.sfs(
+        image,
+        np.ones((n, n), bool),
+        camera=k,
+        light_position=(0, 0, 0),
+        light_intensity=phi,
+        albedo=1.0,
+    )
+    assert out["method"] == "perspective" and out["warnings"] == []
+    depth_err = np.abs(out["depth"] - z0).max() / z0
+    tilt = np.degrees(np.arccos(np.clip(out["normals"][..., 2], -1.0, 1.0))).max()
+    print(f"plane: depth within {depth_err:.1e} of Z0, normals within {tilt:.3f}°")
+    assert depth_err < 1e-4 and tilt < 0.01
+    # Without the intensity and albedo, 1 is assumed, and a warning says so.
+    with pytest.warns(ps.PhotostereoWarning, match="1 assumed"):
+        r = ps.sfs(image, np.ones((n, n), bool), camera=k, light_position=(0, 0, 0))
+    assert r["albedo_source"] == "assumed"
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, words",
+    [
+        # The library's refusals name the parameter as `name`; the module's start with it.
+        ({"method": "fast-marching", "light": LIGHT}, ps.Error, "`method`"),
+        ({"method": "sketch"}, ValueError, "^method"),
+        ({"material": "phong"}, ps.Error, "`light`"),
+        ({"material": "phong", "light": LIGHT}, ps.Error, "`albedo`"),
+        ({"material": "mirror", "light": LIGHT, "albedo": 1.0}, ps.Error, "`material`"),
+        ({"method": "perspective", "light_position": (0, 0, 0)}, ValueError, "^camera"),
+        ({"light": LIGHT, "camera": np.eye(3)}, ValueError, "^camera"),
+        ({"light": LIGHT, "refine": False}, ValueError, "^refine"),
+        (
+            {"light_position": (0, 0, 0), "camera": np.eye(3), "refine": False,
+             "refine_iterations": 3},
+            ValueError,
+            "^refine_iterations",
+        ),
+        ({"light_position": (0, 0, 0), "camera": np.eye(3), "smoothness": 0.1}, ValueError,
+         "^smoothness"),
+        ({"light": (1.0, 0.0)}, ValueError, "^light"),
+        ({"light": LIGHT, "boundary": "open"}, ValueError, "^boundary"),
+        ({"light": LIGHT, "transfer": "gamma"}, ValueError, "^transfer"),
+        ({"light": LIGHT, "albedo": -1.0}, ps.Error, "`albedo`"),
+    ],
+)
+def test_bad_input_is_named(sphere, kwargs, error, words):
+    with pytest.raises(error, match=words):
+        ps.sfs(sphere["images"][0], sphere["mask"], **kwargs)
+
+
+def test_without_a_mask_the_object_is_found_and_a_warning_says_how(sphere):
+    with pytest.warns(ps.PhotostereoWarning, match="no mask"):
+        r = ps.sfs(sphere["images"][0], light=LIGHT, albedo=ALBEDO)
+    lit = sphere["mask"] & (sphere["images"][0] > 0)
+    assert r["mask"][lit].all() and not r["mask"][~sphere["mask"]].any()
+
+
+def test_images_of_other_types_and_shapes(sphere):
+    img = sphere["images"][0]
+    run = lambda image, **kw: ps.sfs(image, sphere["mask"], light=LIGHT, albedo=ALBEDO, **kw)
+    with pytest.raises(ValueError, match="one image"):
+        ps.sfs(img[None])
+    with pytest.raises(TypeError, match="image"):
+        ps.sfs(img.tolist())
+    # 16-bit codes are scaled to [0, 1]: the same solution as the floats they round.
+    codes = np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16)
+    a = run(codes)
+    assert np.array_equal(a["normals"], run(codes.astype(np.float32) / 65535)["normals"],
+                          equal_nan=True)
+    # Three channels are mixed to grey with BT.601's weights (summing to 1): a grey colour
+    # image is its grey image, up to the rounding of the mix.
+    colour = run(np.stack([img] * 3, axis=-1))["normals"]
+    assert mean_angle(colour, run(img)["normals"], sphere["mask"]) < 0.01
+    # 8-bit codes are decoded from sRGB unless the transfer says they are linear.
+    srgb = np.where(img <= 0.0031308, 12.92 * img, 1.055 * np.clip(img, 0, 1) ** (1 / 2.4) - 0.055)
+    eight = np.round(np.clip(srgb, 0, 1) * 255).astype(np.uint8)
+    decoded = mean_angle(run(eight)["normals"], sphere["normals"], sphere["mask"])
+    with pytest.warns(ps.PhotostereoWarning, match="brighter than the albedo"):
+        linear = run(eight, transfer="linear")
+    undecoded = mean_angle(linear["normals"], sphere["normals"], sphere["mask"])
+    print(f"8-bit sRGB image: {decoded:.2f}° decoded, {undecoded:.2f}° read as linear")
+    assert decoded < 2.0 < undecoded
