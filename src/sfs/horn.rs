@@ -57,9 +57,6 @@ const LAMBDA_DECAY: f64 = 0.5;
 const LAMBDA_NEGLIGIBLE: f64 = 1e-8;
 /// Levenberg–Marquardt's initial damping, while λ is lowered.
 const DAMPING_START: f64 = 1e-3;
-/// Damping added to the normal equations at the final λ, relative to their diagonal (and to
-/// its mean).
-const DAMPING: f64 = 1e-6;
 /// Convergence at the final λ: a step lowers the energy by less than this fraction of it (the
 /// shape-from-shading refinement's default test).
 const TOLERANCE: f64 = super::perspective::refine::DEFAULT_TOLERANCE;
@@ -197,6 +194,13 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
     for (idx, _) in &smooth {
         lower(idx, &mut pattern);
     }
+    // The assembled entries on the diagonal (the damping's own n entries follow them).
+    let diagonal: Vec<(usize, usize)> = pattern
+        .iter()
+        .enumerate()
+        .filter(|(_, at)| at.row == at.col)
+        .map(|(p, at)| (p, at.row))
+        .collect();
     pattern.extend((0..n).map(|k| Pair::new(k, k)));
     let assembly_err =
         |e: &dyn std::fmt::Debug| Error::param("solver", format!("sparse assembly failed: {e:?}"));
@@ -297,15 +301,15 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         if at_floor {
             // Gauss–Newton with a line search at the final λ.
             diag.iter_mut().for_each(|d| *d = 0.0);
-            for (v, at) in values.iter().zip(&pattern) {
-                if at.row == at.col {
-                    diag[at.row] += v;
-                }
+            for &(p, row) in &diagonal {
+                diag[row] += values[p];
             }
-            let mean_diag = (diag.iter().sum::<f64>() / n as f64).max(f64::MIN_POSITIVE);
-            let delta = solve_damped(&mut values, &|k| DAMPING * (diag[k] + mean_diag))
-                .ok()
-                .filter(|d| d.iter().all(|v| v.is_finite()));
+            let mean_diag = diag.iter().sum::<f64>() / n as f64;
+            let delta = solve_damped(&mut values, &|k| {
+                super::gauss_newton_damping(diag[k], mean_diag)
+            })
+            .ok()
+            .filter(|d| d.iter().all(|v| v.is_finite()));
             if let Some(delta) = delta {
                 newton = true;
                 // rhs is −∇E/2: the energy's slope along the step is −2 rhs·δ.

@@ -60,6 +60,17 @@ const POOR_FIT: f64 = 0.02;
 /// Largest gradient magnitude any method returns (a slope of 89.4°).
 pub(crate) const MAX_GRADIENT: f64 = 100.0;
 
+/// Relative damping of the Gauss–Newton equations of Horn's method and of the perspective
+/// refinement (see [`gauss_newton_damping`]).
+const GAUSS_NEWTON_DAMPING: f64 = 1e-6;
+
+/// What is added to a diagonal entry `d` of Gauss–Newton normal equations whose diagonal has
+/// the mean `mean`: 10⁻⁶ of each, which keeps the equations definite where only the smoothness
+/// reaches an unknown and leaves the step otherwise unchanged.
+pub(crate) fn gauss_newton_damping(d: f64, mean: f64) -> f64 {
+    GAUSS_NEWTON_DAMPING * d + GAUSS_NEWTON_DAMPING * mean.max(f64::MIN_POSITIVE)
+}
+
 /// A shape-from-shading method (see the module documentation).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]

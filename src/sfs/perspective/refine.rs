@@ -70,9 +70,6 @@ pub const DEFAULT_MAX_ITERATIONS: usize = 100;
 pub const DEFAULT_TOLERANCE: f64 = 1e-3;
 /// Step in ln Z of the central differences of a cell's residual.
 const STEP: f64 = 1e-6;
-/// Relative damping added to the normal equations' diagonal (and, times their mean, to every
-/// diagonal entry): keeps them definite where only the penalty reaches a pixel.
-const DAMPING: f64 = 1e-6;
 
 /// Options of the refinement.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -468,9 +465,8 @@ pub(super) fn refine(
         let (mut values, g) = problem.normal_equations(z, lambda);
         // A little damping keeps the system definite where only the penalty reaches.
         let mean_diag = problem.diag_at.iter().map(|&p| values[p]).sum::<f64>() / n as f64;
-        let floor = DAMPING * mean_diag.max(f64::MIN_POSITIVE);
         for &p in &problem.diag_at {
-            values[p] += DAMPING * values[p] + floor;
+            values[p] += crate::sfs::gauss_newton_damping(values[p], mean_diag);
         }
         let mut step: Vec<f64> = g.iter().map(|v| -v).collect();
         cholesky_solve(
