@@ -470,7 +470,8 @@ pub enum BenchCommand {
     /// (Pareto fronts included) in `--out`.
     Sweep(SweepBenchArgs),
     /// Everything that feeds `docs/bench` in one run: the sweeps, solver scaling, integrator
-    /// timing beside numpy, and DiLiGenT beside the numpy peer when the data is present;
+    /// timing beside numpy, interreflections and near lights, every shape-from-shading method
+    /// on rendered shapes, and DiLiGenT beside the numpy peer when the data is present;
     /// tables, charts and a generated README.md in `--out`.
     All(AllBenchArgs),
 }

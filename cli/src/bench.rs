@@ -445,90 +445,111 @@ pub fn sfs(a: crate::args::SfsBenchArgs) -> Result<()> {
         ..SfsSweepOptions::default()
     })?;
     if a.markdown {
-        let mut s = String::from(
-            "| scene | light | method | normals, mean (°) | depth RMSE / range | absolute | iterations (+ refinement steps) | time (s) |\n\
-             |---|---|---|---:|---:|---:|---:|---:|\n",
-        );
-        for r in &report.rows {
-            let light = if r.slant_deg == 0.0 {
-                "frontal".to_string()
-            } else {
-                format!("{}° oblique", r.slant_deg)
-            };
-            match (&r.refused, r.normals_deg, r.depth) {
-                (Some(_), _, _) => {
-                    let _ = writeln!(
-                        s,
-                        "| {} | {light} | {} | not applicable | | | | |",
-                        r.scene,
-                        r.label()
-                    );
-                }
-                (None, Some(n), Some(d)) => {
-                    let _ = writeln!(
-                        s,
-                        "| {} | {light} | {} | {n:.2} | {:.2}% | {} | {}{}{} | {:.2} |",
-                        r.scene,
-                        r.label(),
-                        100.0 * d,
-                        r.depth_absolute
-                            .map_or_else(String::new, |v| format!("{:.2}%", 100.0 * v)),
-                        r.iterations,
-                        r.refined.map_or_else(String::new, |k| format!(" + {k}")),
-                        if r.converged { "" } else { " (not converged)" },
-                        r.seconds
-                    );
-                }
-                _ => {}
-            }
-        }
-        eprint!("{s}");
+        eprint!("{}", sfs_table(&report));
     }
     let text = serde_json::to_string_pretty(&report)?;
     if let Some(dir) = &a.out {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         crate::write_file_atomic(&dir.join("sfs.json"), text.as_bytes())?;
-        let mut series = Vec::new();
-        let mut labels: Vec<String> = Vec::new();
-        for r in &report.rows {
-            if !labels.contains(&r.label()) {
-                labels.push(r.label());
-            }
-        }
-        for (k, label) in labels.iter().enumerate() {
-            for (j, &slant) in a.slants.iter().enumerate() {
-                let points: Vec<(f64, f64)> = report
-                    .rows
-                    .iter()
-                    .filter(|r| r.label() == *label && r.slant_deg == slant)
-                    .filter_map(|r| r.normals_deg.map(|e| (r.seconds.max(1e-3), e)))
-                    .collect();
-                if points.is_empty() {
-                    continue;
-                }
-                let name = format!("{label} at {slant}°");
-                series.push(
-                    Series::line(name, points, k * a.slants.len() + j)
-                        .styled(crate::chart::Style::Markers),
-                );
-            }
-        }
-        crate::chart::write(
-            &Chart {
-                title: format!(
-                    "Shape from shading: normal error against solve time ({}², five shapes)",
-                    a.size
-                ),
-                x_label: "solve time (s)".into(),
-                y_label: "mean normal error (°)".into(),
-                log: (true, true),
-                series,
-                legend: Legend::UpperRight,
-            },
-            &dir.join("sfs"),
-        )?;
+        sfs_chart(&report, &dir.join("sfs"))?;
     }
     say!("{text}");
+    Ok(())
+}
+
+/// The rows of a shape-from-shading sweep as a Markdown table.
+pub(crate) fn sfs_table(report: &photostereo::eval::sfs::SfsSweepReport) -> String {
+    let mut s = String::from(
+        "| scene | light | method | normals, mean (°) | depth RMSE / range | absolute | iterations (+ refinement steps) | time (s) |\n\
+         |---|---|---|---:|---:|---:|---:|---:|\n",
+    );
+    for r in &report.rows {
+        let light = if r.slant_deg == 0.0 {
+            "frontal".to_string()
+        } else {
+            format!("{}° oblique", r.slant_deg)
+        };
+        match (&r.refused, r.normals_deg, r.depth) {
+            (Some(_), _, _) => {
+                let _ = writeln!(
+                    s,
+                    "| {} | {light} | {} | not applicable | | | | |",
+                    r.scene,
+                    r.label()
+                );
+            }
+            (None, Some(n), Some(d)) => {
+                let _ = writeln!(
+                    s,
+                    "| {} | {light} | {} | {n:.2} | {:.2}% | {} | {}{}{} | {:.2} |",
+                    r.scene,
+                    r.label(),
+                    100.0 * d,
+                    r.depth_absolute
+                        .map_or_else(String::new, |v| format!("{:.2}%", 100.0 * v)),
+                    r.iterations,
+                    r.refined
+                        .map_or_else(String::new, |k| if r.refined_coarse > 0 {
+                            format!(" + {k} (after {} at lower resolutions)", r.refined_coarse)
+                        } else {
+                            format!(" + {k}")
+                        }),
+                    if r.converged { "" } else { " (not converged)" },
+                    r.seconds
+                );
+            }
+            _ => {}
+        }
+    }
+    s
+}
+
+/// The chart of a shape-from-shading sweep (`STEM.svg/.png`): each method's normal error
+/// against its solve time, one series per method and light.
+pub(crate) fn sfs_chart(
+    report: &photostereo::eval::sfs::SfsSweepReport,
+    stem: &std::path::Path,
+) -> Result<()> {
+    let slants = &report.options.slants;
+    let mut series = Vec::new();
+    let mut labels: Vec<String> = Vec::new();
+    for r in &report.rows {
+        if !labels.contains(&r.label()) {
+            labels.push(r.label());
+        }
+    }
+    for (k, label) in labels.iter().enumerate() {
+        for (j, &slant) in slants.iter().enumerate() {
+            let points: Vec<(f64, f64)> = report
+                .rows
+                .iter()
+                .filter(|r| r.label() == *label && r.slant_deg == slant)
+                .filter_map(|r| r.normals_deg.map(|e| (r.seconds.max(1e-3), e)))
+                .collect();
+            if points.is_empty() {
+                continue;
+            }
+            let name = format!("{label} at {slant}°");
+            series.push(
+                Series::line(name, points, k * slants.len() + j)
+                    .styled(crate::chart::Style::Markers),
+            );
+        }
+    }
+    crate::chart::write(
+        &Chart {
+            title: format!(
+                "Shape from shading: normal error against solve time ({}², five shapes)",
+                report.options.size
+            ),
+            x_label: "solve time (s)".into(),
+            y_label: "mean normal error (°)".into(),
+            log: (true, true),
+            series,
+            legend: Legend::UpperRight,
+        },
+        stem,
+    )?;
     Ok(())
 }
 

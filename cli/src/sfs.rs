@@ -323,11 +323,19 @@ fn perspective(
     );
     if let Some(f) = &rep.refinement {
         say!(
-            "  refined: {} steps{} in {:.3} s over {} cells, energy {:.3e} -> {:.3e}, rms \
+            "  refined: {} steps{} in {:.3} s{} over {} cells, energy {:.3e} -> {:.3e}, rms \
              relative residual {:.4}",
             f.iterations,
             if f.converged { "" } else { " (not converged)" },
             f.seconds,
+            if f.coarse_iterations > 0 {
+                format!(
+                    " (from a start refined in {} steps at lower resolutions)",
+                    f.coarse_iterations
+                )
+            } else {
+                String::new()
+            },
             f.cells,
             f.energy_start,
             f.energy_end,

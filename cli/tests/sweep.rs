@@ -375,6 +375,7 @@ fn bench_all_writes_every_table_and_chart() {
         "depth_pareto",
         "scaling",
         "integration_time",
+        "sfs",
     ] {
         let png = image::open(out.join(format!("{stem}.png"))).unwrap();
         assert_eq!((png.width(), png.height()), (900, 600), "{stem}");
@@ -421,9 +422,24 @@ fn bench_all_writes_every_table_and_chart() {
         "## Shape from shading",
         "## Integrators",
         "## Cost against size",
+        "## Shape from shading on rendered shapes",
         "Not run",
     ] {
         assert!(readme.contains(section), "{section}");
+    }
+    // Shape from shading: five shapes × two lights × (horn, tsai-shah, fast-marching, the
+    // perspective method swept and refined), each refused or with finite errors.
+    let sfs: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("sfs.json")).unwrap()).unwrap();
+    let rows = sfs["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 5 * 2 * 5);
+    for r in rows {
+        assert!(
+            r["refused"].is_string()
+                || (r["normals_deg"].as_f64().unwrap().is_finite()
+                    && r["depth"].as_f64().unwrap().is_finite()),
+            "{r}"
+        );
     }
     // Nothing left half-written.
     assert!(

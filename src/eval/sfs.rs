@@ -84,9 +84,12 @@ pub struct SfsRow {
     pub iterations: usize,
     /// Whether the method met its tolerance (and, refined, the refinement too).
     pub converged: bool,
-    /// Perspective: whether the swept solution was refined (and in how many steps); `None`
-    /// for the other methods.
+    /// Perspective: whether the swept solution was refined (and in how many steps at full
+    /// resolution); `None` for the other methods.
     pub refined: Option<usize>,
+    /// Perspective, refined: the refinement steps taken at lower resolutions to make its start
+    /// (0 otherwise).
+    pub refined_coarse: usize,
     /// Solve time, seconds.
     pub seconds: f64,
 }
@@ -191,6 +194,7 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
                     iterations: 0,
                     converged: false,
                     refined: None,
+                    refined_coarse: 0,
                     seconds: 0.0,
                 };
                 let (result, truth) = if method == SfsMethod::Perspective {
@@ -243,6 +247,11 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
                             .as_ref()
                             .is_none_or(|r| r.converged),
                     refined: result.report.refinement.as_ref().map(|r| r.iterations),
+                    refined_coarse: result
+                        .report
+                        .refinement
+                        .as_ref()
+                        .map_or(0, |r| r.coarse_iterations),
                     seconds: result.report.seconds,
                     ..row(None)
                 });

@@ -42,7 +42,7 @@
 use super::line_search;
 use super::{Boundary, Shading, Solved, clamp_gradient, differences, distance_to_edge};
 use crate::error::{Error, Result};
-use crate::integrate::sparse::{NONE, cholesky_solve, nested_dissection, symbolic_cholesky};
+use crate::integrate::sparse::{CholeskyWork, NONE, nested_dissection, symbolic_cholesky};
 use faer::Par;
 use faer::sparse::{Pair, SparseColMat, SymbolicSparseColMat};
 
@@ -209,6 +209,9 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
     let (col_ptr, row_idx) = (structure.col_ptr().to_vec(), structure.row_idx().to_vec());
     // A cell and its neighbours couple pixels up to two apart: separators two pixels thick.
     let symbolic = symbolic_cholesky(&col_ptr, &row_idx, nested_dissection(u, 2))?;
+    // Sequential: faer's parallel factorisation spends more time synchronising than it saves on
+    // these sizes (as in the perspective refinement).
+    let mut work = CholeskyWork::new(&symbolic, Par::Seq)?;
     let lower_values = |idx: &[usize], coef: &[f64], w: f64, out: &mut Vec<f64>| {
         for (a, &i) in idx.iter().enumerate() {
             for (b, &j) in idx.iter().enumerate() {
@@ -276,22 +279,13 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         let at_floor = lambda <= floor;
         let base = values.len();
         // Solves the normal equations with `damping(k)` added to the k-th diagonal entry.
-        let solve_damped = |values: &mut Vec<f64>, damping: &dyn Fn(usize) -> f64| {
+        let mut solve_damped = |values: &mut Vec<f64>, damping: &dyn Fn(usize) -> f64| {
             values.truncate(base);
             values.extend((0..n).map(damping));
             let mat = SparseColMat::new_from_argsort(structure.clone(), &argsort, values)
                 .map_err(|e| assembly_err(&e))?;
             let mut delta = rhs.clone();
-            // Sequential: faer's parallel factorisation spends more time synchronising than
-            // it saves on these sizes (as in the perspective refinement).
-            cholesky_solve(
-                &symbolic,
-                &col_ptr,
-                &row_idx,
-                mat.val(),
-                Par::Seq,
-                &mut delta,
-            )?;
+            work.solve(&symbolic, &col_ptr, &row_idx, mat.val(), &mut delta)?;
             Ok::<_, Error>(delta)
         };
         let mut lowered = None;

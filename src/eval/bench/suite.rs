@@ -1,7 +1,9 @@
 //! What `bench all` runs to regenerate `docs/bench` ([`SuitePlan`]), in order: the
 //! speed–accuracy sweeps ([`crate::eval::sweep`]), solver scaling ([`super::scaling`]),
 //! integrator timing ([`super::integration`]), interreflection compensation on rendered
-//! concave scenes ([`super::interreflections`]), then on each DiLiGenT object present the
+//! concave scenes ([`super::interreflections`]), near lights ([`crate::eval::near`]), every
+//! shape-from-shading method on rendered shapes ([`crate::eval::sfs`]), then on each DiLiGenT
+//! object present the
 //! stages beside the numpy peer ([`super::stages`]) and every estimator with all lights and
 //! light subsets ([`super::diligent`]), and last every integrator on the shared depth data
 //! ([`super::real_depth`]). The quick plan is a smoke run of the whole chain, not for
@@ -27,6 +29,9 @@ pub struct SuitePlan {
     pub interreflections: InterreflectionBenchOptions,
     /// Near lights against distant ones as the LEDs move away ([`crate::eval::near::sweep`]).
     pub near: crate::eval::near::NearSweepOptions,
+    /// Every shape-from-shading method on rendered shapes, error against time
+    /// ([`crate::eval::sfs::sweep`]).
+    pub sfs: crate::eval::sfs::SfsSweepOptions,
     /// The DiLiGenT stage timing beside the peer: plain least squares ([`super::stages::PEER_METHOD`]),
     /// normals only.
     pub stages: Config,
@@ -48,6 +53,7 @@ impl SuitePlan {
             integration: IntegrationBenchOptions::default(),
             interreflections: InterreflectionBenchOptions::default(),
             near: crate::eval::near::NearSweepOptions::default(),
+            sfs: crate::eval::sfs::SfsSweepOptions::default(),
             stages: Config {
                 solve: SolveOptions::with_method(super::stages::PEER_METHOD),
                 integration: None,
@@ -58,7 +64,9 @@ impl SuitePlan {
     }
 
     /// A smoke run of the whole chain: small images ([`SweepOptions::quick`]; scaling at 64²
-    /// and 128², integrators at 64² and 128², interreflections at 48² with 12 lights, near lights at 48² with 8 LEDs at 2 and 10 sizes) and single runs, except the sweeps' three.
+    /// and 128², integrators at 64² and 128², interreflections at 48² with 12 lights, near
+    /// lights at 48² with 8 LEDs at 2 and 10 sizes, shape from shading at 48²) and single runs,
+    /// except the sweeps' three.
     pub fn quick() -> Self {
         let full = Self::full();
         SuitePlan {
@@ -83,6 +91,10 @@ impl SuitePlan {
                 lights: 8,
                 distances: vec![2.0, 10.0],
                 ..full.near
+            },
+            sfs: crate::eval::sfs::SfsSweepOptions {
+                size: 48,
+                ..full.sfs
             },
             diligent_repeat: 1,
             ..full

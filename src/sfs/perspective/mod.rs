@@ -53,6 +53,9 @@
 //! fits the whole image from it (least squares over 2×2 cells of lit pixels plus a small
 //! curvature penalty, Gauss–Newton with a sparse Cholesky factorisation): on the rendered test
 //! shapes with the light 30° off the axis, 5–9° → 1.8–3.3° (see `docs/shape-from-shading.md`).
+//! It works coarse to fine: a large mask is swept and refined at half resolution (recursively)
+//! and the result upsampled as the start; a start swept at full resolution is first moved by
+//! its refinement at half resolution when that level is large enough.
 //!
 //! # Assumptions and failure modes
 //! - The light's position and intensity, the camera and the albedo are known, in consistent
@@ -144,6 +147,7 @@ impl Default for PerspectiveOptions {
 }
 
 /// The brightness F(cos θ) of the reflectance for a light at the viewer, and its inverse.
+#[derive(Clone)]
 enum Brightness {
     /// F(c) = ρc.
     Lambert(f64),
@@ -252,6 +256,7 @@ struct Pixel {
 }
 
 /// The light in the internal frame (x right, y down, z forward) and the reflectance.
+#[derive(Clone)]
 struct Model {
     s: Vector3<f64>,
     /// Whether the light is at the camera centre (m = 0, any reflectance).
@@ -943,6 +948,7 @@ fn solve_swept(
             unfilled,
             singular,
             coarse: None,
+            coarse_steps: None,
         })
     };
     let Swept {
@@ -956,6 +962,7 @@ fn solve_swept(
         unfilled,
         singular,
         coarse,
+        coarse_steps,
     } = match coarse_start(image, mask, camera, light, options, &all)? {
         Some(swept) => swept,
         None => sweep()?,
@@ -986,9 +993,22 @@ fn solve_swept(
                     (pix / w, pix % w)
                 })
                 .collect();
-            let problem = refine::Problem::new(&model, &sites, &grid, w, h);
             let mut zk: Vec<f64> = keep.iter().map(|&k| lnz[k]).collect();
-            let report = refine::refine(&problem, &mut zk, refine_options)?;
+            let problem = refine::Problem::new(&model, &sites, &grid, w, h);
+            // A start swept at this resolution is refined at half resolution first (when that
+            // level is large enough and it helps); an upsampled start already was.
+            let coarse_iterations = match coarse_steps {
+                Some(steps) => steps,
+                None => refine::refine_from_half(
+                    &problem,
+                    (&model, &sites, &grid),
+                    (w, h),
+                    &mut zk,
+                    refine_options,
+                ),
+            };
+            let mut report = refine::refine(&problem, &mut zk, refine_options)?;
+            report.coarse_iterations = coarse_iterations;
             let fitted = problem.fitted();
             if report.cells > 0 {
                 for k in known.iter_mut() {
@@ -1084,6 +1104,12 @@ fn solve_swept(
             "swept at {cw}×{ch} (halving the resolution until the mask has at most \
              {SWEEP_AT_MOST} pixels), refined at each resolution from the one below"
         ));
+    } else if refinement.as_ref().is_some_and(|r| r.coarse_iterations > 0) {
+        assumptions.push(
+            "the swept start refined at half resolution first (recursively), its change \
+             interpolated back"
+                .to_string(),
+        );
     }
     if let Some(r) = &refinement {
         assumptions.push(format!(
@@ -1211,6 +1237,8 @@ struct Swept {
     singular: usize,
     /// For an upsampled start: the size swept (half resolution, or less recursively).
     coarse: Option<(usize, usize)>,
+    /// For an upsampled start: the refinement steps taken at the lower resolutions to make it.
+    coarse_steps: Option<usize>,
 }
 
 /// For a large mask whose result is to be refined: the solution of the half-resolution image
@@ -1321,6 +1349,11 @@ fn coarse_start(
         unfilled: 0,
         singular: r.singular_points,
         coarse: Some(swept_size),
+        coarse_steps: Some(
+            r.refinement
+                .as_ref()
+                .map_or(0, |f| f.iterations + f.coarse_iterations),
+        ),
     }))
 }
 
