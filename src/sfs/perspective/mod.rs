@@ -1310,19 +1310,9 @@ fn coarse_start(
     let mut known = vec![false; all.len()];
     for (k, &pix) in all.pixel.iter().enumerate() {
         let (c, r) = (pix as usize % w, pix as usize / w);
-        // Pixel c sits at (c − 0.5)/2 on the half-resolution grid.
-        let x = ((c as f64 - 0.5) / 2.0).clamp(0.0, (cw - 1) as f64);
-        let y = ((r as f64 - 0.5) / 2.0).clamp(0.0, (ch - 1) as f64);
-        let (x0, y0) = ((x as usize).min(cw - 2), (y as usize).min(ch - 2));
-        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
         let (mut sum, mut weight) = (0.0, 0.0);
-        for (dx, dy, wt) in [
-            (0, 0, (1.0 - fx) * (1.0 - fy)),
-            (1, 0, fx * (1.0 - fy)),
-            (0, 1, (1.0 - fx) * fy),
-            (1, 1, fx * fy),
-        ] {
-            let v = *clnz.at(x0 + dx, y0 + dy);
+        for (x, y, wt) in refine::bilinear_from_half(c, r, cw, ch) {
+            let v = *clnz.at(x, y);
             if v.is_finite() && wt > 0.0 {
                 sum += wt * v;
                 weight += wt;

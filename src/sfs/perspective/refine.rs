@@ -47,9 +47,10 @@
 //! therefore first moved by its own refinement at half resolution (`refine_from_half`: block
 //! means of the start and of the image, the focal lengths halved; the change interpolated back
 //! and added, so the start keeps its detail), where such steps cost several times less, when
-//! that level keeps at least 3 000 pixels (`MIN_HALF_PIXELS`). (A large mask is already swept and refined at half
-//! resolution and upsampled: see [`super::solve`].) On the frame-filling rendered shapes this
-//! takes a half to two thirds of the full-resolution steps away at the same error.
+//! that level keeps at least 3 000 pixels (`MIN_HALF_PIXELS`). (A large mask is already swept
+//! and refined at half resolution and upsampled: see [`super::solve`].) On the frame-filling
+//! rendered shapes this takes a half to two thirds of the full-resolution steps away at the
+//! same error.
 //!
 //! # Assumptions and failure modes
 //! - A local method: it finds the minimum nearest its start, so it inherits the start's
@@ -538,6 +539,28 @@ pub(super) fn refine(
 /// the two; the pixel count stands in for what differs (the contour's share of the level).
 const MIN_HALF_PIXELS: usize = 3000;
 
+/// The bilinear stencil of the fine pixel at column `c`, row `r` on the half-resolution grid of
+/// `cw × ch` pixels (at least 2 × 2) whose pixel (x, y) is the 2×2 block of fine pixels from
+/// (2x, 2y): the fine pixel sits at ((c − 0.5)/2, (r − 0.5)/2) there, clamped to the grid. The
+/// four coarse pixels (column, row) around it and their weights, which sum to 1.
+pub(super) fn bilinear_from_half(
+    c: usize,
+    r: usize,
+    cw: usize,
+    ch: usize,
+) -> [(usize, usize, f64); 4] {
+    let x = ((c as f64 - 0.5) / 2.0).clamp(0.0, (cw - 1) as f64);
+    let y = ((r as f64 - 0.5) / 2.0).clamp(0.0, (ch - 1) as f64);
+    let (x0, y0) = ((x as usize).min(cw - 2), (y as usize).min(ch - 2));
+    let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+    [
+        (x0, y0, (1.0 - fx) * (1.0 - fy)),
+        (x0 + 1, y0, fx * (1.0 - fy)),
+        (x0, y0 + 1, (1.0 - fx) * fy),
+        (x0 + 1, y0 + 1, fx * fy),
+    ]
+}
+
 /// Transfer between a level and the one of half its resolution: each coarse pixel is a 2×2
 /// block of fine pixels all in the level; a fine pixel's value is the bilinear interpolation of
 /// the coarse pixels around it, over those that exist.
@@ -590,19 +613,8 @@ impl Transfer {
         }
         let mut weights = Vec::with_capacity(grid.len());
         for &(r, c) in grid {
-            // Fine pixel c sits at (c − 0.5)/2 on the coarse grid.
-            let x = ((c as f64 - 0.5) / 2.0).clamp(0.0, (cw - 1) as f64);
-            let y = ((r as f64 - 0.5) / 2.0).clamp(0.0, (ch - 1) as f64);
-            let (x0, y0) = ((x as usize).min(cw - 2), (y as usize).min(ch - 2));
-            let (fx, fy) = (x - x0 as f64, y - y0 as f64);
-            let mut ws = [
-                (0, 0, (1.0 - fx) * (1.0 - fy)),
-                (1, 0, fx * (1.0 - fy)),
-                (0, 1, (1.0 - fx) * fy),
-                (1, 1, fx * fy),
-            ]
-            .map(|(dx, dy, wt)| {
-                let j = cindex[(y0 + dy) * cw + x0 + dx];
+            let mut ws = bilinear_from_half(c, r, cw, ch).map(|(x, y, wt)| {
+                let j = cindex[y * cw + x];
                 if j == usize::MAX { (0, 0.0) } else { (j, wt) }
             });
             let total: f64 = ws.iter().map(|p| p.1).sum();
