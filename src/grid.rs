@@ -159,6 +159,44 @@ impl<T> Grid<T> {
     }
 }
 
+impl<T: Copy + Send + Sync> Grid<T> {
+    /// The part of the grid inside `win` (which must lie within it), copied in parallel.
+    ///
+    /// # Panics
+    /// When `win` reaches outside the grid.
+    pub(crate) fn crop(&self, win: Window) -> Grid<T> {
+        use rayon::prelude::*;
+        assert!(
+            win.x1 <= self.width && win.y1 <= self.height,
+            "window {win} outside a {}×{} grid",
+            self.width,
+            self.height
+        );
+        let (w, h) = (win.width(), win.height());
+        let Some(&first) = self
+            .data
+            .get(win.y0 * self.width + win.x0)
+            .filter(|_| w * h > 0)
+        else {
+            return Grid {
+                width: w,
+                height: h,
+                data: Vec::new(),
+            };
+        };
+        let mut data = vec![first; w * h];
+        data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            let from = (win.y0 + y) * self.width + win.x0;
+            row.copy_from_slice(&self.data[from..from + w]);
+        });
+        Grid {
+            width: w,
+            height: h,
+            data,
+        }
+    }
+}
+
 impl Grid<bool> {
     /// Number of `true` pixels.
     pub fn count(&self) -> usize {

@@ -737,13 +737,21 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
                 s.method.name()
             ),
             (Some(s), _) if s.method == SolveMethod::Direct => " (direct solver)".to_string(),
-            (Some(s), _) => format!(" ({}, {} iterations)", s.method.name(), s.iterations),
+            (Some(s), _) => format!(
+                " ({}, {} iterations, {})",
+                s.method.name(),
+                s.iterations,
+                s.convergence.describe()
+            ),
             _ => String::new(),
         },
         mean_res
     );
     if let Some(d) = &r.auto {
         say!("  auto: {}", d.reason());
+    }
+    if let Some(w) = r.solve.and_then(photostereo::run::Warning::of_solve) {
+        eprintln!("warning: {}", printable(&w.to_string()));
     }
     say!(
         "  wrote {}{}",

@@ -329,7 +329,10 @@ def integrate(
         ``{"depth": H x W (orthographic: height towards the camera in pixel units; perspective:
         depth up to scale), "residual": H x W, "method": str (the integrator that ran),
         "iterations": int, "auto": dict or None (the figures behind auto's choice), "reason":
-        str or None (auto's choice in words)}``; NaN outside the mask.
+        str or None (auto's choice in words), "solve": dict or None (the linear solve:
+        ``unknowns``, ``method``, ``iterations`` and ``convergence``: "exact", "residual",
+        "data-noise", or "iteration-limit" / "breakdown" when it did not converge)}``; NaN
+        outside the mask.
     """
     normals = _check_array(normals, "normals")
     if normals.dtype != np.float32:
@@ -341,8 +344,9 @@ def integrate(
         raise ValueError(f"normals: shape {normals.shape}; H x W x 3 expected")
     k = None if K is None else _f64_2d(K, "K")
     r = _native.integrate(normals, _mask(mask), method, k)
-    if r["auto"] is not None:
-        r["auto"] = json.loads(r["auto"])
+    for key in ("auto", "solve"):
+        if r[key] is not None:
+            r[key] = json.loads(r[key])
     return r
 
 

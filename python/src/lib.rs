@@ -676,6 +676,7 @@ fn integrate<'py>(
     out.set_item("depth", result.depth.into_array().into_pyarray(py))?;
     out.set_item("residual", result.residual.into_array().into_pyarray(py))?;
     out.set_item("iterations", result.iterations)?;
+    out.set_item("solve", result.solve.as_ref().map(json).transpose()?)?;
     Ok(out)
 }
 

@@ -52,7 +52,8 @@
 use super::masked::SolveInfo;
 use super::multigrid::Multigrid;
 use super::sparse::{
-    Direct, LinearSolver, NONE, Preconditioner, SolveMethod, Stencil, Unknowns, pcg, solve,
+    Convergence, Direct, LinearSolver, NONE, Preconditioner, SolveMethod, Stencil, Stop, Unknowns,
+    pcg, solve,
 };
 use super::{
     Censoring, Cuts, edge_differences, edge_differences_with_cuts, normal_gradients,
@@ -301,6 +302,7 @@ pub fn integrate_bilateral(
     let mut hierarchy: Option<Multigrid> = None;
     let mut iterations = 0;
     let mut cg_iterations = 0;
+    let mut step_convergence = Convergence::Exact;
     for _ in 0..params.max_iter.max(1) {
         iterations += 1;
         let (a, rhs) = step_system(&u, &c, &w);
@@ -317,14 +319,17 @@ pub fn integrate_bilateral(
             } else {
                 Preconditioner::Jacobi
             };
-            cg_iterations = pcg(
+            (cg_iterations, step_convergence) = pcg(
                 &u,
                 &a,
                 &rhs,
                 &mut z,
                 &pre,
-                params.cg_tol,
-                params.cg_max_iter,
+                Stop {
+                    tol: params.cg_tol,
+                    max_iter: params.cg_max_iter,
+                    data: None,
+                },
             );
         }
         w.par_iter_mut()
@@ -349,6 +354,7 @@ pub fn integrate_bilateral(
         unknowns: n,
         method: inner,
         iterations: cg_iterations,
+        convergence: step_convergence,
     };
     if params.reintegrate {
         (cuts, solve) = reintegrate(normals, domain, camera, &u, &c, &w, &mut z, solver)?;
@@ -449,14 +455,17 @@ fn reintegrate(
     } else {
         SolveMethod::MultigridCg
     };
-    let iterations = solve(
+    let (iterations, convergence) = solve(
         u,
         &a,
         &rhs,
         z,
         method,
-        REINTEGRATE_CG_TOL,
-        REINTEGRATE_CG_MAX_ITER,
+        Stop {
+            tol: REINTEGRATE_CG_TOL,
+            max_iter: REINTEGRATE_CG_MAX_ITER,
+            data: None,
+        },
     )?;
     Ok((
         count,
@@ -464,6 +473,7 @@ fn reintegrate(
             unknowns: n,
             method,
             iterations,
+            convergence,
         },
     ))
 }

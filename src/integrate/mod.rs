@@ -45,7 +45,7 @@ pub use auto::AutoDecision;
 pub use bilateral::BilateralParams;
 pub use masked::SolveInfo;
 pub use multigrid::grid::BYTES_PER_CELL as GRID_BYTES_PER_CELL;
-pub use sparse::{LinearSolver, SolveMethod};
+pub use sparse::{Convergence, LinearSolver, SolveMethod};
 
 use crate::camera::Intrinsics;
 use crate::error::{Error, Result};
@@ -151,19 +151,12 @@ pub fn perspective_gradients(
     k: &Intrinsics,
 ) -> (ScalarMap, ScalarMap) {
     let w = normals.width();
-    let mut p = Grid::new(w, normals.height(), f32::NAN);
-    let mut q = p.clone();
-    for (i, n) in normals.data().iter().enumerate() {
-        if !mask.data()[i] || !n.iter().all(|v| v.is_finite()) {
-            continue;
-        }
+    crate::ps::normals::gradient_maps(normals, mask, |i, n| {
         let n = n.cast::<f64>();
         let m = perspective_factor(&n, i % w, i / w, k).max(f64::from(MIN_NZ));
-        p.data_mut()[i] = (n.x / (k.fx * m)) as f32;
         // ∂z̃/∂y = −∂z̃/∂v.
-        q.data_mut()[i] = (n.y / (k.fy * m)) as f32;
-    }
-    (p, q)
+        ((n.x / (k.fx * m)) as f32, (n.y / (k.fy * m)) as f32)
+    })
 }
 
 /// The gradients that integration uses: of height, p = −n_x/n_z and q = −n_y/n_z
@@ -519,10 +512,9 @@ pub(crate) fn window_edge_differences(
     censoring: &Censoring,
 ) -> Option<(crate::grid::Window, Mask, Vec<f64>, Vec<f64>)> {
     let win = domain.bounding_box()?;
-    let (w, h) = (win.width(), win.height());
-    let crop = |m: &ScalarMap| Grid::from_fn(w, h, |x, y| *m.at(win.x0 + x, win.y0 + y));
-    let inside = Grid::from_fn(w, h, |x, y| *domain.at(win.x0 + x, win.y0 + y));
-    let (right, down) = edge_differences(&crop(p), &crop(q), &inside, censoring);
+    let inside = domain.crop(win);
+    let (cp, cq) = (p.crop(win), q.crop(win));
+    let (right, down) = edge_differences(&cp, &cq, &inside, censoring);
     Some((win, inside, right, down))
 }
 

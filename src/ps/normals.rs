@@ -70,16 +70,36 @@ pub fn combine_channels(solutions: &[Solution]) -> (Vec<ScalarMap>, NormalMap, G
 /// Surface gradients p = −n_x/n_z, q = −n_y/n_z (with n_z clamped to ≥ [`MIN_NZ`]); NaN
 /// outside `mask` or where the normal is undefined.
 pub fn gradients(normals: &NormalMap, mask: &Mask) -> (ScalarMap, ScalarMap) {
+    gradient_maps(normals, mask, |_, n| {
+        let nz = n.z.max(MIN_NZ);
+        (-n.x / nz, -n.y / nz)
+    })
+}
+
+/// Two maps of `f(pixel index, normal)` over the masked pixels with a finite normal (NaN
+/// elsewhere), computed in parallel over rows.
+pub(crate) fn gradient_maps(
+    normals: &NormalMap,
+    mask: &Mask,
+    f: impl Fn(usize, &Vector3<f32>) -> (f32, f32) + Sync,
+) -> (ScalarMap, ScalarMap) {
+    use rayon::prelude::*;
+    let w = normals.width().max(1);
     let mut p = Grid::new(normals.width(), normals.height(), f32::NAN);
     let mut q = p.clone();
-    for (i, n) in normals.data().iter().enumerate() {
-        if !mask.data()[i] || !n.iter().all(|v| v.is_finite()) {
-            continue;
-        }
-        let nz = n.z.max(MIN_NZ);
-        p.data_mut()[i] = -n.x / nz;
-        q.data_mut()[i] = -n.y / nz;
-    }
+    p.data_mut()
+        .par_chunks_mut(w)
+        .zip(q.data_mut().par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, (p, q))| {
+            let row = y * w;
+            for (x, (p, q)) in p.iter_mut().zip(q).enumerate() {
+                let n = &normals.data()[row + x];
+                if mask.data()[row + x] && n.iter().all(|v| v.is_finite()) {
+                    (*p, *q) = f(row + x, n);
+                }
+            }
+        });
     (p, q)
 }
 

@@ -108,6 +108,28 @@ pub enum Warning {
     /// asked for at least that much, so the residual may be answering to more than
     /// interreflections and the compensation may be too strong.
     InterreflectionScaleAtLimit,
+    /// The depth's linear solve stopped before it converged (conjugate gradients at their
+    /// iteration limit or broken down): the depth is the last iterate's.
+    IntegrationNotConverged {
+        /// The integrator's solver (its name).
+        solver: &'static str,
+        /// Iterations made.
+        iterations: usize,
+        /// Why it stopped.
+        convergence: crate::integrate::Convergence,
+    },
+}
+
+impl Warning {
+    /// The warning a linear solve of the depth calls for: [`Warning::IntegrationNotConverged`]
+    /// when it stopped before converging, else none.
+    pub fn of_solve(solve: crate::integrate::SolveInfo) -> Option<Warning> {
+        (!solve.convergence.converged()).then_some(Warning::IntegrationNotConverged {
+            solver: solve.method.name(),
+            iterations: solve.iterations,
+            convergence: solve.convergence,
+        })
+    }
 }
 
 /// Image numbers listed in a warning at most.
@@ -165,6 +187,15 @@ impl fmt::Display for Warning {
                 } else {
                     ""
                 }
+            ),
+            Warning::IntegrationNotConverged {
+                solver,
+                iterations,
+                convergence,
+            } => write!(
+                f,
+                "the depth's linear solve ({solver}) stopped after {iterations} iterations {}: the depth is that of its last iterate and may be off by more than the data's noise",
+                convergence.describe()
             ),
             Warning::InterreflectionScaleAtLimit => write!(
                 f,
@@ -392,6 +423,14 @@ mod tests {
                 Warning::AlbedoAboveOne { pixels: 2929 },
                 vec!["2929 pixels"],
             ),
+            (
+                Warning::IntegrationNotConverged {
+                    solver: "grid-multigrid-cg",
+                    iterations: 2017,
+                    convergence: crate::integrate::Convergence::IterationLimit,
+                },
+                vec!["grid-multigrid-cg", "2017 iterations", "not converged"],
+            ),
         ]
     }
 
@@ -423,6 +462,29 @@ mod tests {
             no_mask: false,
         };
         assert!(!unmasked.to_string().contains("mask"), "{unmasked}");
+    }
+
+    /// A depth solve warns only when it stopped before converging.
+    #[test]
+    fn only_an_unconverged_solve_warns() {
+        use crate::integrate::{Convergence, SolveInfo, SolveMethod};
+        let solve = |convergence| SolveInfo {
+            unknowns: 10,
+            method: SolveMethod::GridMultigridCg,
+            iterations: 7,
+            convergence,
+        };
+        for c in [
+            Convergence::Exact,
+            Convergence::Residual,
+            Convergence::DataNoise,
+        ] {
+            assert_eq!(Warning::of_solve(solve(c)), None, "{c:?}");
+        }
+        for c in [Convergence::IterationLimit, Convergence::Breakdown] {
+            let w = Warning::of_solve(solve(c)).expect("a warning");
+            assert!(w.to_string().contains("7 iterations"), "{w}");
+        }
     }
 
     /// More images than are listed: the first [`LISTED_IMAGES`] (from 1), then an ellipsis.

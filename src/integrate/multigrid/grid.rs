@@ -43,7 +43,7 @@ use super::{
     COARSEST, Coarsest, Csr, KCYCLE_MIN_RATIO, KCYCLE_T, KVectors, STALLED_SWEEPS, Work,
     dense_factor, second_step,
 };
-use crate::integrate::sparse::{NONE, dot};
+use crate::integrate::sparse::{Convergence, Misfit, NONE, Stop, dot};
 use faer::MatMut;
 use faer::linalg::solvers::Solve;
 use rayon::prelude::*;
@@ -291,23 +291,61 @@ impl GridLaplacian {
         self.vertical(row, above, below, out, |o, a, v| *o -= term(a, v));
     }
 
-    /// Σᵢ vᵢ (A x)ᵢ, summed over fixed blocks of rows in order (the same on any number of
-    /// threads).
-    fn dot_product_with(&self, v: &[f32], x: &[f32]) -> f64 {
+    /// zᵀAz, pᵀAz and rᵀz in one pass (A z taken row by row in `f64`), each summed over fixed
+    /// blocks of rows in order (the same on any number of threads).
+    fn energy_dots(&self, z: &[f32], p: &[f32], r: &[f64]) -> [f64; 3] {
         let w = self.w;
         let rows = rows_per_task(w);
-        let partial: Vec<f64> = (0..self.h.div_ceil(rows))
+        let partial: Vec<[f64; 3]> = (0..self.h.div_ceil(rows))
             .into_par_iter()
             .map(|block| {
-                let mut ax = vec![0f64; w];
-                let mut sum = 0.0;
+                let mut az = vec![0f64; w];
+                let mut sums = [0.0; 3];
                 for row in block * rows..((block + 1) * rows).min(self.h) {
-                    self.row_wide(x, row, &mut ax);
-                    for (&v, &a) in v[row * w..(row + 1) * w].iter().zip(&ax) {
-                        sum += f64::from(v) * a;
+                    self.row_wide(z, row, &mut az);
+                    let span = row * w..(row + 1) * w;
+                    for (((&a, &z), &p), &r) in az
+                        .iter()
+                        .zip(&z[span.clone()])
+                        .zip(&p[span.clone()])
+                        .zip(&r[span])
+                    {
+                        sums[0] += f64::from(z) * a;
+                        sums[1] += f64::from(p) * a;
+                        sums[2] += r * f64::from(z);
                     }
                 }
-                sum
+                sums
+            })
+            .collect();
+        partial.iter().fold([0.0; 3], |mut t, s| {
+            t.iter_mut().zip(s).for_each(|(t, s)| *t += s);
+            t
+        })
+    }
+
+    /// One step of conjugate gradients along `p`: x += α p and r −= α A p, A p taken row by row
+    /// in `f64`; returns |r|² after it, summed over fixed blocks of rows in order.
+    fn step(&self, x: &mut [f64], r: &mut [f64], p: &[f32], alpha: f64) -> f64 {
+        let w = self.w;
+        let rows = rows_per_task(w);
+        let partial: Vec<f64> = x
+            .par_chunks_mut(rows * w)
+            .zip(r.par_chunks_mut(rows * w))
+            .enumerate()
+            .map(|(block, (x, r))| {
+                let mut ap = vec![0f64; w];
+                let mut rr = 0.0;
+                for ((k, x), r) in x.chunks_mut(w).enumerate().zip(r.chunks_mut(w)) {
+                    let row = block * rows + k;
+                    self.row_wide(p, row, &mut ap);
+                    for (((x, r), &d), &ap) in x.iter_mut().zip(r).zip(&p[row * w..]).zip(&ap) {
+                        *x += alpha * f64::from(d);
+                        *r -= alpha * ap;
+                        rr += *r * *r;
+                    }
+                }
+                rr
             })
             .collect();
         partial.iter().sum()
@@ -883,9 +921,10 @@ pub(crate) fn part_means<T: Copy + Into<f64>>(v: &[T], label: &[u32], parts: usi
 }
 
 /// Solves the consistent singular system A x = b (`b` is made zero-mean per connected part
-/// first, and zero on inactive cells) by flexible conjugate gradients preconditioned with `mg`,
-/// from x = 0 until |r| ≤ tol·|b| or `max_iter` iterations; returns x (zero on inactive cells)
-/// and the iterations used.
+/// first, and zero on inactive cells; `parts` are the labels and count of [`parts`] of A,
+/// dropped before the solve's vectors are allocated) by
+/// flexible conjugate gradients preconditioned with `mg`, from x = 0 until `stop`; returns x
+/// (zero on inactive cells), the iterations used and why the solve stopped.
 ///
 /// The iterate and the residual are `f64`, the direction and preconditioned residual `f32`, and
 /// A p is recomputed in `f64` where it is needed ([`GridLaplacian::row_wide`]): the residual's
@@ -896,74 +935,68 @@ pub(crate) fn part_means<T: Copy + Into<f64>>(v: &[T], label: &[u32], parts: usi
 pub(crate) fn solve(
     mg: &GridMultigrid,
     mut b: Vec<f64>,
-    tol: f64,
-    max_iter: usize,
-) -> (Vec<f64>, usize) {
+    (label, parts): (Vec<u32>, usize),
+    stop: Stop,
+) -> (Vec<f64>, usize, Convergence) {
+    let Stop { tol, max_iter, .. } = stop;
     let a = mg.finest();
     let n = a.len();
-    {
-        let (label, parts) = parts(a);
-        let means = part_means(&b, &label, parts);
-        b.par_iter_mut().zip(&label).for_each(|(v, &l)| {
-            *v = if l == NONE {
-                0.0
-            } else {
-                *v - means[l as usize]
-            };
-        });
-    }
-    let mut x = vec![0f64; n];
+    let means = part_means(&b, &label, parts);
+    b.par_iter_mut().zip(&label).for_each(|(v, &l)| {
+        *v = if l == NONE {
+            0.0
+        } else {
+            *v - means[l as usize]
+        };
+    });
+    // The labels go before the solve's own vectors are allocated.
+    drop(label);
+    // Zeros written, not a zeroed allocation: the first step reads x before writing it, and a
+    // zeroed allocation's pages are first mapped to the shared zero page, so each would fault
+    // twice (the second time with a TLB shootdown across the threads).
+    let mut x: Vec<f64> = (0..n).into_par_iter().map(|_| 0.0).collect();
     let bn = dot(&b, &b).sqrt();
     if bn == 0.0 || bn <= tol * bn {
-        return (x, 0);
+        return (x, 0, Convergence::Residual);
     }
     // The residual, from x = 0. Convergence is tested as soon as a residual is known, before
     // the cycle that would precondition it (most of an iteration's cost).
+    // From x = 0 the misfit starts at |d|².
+    let mut misfit = stop.data.map(|d| Misfit::new(d, 0.0, 0.0));
     let mut r = b;
     let mut z = vec![0f32; n];
     let mut work = mg.work();
     mg.apply(&r, &mut z, &mut work);
     let mut p = z.clone();
-    let mut rz = dot(&r, &z);
-    let w = a.w;
+    // pᵀAp by its recurrence below (p = z + βp_prev), seeded with zᵀAz.
+    let [mut pap, _, mut rz] = a.energy_dots(&z, &p, &r);
     for it in 1..=max_iter {
-        let pap = a.dot_product_with(&p, &p);
         if pap <= 0.0 || !pap.is_finite() {
-            return (x, it - 1);
+            return (x, it - 1, Convergence::Breakdown);
         }
         let alpha = rz / pap;
-        let dir: &[f32] = &p;
-        x.par_chunks_mut(w)
-            .zip(r.par_chunks_mut(w))
-            .enumerate()
-            .with_min_len(rows_per_task(w))
-            .for_each_init(
-                || vec![0f64; w],
-                |ap, (row, (x, r))| {
-                    a.row_wide(dir, row, ap);
-                    for (((x, r), &d), &ap) in
-                        x.iter_mut().zip(r).zip(&dir[row * w..]).zip(ap.iter())
-                    {
-                        *x += alpha * f64::from(d);
-                        *r -= alpha * ap;
-                    }
-                },
-            );
-        if dot(&r, &r).sqrt() <= tol * bn {
-            return (x, it);
+        let rr = a.step(&mut x, &mut r, &p, alpha);
+        if rr.sqrt() <= tol * bn {
+            return (x, it, Convergence::Residual);
+        }
+        if misfit.as_mut().is_some_and(|m| m.step(alpha * rz)) {
+            return (x, it, Convergence::DataNoise);
         }
         mg.apply(&r, &mut z, &mut work);
-        let rz_new = dot(&r, &z);
+        let [zaz, paz, rz_new] = a.energy_dots(&z, &p, &r);
         // Flexible (Polak–Ribière) β for the K-cycle, which is not a fixed linear map:
-        // zᵀ(r − r_prev)/ρ_prev, with r − r_prev = −α A p.
-        let beta = -alpha * a.dot_product_with(&z, &p) / rz;
+        // zᵀ(r − r_prev)/ρ_prev, with r − r_prev = −α A p and pᵀAz = zᵀAp.
+        let beta = -alpha * paz / rz;
+        // The new direction's pᵀAp = zᵀAz + 2β pᵀAz + β² p_prevᵀAp_prev, from the products
+        // just taken: no pass of its own.
+        pap = zaz + 2.0 * beta * paz + beta * beta * pap;
         rz = rz_new;
         p.par_iter_mut()
             .zip(&z)
             .with_min_len(CELLS_PER_TASK)
             .for_each(|(p, &z)| *p = (f64::from(z) + beta * f64::from(*p)) as f32);
     }
-    (x, max_iter)
+    (x, max_iter, Convergence::IterationLimit)
 }
 
 #[cfg(test)]
@@ -1030,7 +1063,12 @@ mod tests {
             }
         }
         let mg = GridMultigrid::new(a);
-        let (x, its) = solve(&mg, b, 1e-8, 200);
+        let stop = Stop {
+            tol: 1e-8,
+            max_iter: 200,
+            data: None,
+        };
+        let (x, its, _) = solve(&mg, b, (label.clone(), parts), stop);
         let means = part_means(&x, &label, parts);
         let err = x
             .iter()
@@ -1214,6 +1252,84 @@ mod tests {
             assert_eq!(got, label, "{w}×{h}");
             if w * h > 100 {
                 assert!(count > 20, "{w}×{h}: {count} parts");
+            }
+        }
+    }
+
+    /// The misfit rule of [`Stop::data`] on the grid solver (as
+    /// `conjugate_gradients_stop_within_the_noise_share` for the stencil solvers): on noisy
+    /// edge differences of a smooth surface the solve returns a depth that could shed at most
+    /// [`NOISE_SHARE`]² σ̂² more of its misfit than a solve to a relative residual of 10⁻¹³, in
+    /// fewer iterations than 10⁻⁸ alone takes; on integrable differences the rule never
+    /// applies.
+    #[test]
+    fn the_grid_solve_stops_within_the_noise_share() {
+        use crate::integrate::sparse::{LeastSquares, NOISE_SHARE};
+        let n = 256;
+        let a = laplacian(n);
+        let depth = |i: usize| {
+            let (x, y) = ((i % n) as f64, (i / n) as f64);
+            0.002 * (x - 90.0).powi(2) + 0.2 * y + 3.0 * (x / 17.0).sin() * (y / 23.0).cos()
+        };
+        let noise = |k: usize| {
+            ((k as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 11) as f64 / (1u64 << 53) as f64
+                - 0.5
+        };
+        let mut edges = Vec::new();
+        for i in 0..a.len() {
+            for (weight, j) in [(a.right[i], i + 1), (a.down[i], i + n)] {
+                if weight > 0.0 {
+                    edges.push((i, j, depth(j) - depth(i)));
+                }
+            }
+        }
+        let (label, parts) = parts(&a);
+        let unknowns = label.iter().filter(|&&l| l != NONE).count();
+        let mg = GridMultigrid::new(a);
+        for sigma in [0.1, 0.0] {
+            let d: Vec<(usize, usize, f64)> = edges
+                .iter()
+                .enumerate()
+                .map(|(k, &(i, j, d))| (i, j, d + sigma * noise(k)))
+                .collect();
+            let mut b = vec![0.0; n * n];
+            for &(i, j, d) in &d {
+                b[i] -= d;
+                b[j] += d;
+            }
+            let problem = LeastSquares {
+                norm2: d.iter().map(|e| e.2 * e.2).sum(),
+                redundancy: d.len() + parts - unknowns,
+            };
+            let run = |tol, data| {
+                let stop = Stop {
+                    tol,
+                    max_iter: 200,
+                    data,
+                };
+                solve(&mg, b.clone(), (label.clone(), parts), stop)
+            };
+            let f = |x: &[f64]| {
+                d.iter()
+                    .map(|&(i, j, d)| (x[j] - x[i] - d).powi(2))
+                    .sum::<f64>()
+            };
+            let (early, its, how) = run(1e-8, Some(problem));
+            let (_, plain, plain_how) = run(1e-8, None);
+            assert_eq!(plain_how, Convergence::Residual);
+            if sigma > 0.0 {
+                assert_eq!(how, Convergence::DataNoise);
+                let (tight, _, _) = run(1e-13, None);
+                let variance = f(&tight) / problem.redundancy as f64;
+                let excess = (f(&early) - f(&tight)) / variance;
+                eprintln!("{its} iterations against {plain}, excess {excess:.2e} σ̂²");
+                assert!(
+                    excess <= NOISE_SHARE * NOISE_SHARE,
+                    "excess {excess:.2e} σ̂²"
+                );
+                assert!(its < plain, "{its} iterations against {plain}");
+            } else {
+                assert_eq!((its, how), (plain, plain_how), "integrable differences");
             }
         }
     }

@@ -540,7 +540,7 @@ pub(super) fn dense_factor(a: &Csr) -> Coarsest {
 mod tests {
     use super::*;
     use crate::grid::Grid;
-    use crate::integrate::sparse::{Preconditioner, pcg};
+    use crate::integrate::sparse::{Preconditioner, Stop, pcg};
 
     /// A disk with a hole, and a separate bar: two parts.
     fn mask(n: usize) -> crate::grid::Mask {
@@ -583,7 +583,12 @@ mod tests {
         a.apply(u, &truth, &mut b);
         let m = Multigrid::new(u, a);
         let mut x = vec![0.0; u.len()];
-        let its = pcg(u, a, &b, &mut x, &Preconditioner::Multigrid(&m), 1e-10, 500);
+        let stop = Stop {
+            tol: 1e-10,
+            max_iter: 500,
+            data: None,
+        };
+        let (its, _) = pcg(u, a, &b, &mut x, &Preconditioner::Multigrid(&m), stop);
         u.zero_mean_parts(&mut x);
         let err = x
             .iter()

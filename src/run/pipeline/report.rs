@@ -296,6 +296,14 @@ pub(crate) fn commit_with_report(
             median_residual: r.median,
         }
     });
+    let mut run = run;
+    if let Some(w) = integration
+        .as_ref()
+        .and_then(|i| i.solve)
+        .and_then(crate::run::Warning::of_solve)
+    {
+        run.warnings.push(w);
+    }
     let report = Report {
         version: env!("CARGO_PKG_VERSION"),
         inputs: source.summary.clone(),
