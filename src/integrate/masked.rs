@@ -22,7 +22,8 @@
 
 use super::multigrid::grid::{self, GridLaplacian, GridMultigrid};
 use super::sparse::{
-    Convergence, LeastSquares, LinearSolver, NONE, SolveMethod, Stencil, Stop, Unknowns, solve,
+    Convergence, DOT_CHUNK, LeastSquares, LinearSolver, NONE, SolveMethod, Stencil, Stop, Unknowns,
+    solve,
 };
 use super::{Censoring, edge_differences, window_edge_differences};
 use crate::error::{Error, Result};
@@ -34,8 +35,6 @@ use rayon::prelude::*;
 const CG_TOL: f64 = 1e-8;
 /// Iteration limit of conjugate gradients.
 const CG_MAX_ITER: usize = 2000;
-/// Edges summed per chunk of the data's squared norm.
-const DATA_CHUNK: usize = 1 << 14;
 
 /// When conjugate gradients stop on the normal equations of `edges` depth differences whose
 /// squared norm is `norm2`, over `unknowns` pixels in `parts` connected parts.
@@ -144,8 +143,8 @@ fn integrate_on_grid(
     // Σ d² over the edges and their number, in fixed chunks added in order (the same on any
     // thread count).
     let (data, edges) = right
-        .par_chunks(DATA_CHUNK)
-        .chain(down.par_chunks(DATA_CHUNK))
+        .par_chunks(DOT_CHUNK)
+        .chain(down.par_chunks(DOT_CHUNK))
         .map(|c| {
             let norm2 = c.iter().map(|&d| nan_free(d) * nan_free(d)).sum::<f64>();
             (norm2, c.iter().filter(|d| !d.is_nan()).count())

@@ -559,8 +559,9 @@ pub(crate) enum Preconditioner<'a> {
     Multigrid(&'a super::multigrid::Multigrid),
 }
 
-/// Elements summed per chunk of [`dot`]: a fixed partition of the vectors.
-const DOT_CHUNK: usize = 1 << 14;
+/// Elements summed per chunk of [`dot`] (and of other sums that must not depend on the thread
+/// count): a fixed partition of the vectors.
+pub(crate) const DOT_CHUNK: usize = 1 << 14;
 
 /// p·q, summed in parallel over fixed chunks whose partial sums are then added in order, so
 /// the result does not depend on the thread count or on how rayon's work stealing split the
