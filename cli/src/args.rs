@@ -96,8 +96,8 @@ pub struct RunArgs {
     pub load: LoadArgs,
     /// Memory budget (e.g. 2G, 1536M): a run that would not fit in it loads the images in row
     /// bands instead of whole (PNG without interlacing, TIFF, EXR); one that fits is loaded
-    /// whole. Without it, a stack that would not fit in the available memory is streamed
-    /// within half of it.
+    /// whole. Default: 2 GiB, or half the available memory where that is less; a run that
+    /// cannot stream in that gets the least budget it can stream in.
     #[arg(long, value_name = "SIZE")]
     pub max_memory: Option<String>,
     /// Stream in bands of this many rows (default: as many as the budget allows). Alone, it

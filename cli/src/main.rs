@@ -236,6 +236,12 @@ fn capture_files(rc: &RunConfig) -> Result<CaptureFiles> {
     })
 }
 
+/// What a run holds at most by default (without `--max-memory`) when the available memory
+/// allows: a whole-pipeline footprint that a laptop or a shared node can give without
+/// swapping. Streaming costs 1.09–1.21× the time of an in-memory run on 12–48 Mpx stacks
+/// (`docs/inputs-and-outputs.md`), so a stack beyond it is streamed rather than loaded whole.
+const DEFAULT_MAX_MEMORY: u64 = 2 << 30;
+
 /// Memory the system can still give (Linux `MemAvailable`), when known.
 fn available_memory() -> Option<u64> {
     let text = std::fs::read_to_string("/proc/meminfo").ok()?;
@@ -293,8 +299,9 @@ fn in_memory_bytes(rc: &RunConfig, files: &CaptureFiles, window_only: bool) -> R
 /// Streaming options. `--max-memory` streams when the in-memory run would not fit in it (a
 /// run that fits is loaded whole, and says so); `--band-rows` streams in any case (within
 /// `--max-memory`, else half the available memory, or without a cap where that is unknown);
-/// with neither, the run streams within half the available memory when it would need more
-/// than 80% of it, else `None`.
+/// with neither, the run is loaded whole when it needs at most [`default_cap`] (2 GiB, or half
+/// the available memory where that is less), else streamed within that cap, or within the least
+/// budget it can stream in where that is more ([`streaming_budget`]).
 fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOptions>> {
     if let Some(options) = rc.stream {
         if rc.band_rows.is_none()
@@ -325,31 +332,69 @@ fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOption
             band_rows: Some(rows),
         }));
     }
-    let Some(available) = available else {
-        return Ok(None);
-    };
-    let limit = 0.8 * available as f64;
+    let cap = default_cap(available);
     // Most runs fit by the whole-frame bound, without reading the mask an extra time.
-    let fits = |need: Option<u64>| need.is_none_or(|n| n as f64 <= limit);
+    let fits = |need: Option<u64>| need.is_none_or(|n| n <= cap);
     if fits(in_memory_bytes(rc, files, false)?) {
         return Ok(None);
     }
     let Some(need) = in_memory_bytes(rc, files, true)? else {
         return Ok(None);
     };
-    if need as f64 > limit {
-        say!(
-            "the run needs about {} MiB in memory and {} MiB are available: streaming the images in row bands within {} MiB (set the budget with --max-memory)",
-            need.div_ceil(1 << 20),
-            available >> 20,
-            (available / 2) >> 20
-        );
-        return Ok(Some(StreamOptions {
-            max_memory: available / 2,
-            band_rows: rc.band_rows,
-        }));
+    if need <= cap {
+        return Ok(None);
     }
-    Ok(None)
+    // The least budget a streamed run can have: its finishing stage, or its resident maps and
+    // a band of the fewest rows.
+    let unbounded = photostereo::run::stream::plan(
+        files,
+        &rc.load,
+        &rc.config,
+        &StreamOptions {
+            max_memory: u64::MAX,
+            band_rows: None,
+        },
+    )?;
+    let row_bytes = unbounded.band_bytes / unbounded.band_rows.max(1) as u64;
+    let least = unbounded
+        .finish_bytes
+        .max(unbounded.resident_bytes + photostereo::run::stream::MIN_BAND_ROWS as u64 * row_bytes);
+    let max_memory = streaming_budget(cap, least, available);
+    say!(
+        "the run may need up to {} MiB in memory, more than {}: streaming the images in row bands within {} MiB{} (set the budget with --max-memory)",
+        need.div_ceil(1 << 20),
+        match available {
+            Some(a) if a / 2 < DEFAULT_MAX_MEMORY => format!("half the {} MiB available", a >> 20),
+            _ => format!("the default budget of {} MiB", DEFAULT_MAX_MEMORY >> 20),
+        },
+        max_memory >> 20,
+        if max_memory > cap {
+            ", the least this run can stream in"
+        } else {
+            ""
+        }
+    );
+    Ok(Some(StreamOptions {
+        max_memory,
+        band_rows: rc.band_rows,
+    }))
+}
+
+/// What a run may hold by default: [`DEFAULT_MAX_MEMORY`], or half the available memory where
+/// that is less.
+fn default_cap(available: Option<u64>) -> u64 {
+    available.map_or(DEFAULT_MAX_MEMORY, |a| DEFAULT_MAX_MEMORY.min(a / 2))
+}
+
+/// The budget of a run streamed by default: the cap, or the `least` budget the run can stream
+/// in where that is more and the available memory holds it (else the cap, which the plan then
+/// refuses with its remedies).
+fn streaming_budget(cap: u64, least: u64, available: Option<u64>) -> u64 {
+    if least > cap && available.is_none_or(|a| least <= a) {
+        least
+    } else {
+        cap
+    }
 }
 
 fn run_main(rc: RunConfig, progress: &dyn Progress) -> Result<()> {
@@ -884,5 +929,30 @@ fn flag_hint(w: &photostereo::run::Warning) -> &'static str {
         }
         Warning::NearNotConverged { .. } => " (--near-iterations raises the cap)",
         _ => "",
+    }
+}
+
+/// The default memory policy: the cap is 2 GiB or half the available memory, whichever is
+/// less; a run streamed by default gets the cap, or the least budget it can stream in when that
+/// is more and available.
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const GIB: u64 = 1 << 30;
+
+    #[test]
+    fn the_default_budget_is_two_gib_or_half_the_available_memory() {
+        assert_eq!(default_cap(None), 2 * GIB);
+        assert_eq!(default_cap(Some(64 * GIB)), 2 * GIB);
+        assert_eq!(default_cap(Some(3 * GIB)), 3 * GIB / 2);
+        // Within the cap: the cap.
+        assert_eq!(streaming_budget(2 * GIB, GIB, Some(64 * GIB)), 2 * GIB);
+        // A run that cannot stream in the cap gets the least it needs, if available.
+        let least = 2253 << 20;
+        assert_eq!(streaming_budget(2 * GIB, least, Some(64 * GIB)), least);
+        assert_eq!(streaming_budget(2 * GIB, least, None), least);
+        // Not available: the cap, which the plan refuses with its remedies.
+        assert_eq!(streaming_budget(GIB, least, Some(2 * GIB)), GIB);
     }
 }

@@ -263,3 +263,57 @@ fn a_budget_the_run_fits_in_does_not_stream() {
     );
     assert!(stdout.contains("streamed"), "{stdout}");
 }
+
+/// Without `--max-memory`, a run that may need more than the default budget (2 GiB, or half the
+/// available memory) is streamed in row bands instead of loaded whole, and says so: a 2400²
+/// sphere under 4 lights, whose in-memory plan (with the bilateral integrator `auto` may run)
+/// is about 2.3 GB; its normals are those of the rendered sphere.
+#[test]
+fn a_large_capture_streams_by_default() {
+    use photostereo::capture::lights::Lights;
+    use photostereo::eval::demo::synthesize;
+    use photostereo::synth::render::RenderOptions;
+    use photostereo::synth::scene::{Albedo, Scene};
+    use photostereo::synth::write::write_synthetic;
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let lights = Lights::fibonacci(4, 40.0).unwrap();
+    let synth = synthesize(
+        Scene::sphere(2400, 960.0, Albedo::Constant(0.7)),
+        lights.clone(),
+        &RenderOptions::default(),
+    )
+    .unwrap();
+    let images: Vec<PathBuf> =
+        write_synthetic(&synth.rendering, &lights, &data, ImageFormat::Png16)
+            .unwrap()
+            .into_iter()
+            .filter(|p| p.starts_with(&data) && p.parent() == Some(data.as_path()))
+            .filter(|p| {
+                p.extension().is_some_and(|e| e == "png")
+                    && p.file_name() != Some("mask.png".as_ref())
+            })
+            .collect();
+    assert_eq!(images.len(), 4);
+    drop(synth);
+    let run_with = |extra: &[&str], out: &Path| {
+        let mut a: Vec<OsString> = images.iter().map(|p| p.clone().into_os_string()).collect();
+        a.extend(args(&[&"--lights", &data.join("lights.json"), &"-q"]));
+        a.extend(extra.iter().map(OsString::from));
+        a.extend(args(&[&"-o", &out]));
+        ok(&a).0
+    };
+    let streamed = tmp.path().join("streamed");
+    let stdout = run_with(&[], &streamed);
+    assert!(
+        stdout.contains("streaming the images in row bands"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("streamed"), "{stdout}");
+    let deg = mean_deg(
+        &streamed.join("normal.exr"),
+        &data.join("gt/normal_gt.exr"),
+        &data.join("mask.png"),
+    );
+    assert!(deg < 0.05, "streamed normals against the truth: {deg}°");
+}
