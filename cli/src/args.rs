@@ -97,7 +97,8 @@ pub struct RunArgs {
     /// Memory budget (e.g. 2G, 1536M): a run that would not fit in it loads the images in row
     /// bands instead of whole (PNG without interlacing, TIFF, EXR); one that fits is loaded
     /// whole. Default: 2 GiB, or half the available memory where that is less; a run that
-    /// cannot stream in that gets the least budget it can stream in.
+    /// cannot stream in that gets the least budget it can stream in (up to half the available
+    /// memory), and one that cannot stream at all is loaded whole where memory allows.
     #[arg(long, value_name = "SIZE")]
     pub max_memory: Option<String>,
     /// Stream in bands of this many rows (default: as many as the budget allows). Alone, it

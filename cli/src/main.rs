@@ -236,10 +236,13 @@ fn capture_files(rc: &RunConfig) -> Result<CaptureFiles> {
     })
 }
 
-/// What a run holds at most by default (without `--max-memory`) when the available memory
-/// allows: a whole-pipeline footprint that a laptop or a shared node can give without
-/// swapping. Streaming costs 1.09–1.21× the time of an in-memory run on 12–48 Mpx stacks
-/// (`docs/inputs-and-outputs.md`), so a stack beyond it is streamed rather than loaded whole.
+/// The default memory budget (without `--max-memory`): a run whose in-memory plan needs more
+/// is streamed within it (or within half the available memory where that is less), unless
+/// even streaming needs more, then within the least budget it can stream in, up to half the
+/// available memory ([`streaming_budget`]). A whole-pipeline footprint that a laptop or a
+/// shared node can give without swapping; streaming costs 1.09–1.21× the time of an in-memory
+/// run on the 12 and 48 Mpx stacks measured, and is faster on the 25 Mpx one
+/// (`docs/inputs-and-outputs.md`).
 const DEFAULT_MAX_MEMORY: u64 = 2 << 30;
 
 /// Memory the system can still give (Linux `MemAvailable`), when known.
@@ -301,7 +304,10 @@ fn in_memory_bytes(rc: &RunConfig, files: &CaptureFiles, window_only: bool) -> R
 /// `--max-memory`, else half the available memory, or without a cap where that is unknown);
 /// with neither, the run is loaded whole when it needs at most [`default_cap`] (2 GiB, or half
 /// the available memory where that is less), else streamed within that cap, or within the least
-/// budget it can stream in where that is more ([`streaming_budget`]).
+/// budget it can stream in where that is more ([`streaming_budget`]); a run that cannot stream
+/// (near lights, interreflections, images not readable in bands), or whose least streaming
+/// budget is beyond half the available memory, is loaded whole where that needs at most 80% of
+/// the available memory, and refused otherwise.
 fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOptions>> {
     if let Some(options) = rc.stream {
         if rc.band_rows.is_none()
@@ -344,9 +350,33 @@ fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOption
     if need <= cap {
         return Ok(None);
     }
+    // A run that cannot stream (near lights, interreflection compensation, images not
+    // readable in row bands) is loaded whole where the memory holds it; any other error of
+    // the plan (a missing file, mismatched sizes) is the run's own.
+    let whole_fits = available.is_none_or(|a| need as f64 <= 0.8 * a as f64);
+    let load_whole = |why: &dyn std::fmt::Display| -> Result<Option<StreamOptions>> {
+        if whole_fits {
+            say!(
+                "the run may need up to {} MiB in memory, more than {}, but it cannot be streamed in row bands ({why}): loading the images whole",
+                need.div_ceil(1 << 20),
+                cap_name(available)
+            );
+            Ok(None)
+        } else {
+            Err(anyhow::anyhow!(
+                "the run cannot be streamed in row bands ({why}), and loading the images whole may need up to {} MiB, more than 80% of the {} MiB available (--max-memory {}M loads them whole anyway)",
+                need.div_ceil(1 << 20),
+                available.unwrap_or(0) >> 20,
+                need.div_ceil(1 << 20)
+            ))
+        }
+    };
+    if let Err(e) = photostereo::run::stream::streamable(files, &rc.config) {
+        return load_whole(&e);
+    }
     // The least budget a streamed run can have: its finishing stage, or its resident maps and
     // a band of the fewest rows.
-    let unbounded = photostereo::run::stream::plan(
+    let unbounded = match photostereo::run::stream::plan(
         files,
         &rc.load,
         &rc.config,
@@ -354,19 +384,27 @@ fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOption
             max_memory: u64::MAX,
             band_rows: None,
         },
-    )?;
+    ) {
+        Ok(plan) => plan,
+        Err(e @ photostereo::Error::NotBandReadable { .. }) => return load_whole(&e),
+        Err(e) => return Err(e.into()),
+    };
     let row_bytes = unbounded.band_bytes / unbounded.band_rows.max(1) as u64;
     let least = unbounded
         .finish_bytes
         .max(unbounded.resident_bytes + photostereo::run::stream::MIN_BAND_ROWS as u64 * row_bytes);
     let max_memory = streaming_budget(cap, least, available);
+    if least > max_memory && whole_fits {
+        // Streaming would need more than half the available memory; loading whole fits.
+        return load_whole(&format_args!(
+            "that needs at least {} MiB, more than half the available memory",
+            least.div_ceil(1 << 20)
+        ));
+    }
     say!(
         "the run may need up to {} MiB in memory, more than {}: streaming the images in row bands within {} MiB{} (set the budget with --max-memory)",
         need.div_ceil(1 << 20),
-        match available {
-            Some(a) if a / 2 < DEFAULT_MAX_MEMORY => format!("half the {} MiB available", a >> 20),
-            _ => format!("the default budget of {} MiB", DEFAULT_MAX_MEMORY >> 20),
-        },
+        cap_name(available),
         max_memory >> 20,
         if max_memory > cap {
             ", the least this run can stream in"
@@ -380,6 +418,16 @@ fn streaming(rc: &RunConfig, files: &CaptureFiles) -> Result<Option<StreamOption
     }))
 }
 
+/// How the default cap is described: the default budget, or half the available memory.
+fn cap_name(available: Option<u64>) -> String {
+    match available {
+        Some(a) if a / 2 < DEFAULT_MAX_MEMORY => {
+            format!("half the {} MiB available", a >> 20)
+        }
+        _ => format!("the default budget of {} MiB", DEFAULT_MAX_MEMORY >> 20),
+    }
+}
+
 /// What a run may hold by default: [`DEFAULT_MAX_MEMORY`], or half the available memory where
 /// that is less.
 fn default_cap(available: Option<u64>) -> u64 {
@@ -387,10 +435,10 @@ fn default_cap(available: Option<u64>) -> u64 {
 }
 
 /// The budget of a run streamed by default: the cap, or the `least` budget the run can stream
-/// in where that is more and the available memory holds it (else the cap, which the plan then
-/// refuses with its remedies).
+/// in where that is more and within half the available memory (else the cap, which the plan
+/// then refuses with its remedies).
 fn streaming_budget(cap: u64, least: u64, available: Option<u64>) -> u64 {
-    if least > cap && available.is_none_or(|a| least <= a) {
+    if least > cap && available.is_none_or(|a| least <= a / 2) {
         least
     } else {
         cap
@@ -899,6 +947,25 @@ fn print_summary(report: &Report, dir: &Path) {
     );
     if let Some(a) = report.integration.as_ref().and_then(|i| i.auto.as_ref()) {
         say!("  integration: {}", a.reason);
+        if let Some((h, budget)) = a.decision.held_back.zip(
+            report
+                .streaming
+                .as_ref()
+                .and_then(|p| p["max_memory"].as_u64()),
+        ) {
+            // Integration was allowed what the budget left beside the finishing stage.
+            let enough = budget.saturating_sub(h.allowed) + h.needed;
+            say!(
+                "  (--max-memory {}M leaves the discontinuity-preserving integrator the {} MiB it needs{})",
+                (enough >> 20) + 1,
+                h.needed.div_ceil(1 << 20),
+                if available_memory().is_some_and(|a| enough > a) {
+                    ", more than the memory now available"
+                } else {
+                    ""
+                }
+            );
+        }
     }
     let t = &report.timings_s;
     say!(
@@ -934,7 +1001,7 @@ fn flag_hint(w: &photostereo::run::Warning) -> &'static str {
 
 /// The default memory policy: the cap is 2 GiB or half the available memory, whichever is
 /// less; a run streamed by default gets the cap, or the least budget it can stream in when that
-/// is more and available.
+/// is more and within half the available memory.
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -952,7 +1019,8 @@ mod tests {
         let least = 2253 << 20;
         assert_eq!(streaming_budget(2 * GIB, least, Some(64 * GIB)), least);
         assert_eq!(streaming_budget(2 * GIB, least, None), least);
-        // Not available: the cap, which the plan refuses with its remedies.
+        // Beyond half the available memory: the cap, which the plan refuses with its remedies.
+        assert_eq!(streaming_budget(2 * GIB, least, Some(4 * GIB)), 2 * GIB);
         assert_eq!(streaming_budget(GIB, least, Some(2 * GIB)), GIB);
     }
 }

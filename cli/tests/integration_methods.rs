@@ -623,10 +623,12 @@ fn auto_keeps_the_smooth_integrator_where_bilateral_would_not_fit() {
 /// Exact normals carry no noise to compare the circulation with, but a smooth surface's
 /// gradients still do not close exactly under any quadrature rule, most where they vary fast:
 /// near a rim and at high curvature. `auto` must not take that discretisation error for depth
-/// jumps: on the exact normals of the rendered smooth scenes it keeps masked least squares with
-/// no outlying loop (before the discretisation bound, 17–23% of their loops were outlying and
-/// every one of them chose bilateral integration), while a ball floating above a tilted ground
-/// and the torus on its plane, real jumps, are still found in exact normals.
+/// jumps: on the exact normals of the rendered smooth scenes it keeps masked least squares, the
+/// few loops left outlying (none on five of the six, 12 of 17 015 on the bust) carrying under 1%
+/// of the non-integrability (before the discretisation bound, 17–23% of their loops were
+/// outlying, carrying all of it, and every one chose bilateral integration), while a ball
+/// floating above a tilted ground and the torus on its plane, real jumps, are still found in
+/// exact normals.
 #[test]
 fn auto_does_not_take_discretisation_error_for_jumps() {
     use photostereo::synth::reflectance::Material;
@@ -657,7 +659,7 @@ fn auto_does_not_take_discretisation_error_for_jumps() {
             kind.name(),
             d.reason()
         );
-        assert!(d.outlying_share < 0.05, "{}: {}", kind.name(), d.reason());
+        assert!(d.outlying_share < 0.01, "{}: {}", kind.name(), d.reason());
     }
     let truth = SceneKind::Torus
         .build(192, Albedo::Constant(0.8), Material::default())

@@ -310,6 +310,15 @@ fn a_large_capture_streams_by_default() {
         "{stdout}"
     );
     assert!(stdout.contains("streamed"), "{stdout}");
+    // Within the default budget: 2 GiB (or half the available memory), more than this run's
+    // least.
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(streamed.join("report.json")).unwrap())
+            .unwrap();
+    let plan = &report["streaming"];
+    let budget = plan["max_memory"].as_u64().unwrap();
+    assert!(budget <= 2 << 30, "{plan}");
+    assert!(plan["finish_bytes"].as_u64().unwrap() <= budget, "{plan}");
     let deg = mean_deg(
         &streamed.join("normal.exr"),
         &data.join("gt/normal_gt.exr"),

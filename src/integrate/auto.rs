@@ -42,8 +42,9 @@
 //! Without step 3 the test took the discretisation error of exact or nearly noise-free normals
 //! for jumps wherever the gradients vary fast: a rendered sphere, vase, relief, peaks or bust
 //! with exact normals chose the bilateral integrator, with 17–23% of their loops outlying, as
-//! did the photometric-stereo normals of a noise-free rendered sphere — at 5000² that run took
-//! 96 s and 11.9 GB to integrate, where masked least squares takes a few seconds.
+//! did the photometric-stereo normals of a noise-free rendered sphere — at 5000² that whole run
+//! took 112 s (96 s of it integrating) and peaked at 11.9 GB; with masked least squares it takes
+//! 27 s and 6.2 GB.
 
 use super::{Censoring, Integrator, window_edge_differences};
 use crate::grid::{Mask, ScalarMap};
@@ -265,12 +266,19 @@ pub(crate) fn decide(p: &ScalarMap, q: &ScalarMap, a: &[f64], domain: &Mask) -> 
         (e.is_finite() && bound.is_finite()).then_some((e, bound))
     };
     let (rows, cols) = (h.saturating_sub(1), w.saturating_sub(1));
-    // The weighted circulations, row by row in order, for the noise estimate.
-    let mut loops: Vec<f64> = (0..rows)
-        .into_par_iter()
-        .flat_map_iter(|y| (0..cols).filter_map(move |x| loop_at(x, y).map(|(e, _)| e)))
-        .collect();
-    let count = loops.len();
+    // The weighted circulations for the noise estimate, one slot a loop position of the box
+    // written in place (no loop there: +∞, which sorts after every circulation).
+    let mut loops = vec![f64::INFINITY; rows * cols];
+    if cols > 0 {
+        loops.par_chunks_mut(cols).enumerate().for_each(|(y, row)| {
+            for (x, slot) in row.iter_mut().enumerate() {
+                if let Some((e, _)) = loop_at(x, y) {
+                    *slot = e;
+                }
+            }
+        });
+    }
+    let count = loops.iter().filter(|e| e.is_finite()).count();
     let noise = if count == 0 {
         0.0
     } else {
@@ -328,22 +336,62 @@ mod tests {
     use crate::grid::Grid;
 
     /// The depth differences the shared discretisation gives a line of derivative samples `g`
-    /// (t = 0, 1, …) with one pixel outside the domain at each end, as a row of an image; the
-    /// row's domain flags. Edge k (from sample k to k + 1) is entry k + 1.
-    fn row_differences(g: &[f32]) -> (Vec<f64>, Vec<bool>) {
-        let w = g.len() + 2;
-        let p = Grid::from_fn(w, 1, |x, _| {
-            if x == 0 || x == w - 1 {
-                f32::NAN
+    /// (t = 0, 1, …), and their discretisation bounds, per edge k (from sample k to k + 1): the
+    /// line laid along the middle row (`column` false) or the middle column of a three-pixel-wide
+    /// image, with one pixel outside the domain at each end. Down a column the samples are q = −g
+    /// (y is up), so both give the same differences.
+    fn line_differences(g: &[f32], column: bool) -> (Vec<f64>, Vec<f64>) {
+        let n = g.len();
+        let (w, h) = if column { (3, n + 2) } else { (n + 2, 3) };
+        // Position along the line, 1..=n inside the domain.
+        let at = |x: usize, y: usize| {
+            if column {
+                (x == 1).then_some(y)
             } else {
-                g[x - 1]
+                (y == 1).then_some(x)
             }
-        });
-        let q = Grid::new(w, 1, 0.0f32);
-        let domain = Grid::from_fn(w, 1, |x, _| x != 0 && x != w - 1);
-        let (right, _) =
-            super::super::edge_differences(&p, &q, &domain, &super::super::Censoring::None);
-        (right, domain.data().to_vec())
+        };
+        let inside = |x, y| at(x, y).is_some_and(|t| (1..=n).contains(&t));
+        let sample = |x, y| {
+            if inside(x, y) {
+                g[at(x, y).unwrap_or(0) - 1]
+            } else {
+                f32::NAN
+            }
+        };
+        let zero = Grid::from_fn(w, h, |x, y| if inside(x, y) { 0.0 } else { f32::NAN });
+        let along = Grid::from_fn(
+            w,
+            h,
+            |x, y| {
+                if column { -sample(x, y) } else { sample(x, y) }
+            },
+        );
+        let (p, q) = if column {
+            (&zero, &along)
+        } else {
+            (&along, &zero)
+        };
+        let domain = Grid::from_fn(w, h, inside);
+        let (right, down) =
+            super::super::edge_differences(p, q, &domain, &super::super::Censoring::None);
+        let line = Line {
+            g: along.data(),
+            domain: domain.data(),
+            stride: if column { w } else { 1 },
+            len: if column { h } else { w },
+        };
+        (0..n - 1)
+            .map(|k| {
+                let (i, d, sign) = if column {
+                    let i = (k + 1) * w + 1;
+                    (i, down[i], -1.0)
+                } else {
+                    (w + k + 1, right[w + k + 1], 1.0)
+                };
+                (d, discretisation_bound(&line, i, k + 1, d, sign))
+            })
+            .unzip()
     }
 
     /// The forward difference of `order` of `g` from sample `at`.
@@ -358,11 +406,15 @@ mod tests {
     /// A depth profile z(t) along a line and its derivative g(t).
     type Profile = (&'static str, fn(f64) -> f64, fn(f64) -> f64);
 
-    /// The bound holds the error of the rule the shared discretisation uses on every edge of a
-    /// rim-like line, g = 1/√(t + 1/2) (depth 2√(t + 1/2), a contour half a pixel before the
-    /// first sample, where the rim profile applies), of a cosine, and of a line that steepens
-    /// towards both ends, up to the next term of each estimate; and a step in g, as a depth
-    /// jump makes it, excuses nothing on the edges whose inner samples straddle it.
+    /// On a rim-like line, g = 1/√(t + 1/2) (depth 2√(t + 1/2), a contour half a pixel before
+    /// the first sample, where the rim profile applies), a cosine, and a line that steepens
+    /// towards both ends, laid along a row and down a column (the same bounds, bit for bit):
+    /// - the bound holds the error of the rule used on every edge, up to the next term of each
+    ///   estimate;
+    /// - inside, where g'' keeps its sign and size over the edge's stencil, the bound is the
+    ///   trapezoid rule's error within a factor of 2 (what it estimates);
+    /// - a step in g, as a depth jump makes it, excuses nothing on the edges whose inner samples
+    ///   straddle it.
     #[test]
     fn the_discretisation_bound_holds_the_rule_error_and_not_a_step() {
         let n = 40;
@@ -379,27 +431,17 @@ mod tests {
                 |t| (t - 19.5) / (400.0 - (t - 19.5).powi(2)).sqrt(),
             ),
         ];
-        let padded = |g: &[f32]| -> Vec<f32> {
-            std::iter::once(f32::NAN)
-                .chain(g.iter().copied())
-                .chain(std::iter::once(f32::NAN))
-                .collect()
-        };
+        let mut compared = 0;
         for (name, z, dz) in profiles {
             let g: Vec<f32> = (0..n).map(|t| dz(t as f64) as f32).collect();
-            let (d, domain) = row_differences(&g);
-            let samples = padded(&g);
-            let line = Line {
-                g: &samples,
-                domain: &domain,
-                stride: 1,
-                len: samples.len(),
-            };
-            for k in 0..n - 1 {
-                // Edge k is entry k + 1 of the padded row.
-                let x = k + 1;
-                let error = (z(k as f64 + 1.0) - z(k as f64) - d[x]).abs();
-                let bound = discretisation_bound(&line, x, x, d[x], 1.0);
+            let (d, bounds) = line_differences(&g, false);
+            let (d_column, bounds_column) = line_differences(&g, true);
+            assert_eq!(d, d_column, "{name}: differences along a column");
+            assert_eq!(bounds, bounds_column, "{name}: bounds along a column");
+            let v = |i: usize| f64::from(g[i]);
+            for (k, (&d, &bound)) in d.iter().zip(&bounds).enumerate() {
+                let truth = z(k as f64 + 1.0) - z(k as f64);
+                let error = (truth - d).abs();
                 // What each estimate leaves: inside, where g'' may change sign on the edge and
                 // the limiter give 0, the fourth-order rule's own leading term (11/720)|g⁗|, the
                 // largest fourth difference about the edge; at the ends, the one-sided second
@@ -414,25 +456,36 @@ mod tests {
                 } else {
                     forward_difference(&g, k.min(n - 4), 3).abs() / 12.0
                 };
-                let rounding = 1e-6 * f64::from(g[k].abs().max(g[k + 1].abs()));
+                let rounding = 1e-6 * v(k).abs().max(v(k + 1).abs());
                 assert!(
                     error <= bound + allowance + rounding,
                     "{name} edge {k}: error {error:e} above the bound {bound:e} + {allowance:e}"
                 );
+                if (1..n - 2).contains(&k) {
+                    let (s0, s1) = (
+                        forward_difference(&g, k - 1, 2),
+                        forward_difference(&g, k, 2),
+                    );
+                    if s0 * s1 > 0.0 && s0.abs().min(s1.abs()) >= 0.5 * s0.abs().max(s1.abs()) {
+                        let trapezoid = (truth - 0.5 * (v(k) + v(k + 1))).abs();
+                        assert!(
+                            (0.5..=2.0).contains(&(bound / trapezoid)),
+                            "{name} edge {k}: bound {bound:e}, trapezoid error {trapezoid:e}"
+                        );
+                        compared += 1;
+                    }
+                }
             }
         }
+        assert!(
+            compared >= 60,
+            "{compared} edges compared with the trapezoid error"
+        );
         let step: Vec<f32> = (0..n).map(|t| if t < 20 { 0.5 } else { 2.5 }).collect();
-        let (d, domain) = row_differences(&step);
-        let samples = padded(&step);
-        let line = Line {
-            g: &samples,
-            domain: &domain,
-            stride: 1,
-            len: samples.len(),
-        };
-        // The edges 18 → 19, 19 → 20 (the step) and 20 → 21: entries 19 to 21.
-        for (x, &dx) in d.iter().enumerate().skip(19).take(3) {
-            assert_eq!(discretisation_bound(&line, x, x, dx, 1.0), 0.0, "entry {x}");
+        for column in [false, true] {
+            let (_, bounds) = line_differences(&step, column);
+            // The edges 18 → 19, 19 → 20 (the step) and 20 → 21.
+            assert_eq!(bounds[18..=20], [0.0; 3], "column {column}");
         }
     }
 

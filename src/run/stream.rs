@@ -176,8 +176,9 @@ fn resident_for(
 /// The integrator's working memory in a written streamed run, where integration is capped
 /// ([`capped`]): `auto` then keeps masked least squares where bilateral integration would not
 /// fit, so it needs the larger of its decision (the gradients, 8 B, and the normal factor, 8 B,
-/// a pixel; the loops' edge differences, 16 B a cell of the mask's window; the loops and their
-/// sorted copy, 16 B a mask pixel) and masked least squares.
+/// a pixel; over the cells of the mask's window, the cropped gradients and domain, 9 B, the
+/// loops' edge differences, 16 B, and their circulations for the median, 8 B) and masked least
+/// squares.
 fn capped_integration_bytes(
     width: usize,
     height: usize,
@@ -186,8 +187,7 @@ fn capped_integration_bytes(
 ) -> u64 {
     config.integration.as_ref().map_or(0, |o| match o.method {
         Integrator::Auto => {
-            let decision =
-                16 * (width * height) as u64 + 16 * window.len() as u64 + 16 * masked as u64;
+            let decision = 16 * (width * height) as u64 + 33 * window.len() as u64;
             decision
                 .max(Integrator::MaskedLs.working_bytes(width, height, masked, window, o.solver))
         }
@@ -978,6 +978,31 @@ fn refuse_near(files: &CaptureFiles, config: &Config) -> Result<()> {
     Ok(())
 }
 
+/// Interreflection compensation predicts the light each pixel receives from the whole
+/// surface, so it is not streamed.
+fn refuse_interreflections(config: &Config) -> Result<()> {
+    if config.interreflections.is_some() {
+        return Err(Error::param(
+            "interreflections",
+            "compensation needs the whole stack in memory; a run streamed in row bands cannot \
+             compensate them",
+        ));
+    }
+    Ok(())
+}
+
+/// Whether a run of `files` with `config` can be streamed in row bands at all, besides the
+/// images being readable in bands ([`plan`] opens them): not with near lights or
+/// interreflection compensation, which need the whole capture at once.
+///
+/// # Errors
+/// [`Error::InvalidParameter`]: naming `max_memory` for near lights, `interreflections` for
+/// the compensation.
+pub fn streamable(files: &CaptureFiles, config: &Config) -> Result<()> {
+    refuse_near(files, config)?;
+    refuse_interreflections(config)
+}
+
 /// What a streamed run found besides the solutions.
 struct BandRun {
     plan: StreamPlan,
@@ -1025,13 +1050,7 @@ fn run_bands<S: BandSink>(
     progress: &dyn Progress,
     start: impl FnOnce(&Setup) -> Result<S>,
 ) -> Result<(S, BandRun)> {
-    if config.interreflections.is_some() {
-        return Err(Error::param(
-            "interreflections",
-            "compensation needs the whole stack in memory; a run streamed in row bands cannot \
-             compensate them",
-        ));
-    }
+    refuse_interreflections(config)?;
     let mut source = FileBands::open(files, load, config, options, keep)?;
     let solve_config =
         super::pipeline::fill_only_inside_a_mask(config, files.mask_source.is_none());
