@@ -195,6 +195,31 @@ impl<T: Copy + Send + Sync> Grid<T> {
             data,
         }
     }
+
+    /// The rows of the grid inside `win` (which must lie within it), each cut to the window's
+    /// columns, for writing in parallel: (row index within the window, its cells).
+    ///
+    /// # Panics
+    /// When `win` reaches outside the grid.
+    pub(crate) fn par_window_rows_mut(
+        &mut self,
+        win: Window,
+    ) -> impl rayon::iter::IndexedParallelIterator<Item = (usize, &mut [T])> {
+        use rayon::prelude::*;
+        assert!(
+            win.x1 <= self.width && win.y1 <= self.height,
+            "window {win} outside a {}×{} grid",
+            self.width,
+            self.height
+        );
+        let width = self.width.max(1);
+        self.data
+            .par_chunks_mut(width)
+            .skip(win.y0)
+            .take(win.height())
+            .map(move |row| &mut row[win.x0..win.x1])
+            .enumerate()
+    }
 }
 
 impl Grid<bool> {

@@ -230,40 +230,48 @@ pub(crate) fn decide(p: &ScalarMap, q: &ScalarMap, a: &[f64], domain: &Mask) -> 
     let (w, h) = (win.width(), win.height());
     let (pd, qd, inside) = (p.data(), q.data(), domain.data());
     let image_h = p.height();
-    // The loop with top-left pixel (x, y) of the box: its circulation and its discretisation
-    // bound, both in units of its noise: the smallest a² of its four pixels is the weight (the
-    // noisiest gradient dominates). None where an edge leaves the domain.
-    let loop_at = |x: usize, y: usize| -> Option<(f64, f64)> {
+    // The lines the loops' edges lie on: rows of p, columns of q.
+    let rows = Line {
+        g: pd,
+        domain: inside,
+        stride: 1,
+        len: image_w,
+    };
+    let columns = Line {
+        g: qd,
+        domain: inside,
+        stride: image_w,
+        len: image_h,
+    };
+    // The loop with top-left pixel (x, y) of the box: its circulation in units of its noise,
+    // the smallest a of its four pixels being the weight (the noisiest gradient dominates), and
+    // that weight. None where an edge leaves the domain.
+    let circulation = |x: usize, y: usize| -> Option<(f64, f64)> {
         let i = y * w + x;
         let c = right[i] + down[i + 1] - right[i + w] - down[i];
         if !c.is_finite() {
             return None;
         }
-        let (ix, iy) = (win.x0 + x, win.y0 + y);
-        let k = iy * image_w + ix;
+        let k = (win.y0 + y) * image_w + win.x0 + x;
         let a2 = [k, k + 1, k + image_w, k + image_w + 1]
             .iter()
             .map(|&k| a[k] * a[k])
             .fold(f64::INFINITY, f64::min);
-        let rows = Line {
-            g: pd,
-            domain: inside,
-            stride: 1,
-            len: image_w,
-        };
-        let columns = Line {
-            g: qd,
-            domain: inside,
-            stride: image_w,
-            len: image_h,
-        };
-        let bound = discretisation_bound(&rows, k, ix, right[i], 1.0)
-            + discretisation_bound(&columns, k + 1, iy, down[i + 1], -1.0)
-            + discretisation_bound(&rows, k + image_w, ix, right[i + w], 1.0)
-            + discretisation_bound(&columns, k, iy, down[i], -1.0);
         let weight = a2.sqrt();
-        let (e, bound) = ((weight * c).abs(), weight * bound);
-        (e.is_finite() && bound.is_finite()).then_some((e, bound))
+        let e = (weight * c).abs();
+        e.is_finite().then_some((e, weight))
+    };
+    // The same loop's discretisation bound in units of its noise (`weight`). Finite wherever
+    // the circulation is: every sample it reads is a domain pixel's, whose gradients are finite.
+    let bound = |x: usize, y: usize, weight: f64| -> f64 {
+        let i = y * w + x;
+        let (ix, iy) = (win.x0 + x, win.y0 + y);
+        let k = iy * image_w + ix;
+        weight
+            * (discretisation_bound(&rows, k, ix, right[i], 1.0)
+                + discretisation_bound(&columns, k + 1, iy, down[i + 1], -1.0)
+                + discretisation_bound(&rows, k + image_w, ix, right[i + w], 1.0)
+                + discretisation_bound(&columns, k, iy, down[i], -1.0))
     };
     let (rows, cols) = (h.saturating_sub(1), w.saturating_sub(1));
     // The weighted circulations for the noise estimate, one slot a loop position of the box
@@ -272,7 +280,7 @@ pub(crate) fn decide(p: &ScalarMap, q: &ScalarMap, a: &[f64], domain: &Mask) -> 
     if cols > 0 {
         loops.par_chunks_mut(cols).enumerate().for_each(|(y, row)| {
             for (x, slot) in row.iter_mut().enumerate() {
-                if let Some((e, _)) = loop_at(x, y) {
+                if let Some((e, _)) = circulation(x, y) {
                     *slot = e;
                 }
             }
@@ -294,9 +302,13 @@ pub(crate) fn decide(p: &ScalarMap, q: &ScalarMap, a: &[f64], domain: &Mask) -> 
         .into_par_iter()
         .map(|y| {
             let (mut outlying, mut energy_out, mut energy) = (0usize, 0.0f64, 0.0f64);
-            for (e, bound) in (0..cols).filter_map(|x| loop_at(x, y)) {
+            for x in 0..cols {
+                let Some((e, weight)) = circulation(x, y) else {
+                    continue;
+                };
                 energy += e * e;
-                if e - bound > limit {
+                // The bound is not negative: only a loop beyond the limit needs it.
+                if e > limit && e - bound(x, y, weight) > limit {
                     outlying += 1;
                     energy_out += e * e;
                 }

@@ -187,25 +187,19 @@ fn integrate_on_grid(
     drop(mg);
     let means = grid::part_means(&z, &label, parts);
     let mut out = Grid::new(domain.width(), domain.height(), f32::NAN);
-    let full_width = domain.width();
-    out.data_mut()
-        .par_chunks_mut(full_width)
-        .skip(win.y0)
-        .take(h)
-        .enumerate()
-        .for_each(|(y, row)| {
-            for x in 0..w {
-                let i = y * w + x;
-                if inside.data()[i] {
-                    // A domain pixel without edges is a part of its own: depth 0.
-                    let v = match label[i] {
-                        NONE => 0.0,
-                        l => z[i] - means[l as usize],
-                    };
-                    row[win.x0 + x] = v as f32;
-                }
+    out.par_window_rows_mut(win).for_each(|(y, row)| {
+        for (x, cell) in row.iter_mut().enumerate() {
+            let i = y * w + x;
+            if inside.data()[i] {
+                // A domain pixel without edges is a part of its own: depth 0.
+                let v = match label[i] {
+                    NONE => 0.0,
+                    l => z[i] - means[l as usize],
+                };
+                *cell = v as f32;
             }
-        });
+        }
+    });
     Ok((
         out,
         SolveInfo {

@@ -460,45 +460,40 @@ pub fn integration_residual(
     let (bw, bh) = (win.width(), win.height());
     let zd = z.data();
     let depth = |x: usize, y: usize| f64::from(zd[(win.y0 + y) * w + win.x0 + x]);
-    out.data_mut()
-        .par_chunks_mut(w)
-        .skip(win.y0)
-        .take(bh)
-        .enumerate()
-        .for_each(|(y, row)| {
-            for x in 0..bw {
-                if !inside.data()[y * bw + x] {
-                    continue;
-                }
-                // The pixel's edges, summed in the order above, left, right, below.
-                let i = y * bw + x;
-                let mut sum = 0.0;
-                let mut count = 0u32;
-                let mut add = |d: f64, from: (usize, usize), to: (usize, usize)| {
-                    if !d.is_nan() {
-                        sum += (depth(to.0, to.1) - depth(from.0, from.1) - d).powi(2);
-                        count += 1;
-                    }
-                };
-                if y > 0 {
-                    add(down[i - bw], (x, y - 1), (x, y));
-                }
-                if x > 0 {
-                    add(right[i - 1], (x - 1, y), (x, y));
-                }
-                if x + 1 < bw {
-                    add(right[i], (x, y), (x + 1, y));
-                }
-                if y + 1 < bh {
-                    add(down[i], (x, y), (x, y + 1));
-                }
-                row[win.x0 + x] = if count > 0 {
-                    (sum / f64::from(count)).sqrt() as f32
-                } else {
-                    0.0
-                };
+    out.par_window_rows_mut(win).for_each(|(y, row)| {
+        for (x, cell) in row.iter_mut().enumerate() {
+            if !inside.data()[y * bw + x] {
+                continue;
             }
-        });
+            // The pixel's edges, summed in the order above, left, right, below.
+            let i = y * bw + x;
+            let mut sum = 0.0;
+            let mut count = 0u32;
+            let mut add = |d: f64, from: (usize, usize), to: (usize, usize)| {
+                if !d.is_nan() {
+                    sum += (depth(to.0, to.1) - depth(from.0, from.1) - d).powi(2);
+                    count += 1;
+                }
+            };
+            if y > 0 {
+                add(down[i - bw], (x, y - 1), (x, y));
+            }
+            if x > 0 {
+                add(right[i - 1], (x - 1, y), (x, y));
+            }
+            if x + 1 < bw {
+                add(right[i], (x, y), (x + 1, y));
+            }
+            if y + 1 < bh {
+                add(down[i], (x, y), (x, y + 1));
+            }
+            *cell = if count > 0 {
+                (sum / f64::from(count)).sqrt() as f32
+            } else {
+                0.0
+            };
+        }
+    });
     out
 }
 
