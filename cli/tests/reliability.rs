@@ -11,54 +11,15 @@
 #[path = "../../tests/common/mod.rs"]
 mod common;
 
-use common::{bin, listing, main_args, os, sphere_dataset, sphere_synth, write_plain_lights};
+use common::{
+    Measured, bin, listing, main_args, measured, os, sphere_dataset, sphere_synth,
+    write_plain_lights,
+};
 use photostereo::synth::write::ImageFormat;
 use std::ffi::{OsStr, OsString};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-
-/// A finished run: exit code, standard error, wall time and peak resident memory.
-struct Measured {
-    code: Option<i32>,
-    stderr: String,
-    secs: f64,
-    peak_mb: f64,
-}
-
-/// Runs the tool with `args` and measures it. The peak is the kernel's count of the tool's
-/// resident memory (`ru_maxrss`), read by a small Python process that forks it: a process
-/// started from this (large, multi-threaded) test would inherit the test's peak at `exec`.
-fn measured(args: &[&OsStr]) -> Measured {
-    const SHIM: &str = "import os, sys\n\
-pid = os.fork()\n\
-if pid == 0:\n    os.execv(sys.argv[1], sys.argv[1:])\n\
-_, status, usage = os.wait4(pid, 0)\n\
-print(usage.ru_maxrss)\n\
-sys.exit(os.waitstatus_to_exitcode(status) % 256)\n";
-    let start = Instant::now();
-    let o = Command::new("python3")
-        .arg("-c")
-        .arg(SHIM)
-        .arg(bin())
-        .args(args)
-        .output()
-        .expect("python3 runs the tool");
-    let stdout = String::from_utf8_lossy(&o.stdout);
-    let peak_kib: f64 = stdout
-        .lines()
-        .last()
-        .and_then(|l| l.trim().parse().ok())
-        .expect("the peak memory on the last line");
-    let code = o.status.code();
-    Measured {
-        code,
-        stderr: String::from_utf8_lossy(&o.stderr).into_owned(),
-        secs: start.elapsed().as_secs_f64(),
-        // ru_maxrss is in KiB on Linux.
-        peak_mb: peak_kib / 1024.0,
-    }
-}
 
 fn args_of(v: &[OsString]) -> Vec<&OsStr> {
     v.iter().map(|a| a.as_os_str()).collect()

@@ -29,6 +29,7 @@ use super::{Censoring, edge_differences, window_edge_differences};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, ScalarMap};
 use rayon::prelude::*;
+use std::borrow::Cow;
 
 /// Relative residual at which conjugate gradients stop (unless the misfit rule of
 /// [`Stop::data`] stops them first).
@@ -74,13 +75,78 @@ pub fn integrate_masked_ls(
     domain: &Mask,
     solver: LinearSolver,
 ) -> Result<(ScalarMap, SolveInfo)> {
-    p.check_same_size(q, "q vs p")?;
+    masked_ls(
+        Cow::Borrowed(p),
+        Cow::Borrowed(q),
+        censoring,
+        domain,
+        solver,
+    )
+}
+
+/// [`integrate_masked_ls`] on gradients it may free: on the pixel grid (the default beyond the
+/// direct limit) they are dropped once the window's depth differences are taken, so the solve
+/// does not hold them (8 B a pixel of the image).
+pub(crate) fn integrate_masked_ls_owned(
+    p: ScalarMap,
+    q: ScalarMap,
+    censoring: &Censoring,
+    domain: &Mask,
+    solver: LinearSolver,
+) -> Result<(ScalarMap, SolveInfo)> {
+    masked_ls(Cow::Owned(p), Cow::Owned(q), censoring, domain, solver)
+}
+
+/// [`integrate_masked_ls`] on borrowed gradients, or on owned ones that the grid path frees.
+fn masked_ls(
+    p: Cow<'_, ScalarMap>,
+    q: Cow<'_, ScalarMap>,
+    censoring: &Censoring,
+    domain: &Mask,
+    solver: LinearSolver,
+) -> Result<(ScalarMap, SolveInfo)> {
+    p.check_same_size(&*q, "q vs p")?;
     p.check_same_size(domain, "domain vs gradients")?;
-    if matches!(solver, LinearSolver::Auto | LinearSolver::Multigrid)
-        && !solver.direct_for(domain.count())
-    {
-        return integrate_on_grid(p, q, censoring, domain);
+    if on_grid(solver, domain) {
+        let edges = window_edges(&p, &q, censoring, domain)?;
+        drop((p, q));
+        return integrate_on_grid(edges, domain);
     }
+    integrate_unknowns(&p, &q, censoring, domain, solver)
+}
+
+/// Whether `solver` integrates `domain` by the grid multigrid.
+fn on_grid(solver: LinearSolver, domain: &Mask) -> bool {
+    matches!(solver, LinearSolver::Auto | LinearSolver::Multigrid)
+        && !solver.direct_for(domain.count())
+}
+
+/// The depth differences over the bounding box of `domain`: the window, the domain inside it and
+/// the differences along rows and down columns.
+type WindowEdges = (crate::grid::Window, Mask, Vec<f64>, Vec<f64>);
+
+/// [`window_edge_differences`], or the error of a domain without a pixel.
+fn window_edges(
+    p: &ScalarMap,
+    q: &ScalarMap,
+    censoring: &Censoring,
+    domain: &Mask,
+) -> Result<WindowEdges> {
+    window_edge_differences(p, q, domain, censoring).ok_or_else(|| Error::Mask {
+        path: "<integration domain>".into(),
+        reason: "no pixel to integrate".into(),
+    })
+}
+
+/// [`integrate_masked_ls`] over the unknowns of `domain` (direct, or conjugate gradients with
+/// the DCT or algebraic multigrid).
+fn integrate_unknowns(
+    p: &ScalarMap,
+    q: &ScalarMap,
+    censoring: &Censoring,
+    domain: &Mask,
+    solver: LinearSolver,
+) -> Result<(ScalarMap, SolveInfo)> {
     let u = Unknowns::new(domain);
     let n = u.len();
     let (right, down) = edge_differences(p, q, domain, censoring);
@@ -126,18 +192,12 @@ pub fn integrate_masked_ls(
 }
 
 /// [`integrate_masked_ls`] on the bounding box of `domain` with the grid multigrid
-/// (`multigrid/grid.rs`): the same least-squares problem, in bounded memory.
+/// (`multigrid/grid.rs`), from its depth differences ([`window_edges`]): the same least-squares
+/// problem, in bounded memory.
 fn integrate_on_grid(
-    p: &ScalarMap,
-    q: &ScalarMap,
-    censoring: &Censoring,
+    (win, inside, right, down): WindowEdges,
     domain: &Mask,
 ) -> Result<(ScalarMap, SolveInfo)> {
-    let (win, inside, right, down) =
-        window_edge_differences(p, q, domain, censoring).ok_or_else(|| Error::Mask {
-            path: "<integration domain>".into(),
-            reason: "no pixel to integrate".into(),
-        })?;
     let (w, h) = (win.width(), win.height());
     let nan_free = |d: f64| if d.is_nan() { 0.0 } else { d };
     // Σ d² over the edges and their number, in fixed chunks added in order (the same on any

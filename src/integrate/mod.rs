@@ -344,7 +344,11 @@ pub fn integrate_normals(
         }
         method => method,
     };
-    let (z, solve, weights, iterations) = if method == Integrator::Bilateral {
+    // The gradients, kept for the residual by the integrators that hold them through their
+    // solve anyway; masked least squares frees them for its own (on the pixel grid), and the
+    // bilateral integrator works on the normals.
+    let (z, solve, weights, iterations, kept) = if method == Integrator::Bilateral {
+        drop((p, q));
         let r = bilateral::integrate_bilateral(
             normals,
             &domain,
@@ -352,17 +356,26 @@ pub fn integrate_normals(
             &options.bilateral,
             options.solver,
         )?;
-        (r.z, Some(r.solve), Some((r.wu, r.wv)), r.iterations)
+        (r.z, Some(r.solve), Some((r.wu, r.wv)), r.iterations, None)
     } else {
         // Gradients clamped at MIN_NZ are left uncensored: the rim profile through them is
         // insensitive to a large |g| (measured: censoring them raised the error on a sphere from
         // 0.016 to 0.020 px, on DiLiGenT bear from 0.096 to 0.111 mm).
-        let (z, solve) = integrate_gradients(&p, &q, &domain, method, options.solver)?;
-        (z, solve, None, 0)
+        if method == Integrator::MaskedLs {
+            let (z, info) =
+                masked::integrate_masked_ls_owned(p, q, &Censoring::None, &domain, options.solver)?;
+            (z, Some(info), None, 0, None)
+        } else {
+            let (z, solve) = integrate_gradients(&p, &q, &domain, method, options.solver)?;
+            (z, solve, None, 0, Some((p, q)))
+        }
     };
+    // Where they were freed, the gradients again: the same maps, from the normals in one pass.
+    let (p, q) = kept.unwrap_or_else(|| normal_gradients(normals, mask, options.camera.as_ref()));
     progress.advance(1);
     progress.end();
     let residual = integration_residual(&z, &p, &q, &domain);
+    drop((p, q));
     let depth = match &options.camera {
         None => z,
         Some(_) => z.map(|v| v.exp()),

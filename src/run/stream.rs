@@ -85,7 +85,9 @@ pub const MIN_BAND_ROWS: usize = 4;
 /// How to stream.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub struct StreamOptions {
-    /// Memory budget of the whole run in bytes (resident maps, integration and one band).
+    /// Memory budget of the whole run in bytes (resident maps, integration and one band),
+    /// counted as the maps each stage holds; with glibc, a process holds freed maps beyond
+    /// that unless [`return_freed_maps_promptly`] was called.
     pub max_memory: u64,
     /// Rows per band; `None`: as many as the budget allows.
     pub band_rows: Option<usize>,
@@ -175,10 +177,10 @@ fn resident_for(
 
 /// The integrator's working memory in a written streamed run, where integration is capped
 /// ([`capped`]): `auto` then keeps masked least squares where bilateral integration would not
-/// fit, so it needs the larger of its decision (the gradients, 8 B, and the normal factor, 8 B,
-/// a pixel; over the cells of the mask's window, the cropped gradients and domain, 9 B, the
-/// loops' edge differences, 16 B, and their circulations for the median, 8 B) and masked least
-/// squares.
+/// fit, so it needs the larger of its decision (the gradients, 8 B, the normal factor, 8 B, and
+/// the domain, 1 B, a pixel; over the cells of the mask's window, the cropped gradients and
+/// domain, 9 B, the loops' edge differences, 16 B, and their circulations for the median, 8 B)
+/// and masked least squares.
 fn capped_integration_bytes(
     width: usize,
     height: usize,
@@ -187,7 +189,7 @@ fn capped_integration_bytes(
 ) -> u64 {
     config.integration.as_ref().map_or(0, |o| match o.method {
         Integrator::Auto => {
-            let decision = 16 * (width * height) as u64 + 33 * window.len() as u64;
+            let decision = 17 * (width * height) as u64 + 33 * window.len() as u64;
             decision
                 .max(Integrator::MaskedLs.working_bytes(width, height, masked, window, o.solver))
         }
@@ -195,10 +197,47 @@ fn capped_integration_bytes(
     })
 }
 
-/// Hands the memory the bands freed back to the system before the finishing stage, whose
-/// budget assumes it is gone: glibc keeps freed blocks below its (adaptive) mmap threshold in
-/// its arenas, one per thread, which measured 116 MiB more than the maps held after the bands
-/// of 48 images of 1732×1732 (`malloc_trim`; elsewhere the allocator's own policy applies).
+/// Smallest block, in bytes, that [`return_freed_maps_promptly`] has the allocator take from
+/// and give back to the system directly: a 512×512 map of `f32`. Every per-pixel map of a
+/// capture large enough to be streamed is far above it, the per-thread scratch of rows and
+/// pixel blocks below it.
+pub const DIRECT_BLOCK_BYTES: usize = 1 << 20;
+
+/// Has the C allocator (glibc) give every block of [`DIRECT_BLOCK_BYTES`] or more back to the
+/// system as soon as it is freed, for the rest of the process; elsewhere it does nothing and
+/// the allocator's own policy applies. Returns whether the allocator took the setting. Call it
+/// before a streamed run whose budget must hold, while no other thread is allocating (glibc's
+/// `mallopt` changes parameters its other calls read unlocked), as the `photostereo` command
+/// does; it changes the whole process's allocator.
+///
+/// Why: a streamed run's budget ([`StreamOptions::max_memory`]) counts the maps a stage holds.
+/// By default glibc raises its mmap threshold to the size of each large block freed (up to
+/// 32 MiB), after which freed maps of a few MiB stay in its heap and are reused only by blocks
+/// that fit them, so the process's resident memory follows what it once held. Measured on 48
+/// images of 1732×1732 under a 256 MiB budget: a peak of 189–240 MiB from run to run without
+/// this (freed memory is handed back between stages only), 170 MiB with it. The price is fresh
+/// pages for every large block: 5–10% more time there, none measurable on 48 images of
+/// 5000×5000 (`docs/inputs-and-outputs.md`).
+pub fn return_freed_maps_promptly() -> bool {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        const _: () = assert!(DIRECT_BLOCK_BYTES <= libc::c_int::MAX as usize);
+        // SAFETY: mallopt only sets an allocator parameter; it takes no pointers. The caller
+        // runs it while no other thread allocates (see above). A fixed threshold also turns off
+        // glibc's adjustment of it, which is the point.
+        #[allow(unsafe_code)]
+        let taken =
+            unsafe { libc::mallopt(libc::M_MMAP_THRESHOLD, DIRECT_BLOCK_BYTES as libc::c_int) };
+        taken == 1
+    }
+    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+    false
+}
+
+/// Hands the memory freed so far back to the system before a stage whose budget assumes it is
+/// gone: glibc keeps freed blocks below its mmap threshold in its arenas, one per thread, which
+/// measured 116 MiB more than the maps held after the bands of 48 images of 1732×1732
+/// (`malloc_trim`; elsewhere the allocator's own policy applies).
 fn release_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
@@ -212,12 +251,13 @@ fn release_freed_memory() {
 }
 
 /// Bytes per image pixel held while a written run finishes after the bands, besides
-/// [`BASE_BYTES`] and the integrator: the normals (12 B), the solved mask (1 B), the curl
-/// (4 B) and the curl file's compressed rows being written beside the integration — and more
-/// that the count does not explain: measured 37 B (the process's resident memory once the
-/// bands of 48 images of 1732×1732 are done and freed memory handed back, 147 MiB, less the
-/// 42 MiB it held before the first band, over 3.0 M pixels), with 10% added.
-pub const FINISH_BYTES_PER_PIXEL: u64 = 40;
+/// [`BASE_BYTES`] and the integrator: the normals (12 B), the solved mask and the mask read
+/// (1 B each) and the curl (4 B), written beside the integration; 18 B, with 10% added.
+/// Measured on 48 images of 1732×1732 with freed maps returned
+/// ([`return_freed_maps_promptly`]): 62 MiB resident as integration starts (without it,
+/// 112 MiB), of which these 18 B a pixel are 51 MiB and the process's own code, stacks and
+/// small allocations the rest.
+pub const FINISH_BYTES_PER_PIXEL: u64 = 20;
 
 /// The two phases of a run that keeps `keep`, in bytes: while the bands run (the resident
 /// maps, without the band itself) and while it finishes (a written run's integration, which
@@ -1169,6 +1209,8 @@ pub fn reconstruct_and_write_streamed(
     let facts = run.facts(files);
     let t_normals = Instant::now();
     let integ = integrability_of(&written.normals, &written.solved, config);
+    // The check's gradients and sorted |curl| are freed: hand them back before integration.
+    release_freed_memory();
     let normals_s = t_normals.elapsed().as_secs_f64();
     let model = model_summary(&written.models, &written.tallies, facts.count, config);
     let warnings = warnings(
@@ -1234,11 +1276,13 @@ pub fn reconstruct_and_write_streamed(
 
 impl Integrator {
     /// Bytes of working memory this integrator needs on a `width`×`height` image with `masked`
-    /// pixels in the domain, whose bounding box is `window`. Each figure is a line fitted to
-    /// the peak resident memory of `integrate_normals` alone (the growth of the process's peak
-    /// over the call) on a 1732×1732 rendered normal map under discs of radius 400, 600 and 800
-    /// px, rounded up by about 10%: the gradients, domain, depth and residual maps over the
-    /// image, plus the solver's arrays over the unknowns or the window's cells.
+    /// pixels in the domain, whose bounding box is `window`. Masked least squares on the pixel
+    /// grid (the default beyond the direct limit) is counted ([`grid_masked_bytes`]); each other
+    /// figure is a line fitted to the peak resident memory of `integrate_normals` alone (the
+    /// growth of the process's peak over the call) on a 1732×1732 rendered normal map under
+    /// discs of radius 400, 600 and 800 px, rounded up by about 10%: the gradients, domain,
+    /// depth and residual maps over the image, plus the solver's arrays over the unknowns or the
+    /// window's cells.
     pub fn working_bytes(
         self,
         width: usize,
@@ -1269,13 +1313,22 @@ impl Integrator {
                     // an unknown measured.
                     58 * n + 88 * m
                 } else {
-                    // Multigrid on the window's grid: at most 16 B a pixel measured, and its
-                    // counted bytes a cell (an upper bound on the 26–46 B measured).
-                    16 * n + crate::integrate::GRID_BYTES_PER_CELL * cells
+                    grid_masked_bytes(n, cells)
                 }
             }
         }
     }
+}
+
+/// Bytes [`crate::integrate::integrate_normals`] holds at most for masked least squares by
+/// multigrid on the window's grid, `pixels` in the image and `cells` in the domain's bounding
+/// box, counted, besides the normals: during the solve, the domain (1 B a pixel) and the
+/// solver's [`crate::integrate::GRID_BYTES_PER_CELL`] (the gradients are freed once the
+/// window's depth differences are taken); after it, the depth, the gradients again, the domain
+/// and the residual (17 B a pixel) with the residual's window differences (25 B a cell). The
+/// larger of the two.
+fn grid_masked_bytes(pixels: u64, cells: u64) -> u64 {
+    (pixels + crate::integrate::GRID_BYTES_PER_CELL * cells).max(17 * pixels + 25 * cells)
 }
 
 /// Memory sizes parsed and refused; the plan's band height and band count from the budget on a

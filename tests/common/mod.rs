@@ -63,6 +63,59 @@ pub fn run(args: &[&std::ffi::OsStr]) -> Output {
     Command::new(bin()).args(args).output().unwrap()
 }
 
+/// A finished run of the tool: exit code, standard output and error, wall time and peak
+/// resident memory.
+pub struct Measured {
+    /// Exit code (`None`: killed by a signal).
+    pub code: Option<i32>,
+    /// Standard output.
+    pub stdout: String,
+    /// Standard error.
+    pub stderr: String,
+    /// Wall time, seconds.
+    pub secs: f64,
+    /// Peak resident memory, MiB.
+    pub peak_mb: f64,
+}
+
+/// Runs the tool with `args` and measures it (Linux). The peak is the kernel's count of the
+/// tool's resident memory (`ru_maxrss`), read by a small Python process that forks it: a
+/// process started from a (large, multi-threaded) test would inherit the test's peak at `exec`.
+pub fn measured(args: &[&std::ffi::OsStr]) -> Measured {
+    const SHIM: &str = "import os, sys\n\
+pid = os.fork()\n\
+if pid == 0:\n    os.execv(sys.argv[1], sys.argv[1:])\n\
+_, status, usage = os.wait4(pid, 0)\n\
+print()\n\
+print(usage.ru_maxrss)\n\
+sys.exit(os.waitstatus_to_exitcode(status) % 256)\n";
+    let start = std::time::Instant::now();
+    let o = Command::new("python3")
+        .arg("-c")
+        .arg(SHIM)
+        .arg(bin())
+        .args(args)
+        .output()
+        .expect("python3 runs the tool");
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let (tool, last) = stdout
+        .trim_end()
+        .rsplit_once('\n')
+        .unwrap_or(("", stdout.trim_end()));
+    let peak_kib: f64 = last
+        .trim()
+        .parse()
+        .expect("the peak memory on the last line");
+    Measured {
+        code: o.status.code(),
+        stdout: tool.to_string(),
+        stderr: String::from_utf8_lossy(&o.stderr).into_owned(),
+        secs: start.elapsed().as_secs_f64(),
+        // ru_maxrss is in KiB on Linux.
+        peak_mb: peak_kib / 1024.0,
+    }
+}
+
 /// An argument as an `OsStr`.
 pub fn os<S: AsRef<std::ffi::OsStr> + ?Sized>(s: &S) -> &std::ffi::OsStr {
     s.as_ref()

@@ -54,11 +54,12 @@ use rayon::prelude::*;
 /// domain (1), the solve's iterate and residual (16), direction and preconditioned residual
 /// (8), and the cycle's scratch, allocated once for all levels ([`GridMultigrid::work`]): the
 /// first coarse level's restricted residual, correction and five K-cycle vectors (7) and the
-/// deeper levels' (about 4, counted generously). That is 52; the bound is kept at 56, which
-/// also held the finest level's cycle scratch (the fused sweeps no longer need it) and is what
-/// the streamed plans were measured with. The measured growth of the peak with the window is
-/// lower, 26–46 B a cell (1732×1732 normal maps under discs of radius 400, 600 and 800 px), so
-/// this is an upper bound.
+/// deeper levels' (about 4, counted generously); the connected parts' labels (4) are dropped
+/// before the solve's vectors are allocated. That is 52; the bound is kept at 56, which also
+/// held the finest level's cycle scratch (the fused sweeps no longer need it) and is what the
+/// streamed plans were measured with. The measured growth of the peak with the window is lower,
+/// 26–46 B a cell (1732×1732 normal maps under discs of radius 400, 600 and 800 px), so this is
+/// an upper bound.
 pub const BYTES_PER_CELL: u64 = 56;
 
 /// A right-hand side's element: the outer solve's residual is `f64`, the coarse levels' `f32`.
