@@ -677,3 +677,91 @@ fn auto_does_not_take_discretisation_error_for_jumps() {
         d.reason()
     );
 }
+
+/// The bilateral integrator holds no more than its plan (`Integrator::working_bytes`, which
+/// streamed runs and `auto`'s choice under a budget go by): `integrate --method bilateral` on
+/// a 1024² ball floating above a curved ground (a depth jump all around it; 1.05 M unknowns)
+/// peaks within the process's fixed allowance, the normal map the command holds and the plan,
+/// and integrates the ball and the ground each to their own shape (the offset between them is
+/// not in the normals). Before the hierarchies were freed as soon as they were done with and
+/// the re-integration stopped listing its edges, the peak was 643 MiB, 1.45× what is planned
+/// now; measured now, 359 MiB.
+#[cfg(target_os = "linux")]
+#[test]
+fn bilateral_integration_holds_within_its_planned_memory() {
+    let (w, h) = (1024, 1024);
+    let r_ball = 420.0;
+    let normals = field(w, h, |x, y| {
+        if x * x + y * y < r_ball * r_ball {
+            let s = (r_ball * r_ball - x * x - y * y).sqrt().max(1e-3);
+            (400.0 + s, -x / s, -y / s)
+        } else {
+            // A curved ground, so that no one normal fills the border (a uniform one would be
+            // taken for the background and left out).
+            (0.3 * x + 2e-4 * x * x, 0.3 + 4e-4 * x, 0.0)
+        }
+    })
+    .3;
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("normals.exr");
+    let channel = |k: usize| -> Vec<f32> { normals.data().iter().map(|n| n[k]).collect() };
+    let (x, y, z) = (channel(0), channel(1), channel(2));
+    photostereo::io::output::write_exr(&path, w, h, &[("R", &x), ("G", &y), ("B", &z)], &[])
+        .unwrap();
+    let depth = tmp.path().join("depth.exr");
+    let m = common::measured(&[
+        "integrate".as_ref(),
+        "--method".as_ref(),
+        "bilateral".as_ref(),
+        "--normals".as_ref(),
+        path.as_os_str(),
+        "-o".as_ref(),
+        depth.as_os_str(),
+    ]);
+    assert_eq!(m.code, Some(0), "{}", m.stderr);
+    let window = photostereo::grid::Window::full(w, h);
+    let planned = Integrator::Bilateral.working_bytes(w, h, w * h, window, LinearSolver::Auto);
+    let allowance = photostereo::run::stream::BASE_BYTES + 12 * (w * h) as u64;
+    let peak = (m.peak_mb * f64::from(1 << 20)) as u64;
+    assert!(
+        peak <= allowance + planned,
+        "peak {} MiB, planned {} MiB besides {} MiB",
+        peak >> 20,
+        planned >> 20,
+        allowance >> 20
+    );
+    // The depth: differences within the ball and across it on the ground against the surface's
+    // own (measured: 206.26 against 206.18 px, and -260.1 against -262.0 px).
+    let z = read_image(&depth).unwrap();
+    let at = |c: usize, r: usize| f64::from(z.data[(r * z.width + c) * z.channels]);
+    let truth = |c: usize, r: usize| {
+        let (x, y) = (
+            c as f64 - (w as f64 - 1.0) / 2.0,
+            (h as f64 - 1.0) / 2.0 - r as f64,
+        );
+        if x * x + y * y < r_ball * r_ball {
+            400.0 + (r_ball * r_ball - x * x - y * y).sqrt()
+        } else {
+            0.3 * x + 2e-4 * x * x
+        }
+    };
+    let difference = |a: (usize, usize), b: (usize, usize)| {
+        (
+            at(a.0, a.1) - at(b.0, b.1),
+            truth(a.0, a.1) - truth(b.0, b.1),
+        )
+    };
+    let (ball, ball_true) = difference((512, 512), (512, 150));
+    assert!((ball - ball_true).abs() < 0.5, "{ball} against {ball_true}");
+    let (ground, ground_true) = difference((82, 512), (950, 512));
+    assert!(
+        (ground - ground_true).abs() < 0.01 * ground_true.abs(),
+        "{ground} against {ground_true}"
+    );
+    eprintln!(
+        "bilateral 1024²: peak {} MiB, planned {} + {} MiB; {ball} / {ball_true}, {ground} / {ground_true}",
+        peak >> 20,
+        planned >> 20,
+        allowance >> 20
+    );
+}

@@ -266,8 +266,9 @@ fn a_budget_the_run_fits_in_does_not_stream() {
 
 /// Without `--max-memory`, a run that may need more than the default budget (2 GiB, or half the
 /// available memory) is streamed in row bands instead of loaded whole, and says so: a 2400²
-/// sphere under 4 lights, whose in-memory plan (with the bilateral integrator `auto` may run)
-/// is about 2.3 GB; its normals are those of the rendered sphere.
+/// sphere under 4 lights, no mask given, whose in-memory plan (with the bilateral integrator
+/// `auto` may run, over the whole frame) is about 2.5 GB; its normals are those of the rendered
+/// sphere.
 #[test]
 fn a_large_capture_streams_by_default() {
     use photostereo::capture::lights::Lights;

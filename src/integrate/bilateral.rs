@@ -311,6 +311,8 @@ pub fn integrate_bilateral(
         } else {
             let pre = if inner == SolveMethod::MultigridCg {
                 if hierarchy.is_none() || cg_iterations > STALE_HIERARCHY_ITERATIONS {
+                    // The stale hierarchy goes before the new one is built, not after.
+                    drop(hierarchy.take());
                     hierarchy = Some(Multigrid::new(&u, &a));
                 }
                 hierarchy
@@ -349,6 +351,8 @@ pub fn integrate_bilateral(
             break;
         }
     }
+    // The steps' hierarchy and factor are done with: the re-integration builds its own.
+    drop((hierarchy, factor));
     let mut cuts = 0;
     let mut solve = SolveInfo {
         unknowns: n,
@@ -408,46 +412,57 @@ fn reintegrate(
     let (right, down) = edge_differences_with_cuts(&p, &q, domain, &Censoring::None, Some(&cut));
     // Across a cut, the difference without the cut: what the floor weight pulls towards.
     let (right0, down0) = edge_differences(&p, &q, domain, &Censoring::None);
+    drop((p, q));
     // Inverse-variance weights per edge, normalised by the median: a difference from the two end
     // samples has variance ∝ 1/a_i² + 1/a_j², so the weight is the harmonic mean of a² (an edge
-    // to a grazing pixel is as unreliable as that pixel's gradient).
-    let mut edges = Vec::with_capacity(2 * n);
-    for i in 0..n {
+    // to a grazing pixel is as unreliable as that pixel's gradient). The edge from unknown i
+    // along `axis`, if it enters the system: its other end, difference, a² and whether it is cut.
+    let edge = |i: usize, axis: usize| -> Option<(usize, f64, f64, bool)> {
         let pix = u.pixel[i] as usize;
-        for (axis, nb, d, d0, is_cut) in [
-            (0, u.right[i], right[pix], right0[pix], cut.right[pix]),
-            (1, u.down[i], down[pix], down0[pix], cut.down[pix]),
-        ] {
-            if nb == NONE {
-                continue;
-            }
-            let j = nb as usize;
-            let (ai, aj) = (c[i][2 * axis].powi(2), c[j][2 * axis].powi(2));
-            let a2 = if ai + aj > 0.0 {
-                2.0 * ai * aj / (ai + aj)
-            } else {
-                0.0
-            };
-            let d = if is_cut { d0 } else { d };
-            if d.is_finite() && a2.is_finite() {
-                edges.push((i, j, axis, d, a2, is_cut));
-            }
+        let (nb, d, d0, is_cut) = match axis {
+            0 => (u.right[i], right[pix], right0[pix], cut.right[pix]),
+            _ => (u.down[i], down[pix], down0[pix], cut.down[pix]),
+        };
+        if nb == NONE {
+            return None;
         }
-    }
-    let mut a2s: Vec<f64> = edges.iter().filter(|e| !e.5).map(|e| e.4).collect();
+        let j = nb as usize;
+        let (ai, aj) = (c[i][2 * axis].powi(2), c[j][2 * axis].powi(2));
+        let a2 = if ai + aj > 0.0 {
+            2.0 * ai * aj / (ai + aj)
+        } else {
+            0.0
+        };
+        let d = if is_cut { d0 } else { d };
+        (d.is_finite() && a2.is_finite()).then_some((j, d, a2, is_cut))
+    };
+    // The median a² of the uncut edges (a first pass, so no list of edges is held).
+    let mut a2s: Vec<f64> = (0..n)
+        .flat_map(|i| [edge(i, 0), edge(i, 1)])
+        .flatten()
+        .filter(|e| !e.3)
+        .map(|e| e.2)
+        .collect();
     let median = if a2s.is_empty() {
         1.0
     } else {
         let mid = a2s.len() / 2;
         *a2s.select_nth_unstable_by(mid, f64::total_cmp).1
     };
+    drop(a2s);
     let scale = if median > 0.0 { 1.0 / median } else { 1.0 };
+    // The edges in the order of unknown then axis, as they were listed before.
     let mut a = Stencil::zeros(n);
     let mut rhs = vec![0f64; n];
-    for &(i, j, axis, d, a2, is_cut) in &edges {
-        let omega = if is_cut { CUT_FLOOR } else { a2 * scale };
-        a.add_edge(&mut rhs, (i, j), axis == 0, omega, omega * d);
+    for i in 0..n {
+        for axis in 0..2 {
+            if let Some((j, d, a2, is_cut)) = edge(i, axis) {
+                let omega = if is_cut { CUT_FLOOR } else { a2 * scale };
+                a.add_edge(&mut rhs, (i, j), axis == 0, omega, omega * d);
+            }
+        }
     }
+    drop((right, down, right0, down0, cut));
     let method = if solver.direct_for(n) {
         SolveMethod::Direct
     } else if solver == LinearSolver::ConjugateGradient {

@@ -1298,11 +1298,26 @@ impl Integrator {
             Integrator::Poisson | Integrator::FrankotChellappa => 50 * n,
             Integrator::Path => 50 * n,
             // The bilateral integrator (and `auto`, which may run it) holds per unknown its
-            // equation coefficients and weights, the reweighting system, the multigrid
-            // hierarchy and the re-integration's edge list besides the masked arrays: measured
-            // on a 1024² sphere (667 064 unknowns) 462 MB peak against 156 MB for masked least
-            // squares by conjugate gradients, about 640 B an unknown in all.
-            Integrator::Bilateral | Integrator::Auto => 48 * n + 640 * m,
+            // neighbours, equation coefficients, weights and depth (80 B), a reweighting step's
+            // system and its conjugate gradients' vectors (64 B) and one multigrid hierarchy at
+            // a time, the re-integration the same with its own. Measured, the growth of the
+            // `integrate` process's peak over the integration on spheres of 1024² and 2048²
+            // (0.53 and 2.1 M unknowns) and a 1024² ball floating above a ground (1.05 M
+            // unknowns, cut all around the ball) less 48 B a pixel: 222, 216 and 289 B an
+            // unknown, with 10% added (before the hierarchies were freed as soon as they were
+            // done with and the re-integration's edges were no longer listed, the peaks were
+            // 369, 1366 and 643 MiB against 185, 705 and 359 MiB now; planned at 640 B). Where
+            // a step or the re-integration is solved directly (up to 100 000 unknowns by
+            // default), a sparse factor besides, counted as masked least squares' (DiLiGenT
+            // cat: 522 B an unknown in all, measured).
+            Integrator::Bilateral | Integrator::Auto => {
+                let factor = if solver.direct_for(masked) {
+                    900 * m
+                } else {
+                    0
+                };
+                48 * n + 320 * m + factor
+            }
             Integrator::MaskedLs => {
                 if solver.direct_for(masked) {
                     // 26 B a pixel and 850 B an unknown measured (0.5 M unknowns; the
