@@ -216,8 +216,8 @@ pub const DIRECT_BLOCK_BYTES: usize = 1 << 20;
 /// that fit them, so the process's resident memory follows what it once held. Measured on 48
 /// images of 1732×1732 under a 256 MiB budget: a peak of 189–240 MiB from run to run without
 /// this (freed memory is handed back between stages only), 170 MiB with it. The price is fresh
-/// pages for every large block: 5–10% more time there, none measurable on 48 images of
-/// 5000×5000 (`docs/inputs-and-outputs.md`).
+/// pages for every large block: 5–10% more time there, 1–4% on 48 images of 5000×5000
+/// (`docs/inputs-and-outputs.md`).
 pub fn return_freed_maps_promptly() -> bool {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
