@@ -850,6 +850,13 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
     if let Some(w) = r.solve.and_then(photostereo::run::Warning::of_solve) {
         eprintln!("warning: {}", printable(&w.to_string()));
     }
+    let integrated = r.depth.data().iter().filter(|v| v.is_finite()).count();
+    if let Some(w) = r
+        .closed_off
+        .and_then(|c| photostereo::run::Warning::of_closed_off(c, integrated))
+    {
+        eprintln!("warning: {}", printable(&w.to_string()));
+    }
     say!(
         "  wrote {}{}",
         a.output.display(),

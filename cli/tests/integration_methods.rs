@@ -765,3 +765,115 @@ fn bilateral_integration_holds_within_its_planned_memory() {
         allowance >> 20
     );
 }
+
+/// A goblet seen from the side: a ball (the cup, radius 30) in front of a stem (a cylinder of
+/// radius 8) and a base (a low dome) 45–50 px behind it, only the object in the mask (as
+/// DiLiGenT goblet). The depth jump runs along the cup's lower rim across the stem, and at its
+/// two ends, where the stem's grazing sides meet the cup's silhouette, the weights fade: the
+/// strong cuts alone leave a few edges there uncut, which then set the stem's offset. The
+/// hysteresis closes the contour, so the stem and base are reported as a region closed off all
+/// around, whose offset is a guess. Returns the scene's normals, true depth, mask, and the
+/// cup's and the rest's masks.
+fn goblet(w: usize, h: usize) -> (NormalMap, ScalarMap, Mask, Mask, Mask) {
+    let (rc, yc, rs) = (30.0, 20.0, 8.0);
+    let on_cup = |x: f64, y: f64| x * x + (y - yc) * (y - yc) < rc * rc;
+    let on_stem = |x: f64, y: f64| x.abs() < rs && y > -50.0 && y < yc;
+    let base = |x: f64, y: f64| (x / 36.0).powi(2) + ((y + 52.0) / 9.0).powi(2);
+    let (z, _, _, normals) = field(w, h, |x, y| {
+        if on_cup(x, y) {
+            let s = (rc * rc - x * x - (y - yc).powi(2)).sqrt().max(1e-3);
+            (70.0 + s, -x / s, -(y - yc) / s)
+        } else if on_stem(x, y) {
+            let s = (rs * rs - x * x).sqrt().max(1e-3);
+            (20.0 + s, -x / s, 0.0)
+        } else if base(x, y) < 1.0 {
+            // z = 20 + 6 √(1 − u²), u² = (x/36)² + ((y + 52)/9)².
+            let s = (1.0 - base(x, y)).sqrt().max(1e-3);
+            (
+                20.0 + 6.0 * s,
+                -6.0 * x / 1296.0 / s,
+                -6.0 * (y + 52.0) / 81.0 / s,
+            )
+        } else {
+            (f64::NAN, 0.0, 0.0)
+        }
+    });
+    let xy = |c: usize, r: usize| {
+        (
+            c as f64 - (w as f64 - 1.0) / 2.0,
+            (h as f64 - 1.0) / 2.0 - r as f64,
+        )
+    };
+    let part = |which: u8| -> Mask {
+        Grid::from_fn(w, h, |c, r| {
+            let (x, y) = xy(c, r);
+            let cup = on_cup(x, y);
+            let rest = !cup && (on_stem(x, y) || base(x, y) < 1.0);
+            match which {
+                0 => cup || rest,
+                1 => cup,
+                _ => rest,
+            }
+        })
+    };
+    (normals, z, part(0), part(1), part(2))
+}
+
+/// The bilateral integrator closes the cut between a goblet's cup and the stem and base behind
+/// it, and says that the stem's offset is a guess; each part keeps its shape.
+#[test]
+fn bilateral_closes_a_jump_off_and_says_its_offset_is_a_guess() {
+    let (w, h) = (128, 128);
+    let (normals, z, mask, cup, rest) = goblet(w, h);
+    let behind = rest.count();
+    for (sigma, seed) in [(0.0, 0), (0.01, 7), (0.03, 7)] {
+        let n = if sigma > 0.0 {
+            noisy(&normals, sigma, seed)
+        } else {
+            normals.clone()
+        };
+        let res = integrate_normals(&n, &mask, &options(Integrator::Bilateral), &Silent).unwrap();
+        let closed = res
+            .closed_off
+            .expect("bilateral reports closed-off regions");
+        let (ec, er) = (
+            depth_errors(&res.depth, &z, &cup).unwrap().rmse,
+            depth_errors(&res.depth, &z, &rest).unwrap().rmse,
+        );
+        let mean = |g: &ScalarMap, m: &Mask| {
+            let v: Vec<f64> = g
+                .data()
+                .iter()
+                .zip(m.data())
+                .filter(|(_, inside)| **inside)
+                .map(|(&d, _)| f64::from(d))
+                .collect();
+            v.iter().sum::<f64>() / v.len() as f64
+        };
+        let offset =
+            (mean(&res.depth, &rest) - mean(&res.depth, &cup)) - (mean(&z, &rest) - mean(&z, &cup));
+        println!(
+            "goblet, noise {sigma}: {closed:?} (stem and base {behind} px); RMSE cup {ec:.3}, stem and base {er:.3} px (each after its own offset); offset error {offset:.1} px"
+        );
+        // Measured: the largest region closed off is the stem and base, 1 532 of their 1 554
+        // pixels at every noise level (the strong cuts alone closed off only regions of 10 px);
+        // RMSE cup 0.075–0.13, stem and base 0.35–0.37 px; the offset is off by 46–47 px
+        // whichever way it is set, as it is not in the normals.
+        assert!(
+            closed.largest as f64 > 0.95 * behind as f64 && closed.largest <= behind,
+            "noise {sigma}: {closed:?}, stem and base {behind} px"
+        );
+        assert!(
+            ec < 0.2 && er < 0.45,
+            "noise {sigma}: cup {ec}, stem and base {er}"
+        );
+        let integrated = res.depth.data().iter().filter(|v| v.is_finite()).count();
+        let warning = photostereo::run::Warning::of_closed_off(closed, integrated)
+            .expect("a warning")
+            .to_string();
+        assert!(
+            warning.contains("off all around") && warning.contains("a guess"),
+            "{warning}"
+        );
+    }
+}

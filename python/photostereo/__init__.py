@@ -331,8 +331,10 @@ def integrate(
         "iterations": int, "auto": dict or None (the figures behind auto's choice), "reason":
         str or None (auto's choice in words), "solve": dict or None (the linear solve:
         ``unknowns``, ``method``, ``iterations`` and ``convergence``: "exact", "residual",
-        "data-noise", or "iteration-limit" / "breakdown" when it did not converge)}``; NaN
-        outside the mask.
+        "data-noise", or "iteration-limit" / "breakdown" when it did not converge),
+        "closed_off": dict or None (bilateral only: ``regions``, ``pixels`` and ``largest`` of
+        the regions that depth jumps close off all around, whose offset from the rest is not
+        in the normals and is a guess)}``; NaN outside the mask.
     """
     normals = _check_array(normals, "normals")
     if normals.dtype != np.float32:
@@ -344,7 +346,7 @@ def integrate(
         raise ValueError(f"normals: shape {normals.shape}; H x W x 3 expected")
     k = None if K is None else _f64_2d(K, "K")
     r = _native.integrate(normals, _mask(mask), method, k)
-    for key in ("auto", "solve"):
+    for key in ("auto", "solve", "closed_off"):
         if r[key] is not None:
             r[key] = json.loads(r[key])
     return r

@@ -677,6 +677,10 @@ fn integrate<'py>(
     out.set_item("residual", result.residual.into_array().into_pyarray(py))?;
     out.set_item("iterations", result.iterations)?;
     out.set_item("solve", result.solve.as_ref().map(json).transpose()?)?;
+    out.set_item(
+        "closed_off",
+        result.closed_off.as_ref().map(json).transpose()?,
+    )?;
     Ok(out)
 }
 

@@ -142,6 +142,16 @@ def test_integrate_a_plane_in_closed_form():
     assert np.abs((d - d.mean()) - want).max() < 1e-3
 
 
+def test_integrate_reports_what_bilateral_closes_off():
+    # A plane has no depth jump: the bilateral integrator closes nothing off, and says so.
+    n = np.array([-0.2, 0.1, 1.0], np.float32)
+    n /= np.linalg.norm(n)
+    normals = np.broadcast_to(n, (40, 50, 3)).copy()
+    out = ps.integrate(normals, np.ones((40, 50), bool), method="bilateral")
+    assert out["closed_off"] == {"regions": 0, "pixels": 0, "largest": 0}
+    assert ps.integrate(normals, method="masked-ls")["closed_off"] is None
+
+
 def test_reflectance_map_closed_form():
     light = np.array([0.3, -0.2, 1.0])
     r = ps.reflectance_map(light, size=257, extent=2.0)

@@ -42,7 +42,7 @@ pub mod poisson;
 pub(crate) mod sparse;
 
 pub use auto::AutoDecision;
-pub use bilateral::BilateralParams;
+pub use bilateral::{BilateralParams, ClosedOff};
 pub use masked::SolveInfo;
 pub use multigrid::grid::BYTES_PER_CELL as GRID_BYTES_PER_CELL;
 pub use sparse::{Convergence, LinearSolver, SolveMethod};
@@ -139,6 +139,9 @@ pub struct Integration {
     pub solve: Option<SolveInfo>,
     /// Bilateral only: reweighting iterations.
     pub iterations: usize,
+    /// Bilateral only: the regions its cuts close off, whose depth offset is not in the normals
+    /// ([`ClosedOff`]).
+    pub closed_off: Option<ClosedOff>,
     /// [`Integrator::Auto`] only: what it found and chose.
     pub auto: Option<AutoDecision>,
 }
@@ -347,7 +350,7 @@ pub fn integrate_normals(
     // The gradients, kept for the residual by the integrators that hold them through their
     // solve anyway; masked least squares frees them for its own (on the pixel grid), and the
     // bilateral integrator works on the normals.
-    let (z, solve, weights, iterations, kept) = if method == Integrator::Bilateral {
+    let (z, solve, weights, iterations, closed_off, kept) = if method == Integrator::Bilateral {
         drop((p, q));
         let r = bilateral::integrate_bilateral(
             normals,
@@ -356,7 +359,14 @@ pub fn integrate_normals(
             &options.bilateral,
             options.solver,
         )?;
-        (r.z, Some(r.solve), Some((r.wu, r.wv)), r.iterations, None)
+        (
+            r.z,
+            Some(r.solve),
+            Some((r.wu, r.wv)),
+            r.iterations,
+            Some(r.closed_off),
+            None,
+        )
     } else {
         // Gradients clamped at MIN_NZ are left uncensored: the rim profile through them is
         // insensitive to a large |g| (measured: censoring them raised the error on a sphere from
@@ -364,10 +374,10 @@ pub fn integrate_normals(
         if method == Integrator::MaskedLs {
             let (z, info) =
                 masked::integrate_masked_ls_owned(p, q, &Censoring::None, &domain, options.solver)?;
-            (z, Some(info), None, 0, None)
+            (z, Some(info), None, 0, None, None)
         } else {
             let (z, solve) = integrate_gradients(&p, &q, &domain, method, options.solver)?;
-            (z, solve, None, 0, Some((p, q)))
+            (z, solve, None, 0, None, Some((p, q)))
         }
     };
     // Where they were freed, the gradients again: the same maps, from the normals in one pass.
@@ -386,6 +396,7 @@ pub fn integrate_normals(
         weights,
         solve,
         iterations,
+        closed_off,
         auto: decision,
     })
 }

@@ -118,9 +118,37 @@ pub enum Warning {
         /// Why it stopped.
         convergence: crate::integrate::Convergence,
     },
+    /// The discontinuity-preserving integrator's cuts close regions off all around
+    /// ([`crate::integrate::ClosedOff`]): their depth offset relative to the rest is not in the
+    /// normals, and the depth differences across those cuts are a guess (the least jump).
+    DepthOffsetsGuessed {
+        /// Regions closed off.
+        regions: usize,
+        /// Their pixels.
+        pixels: usize,
+        /// Pixels of the largest.
+        largest: usize,
+        /// Pixels integrated in all.
+        integrated: usize,
+    },
 }
 
 impl Warning {
+    /// The warning an integration with closed-off regions calls for
+    /// ([`Warning::DepthOffsetsGuessed`]), `integrated` the pixels with a depth; none when no
+    /// region is closed off.
+    pub fn of_closed_off(
+        closed: crate::integrate::ClosedOff,
+        integrated: usize,
+    ) -> Option<Warning> {
+        (closed.regions > 0).then_some(Warning::DepthOffsetsGuessed {
+            regions: closed.regions,
+            pixels: closed.pixels,
+            largest: closed.largest,
+            integrated,
+        })
+    }
+
     /// The warning a linear solve of the depth calls for: [`Warning::IntegrationNotConverged`]
     /// when it stopped before converging, else none.
     pub fn of_solve(solve: crate::integrate::SolveInfo) -> Option<Warning> {
@@ -196,6 +224,17 @@ impl fmt::Display for Warning {
                 f,
                 "the depth's linear solve ({solver}) stopped after {iterations} iterations {}: the depth is that of its last iterate and may be off by more than the data's noise",
                 convergence.describe()
+            ),
+            Warning::DepthOffsetsGuessed {
+                regions,
+                pixels,
+                largest,
+                integrated,
+            } => write!(
+                f,
+                "depth jumps close {regions} region{} off all around ({pixels} of {integrated} integrated pixels, {:.1}%; the largest {largest}): the normals do not say how far in front of or behind the rest such a region lies, and the depth places it at the least jump across its cut, a guess",
+                if *regions == 1 { "" } else { "s" },
+                100.0 * *pixels as f64 / (*integrated).max(1) as f64,
             ),
             Warning::InterreflectionScaleAtLimit => write!(
                 f,
@@ -430,6 +469,21 @@ mod tests {
                     convergence: crate::integrate::Convergence::IterationLimit,
                 },
                 vec!["grid-multigrid-cg", "2017 iterations", "not converged"],
+            ),
+            (
+                Warning::DepthOffsetsGuessed {
+                    regions: 21,
+                    pixels: 8795,
+                    largest: 8725,
+                    integrated: 24706,
+                },
+                vec![
+                    "21 regions",
+                    "8795 of 24706",
+                    "35.6%",
+                    "largest 8725",
+                    "a guess",
+                ],
             ),
         ]
     }

@@ -149,6 +149,9 @@ pub struct IntegrationSummary {
     pub solve: Option<crate::integrate::SolveInfo>,
     /// Reweighting iterations (bilateral).
     pub iterations: usize,
+    /// Regions the bilateral integrator's cuts close off, whose depth offset is a guess.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub closed_off: Option<crate::integrate::ClosedOff>,
     /// Mean of the per-pixel integration residual (see [`Integration::residual`]).
     pub mean_residual: f64,
     /// Median of the per-pixel integration residual.
@@ -281,6 +284,9 @@ pub(crate) fn commit_with_report(
         outputs.push("mesh.ply".into());
     }
     outputs.push("report.html".into());
+    let r_integrated = integration.map_or(0, |i| {
+        i.depth.data().iter().filter(|v| v.is_finite()).count()
+    });
     let integration = integration.zip(config.integration.as_ref()).map(|(i, o)| {
         let r = crate::stats::summarize(&i.residual);
         IntegrationSummary {
@@ -292,6 +298,7 @@ pub(crate) fn commit_with_report(
             perspective: o.camera.is_some(),
             solve: i.solve,
             iterations: i.iterations,
+            closed_off: i.closed_off,
             mean_residual: r.mean,
             median_residual: r.median,
         }
@@ -301,6 +308,13 @@ pub(crate) fn commit_with_report(
         .as_ref()
         .and_then(|i| i.solve)
         .and_then(crate::run::Warning::of_solve)
+    {
+        run.warnings.push(w);
+    }
+    if let Some(w) = integration
+        .as_ref()
+        .and_then(|i| i.closed_off.map(|c| (c, r_integrated)))
+        .and_then(|(c, n)| crate::run::Warning::of_closed_off(c, n))
     {
         run.warnings.push(w);
     }
