@@ -56,7 +56,7 @@
 //!
 //! Measured on DiLiGenT (median-scaled mean absolute depth error, `tests/integration_methods.rs`):
 //! cat 0.074 → 0.058 mm and bear 0.392 → 0.029 mm, and the result no longer moves with the inner
-//! tolerance. Closing the cuts took goblet from 9.65 to 8.68 mm (its stem and base, 35% of the
+//! tolerance. Closing the cuts took goblet from 9.65 to 8.68 mm (its stem and base, 36% of the
 //! mask, closed off behind the cup and reported as such), bear 0.0268 → 0.0270, buddha
 //! 0.653 → 0.657, cat unchanged.
 //!

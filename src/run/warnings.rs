@@ -135,13 +135,15 @@ pub enum Warning {
 
 impl Warning {
     /// The warning an integration with closed-off regions calls for
-    /// ([`Warning::DepthOffsetsGuessed`]), `integrated` the pixels with a depth; none when no
-    /// region is closed off.
+    /// ([`Warning::DepthOffsetsGuessed`]), `integrated` the pixels with a depth: when the
+    /// regions closed off hold at least [`GUESSED_SHARE`] of them (below that they are a few
+    /// grazing rim pixels each, which the counts in the report still list).
     pub fn of_closed_off(
         closed: crate::integrate::ClosedOff,
         integrated: usize,
     ) -> Option<Warning> {
-        (closed.regions > 0).then_some(Warning::DepthOffsetsGuessed {
+        let share = closed.pixels as f64 / integrated.max(1) as f64;
+        (closed.regions > 0 && share >= GUESSED_SHARE).then_some(Warning::DepthOffsetsGuessed {
             regions: closed.regions,
             pixels: closed.pixels,
             largest: closed.largest,
@@ -159,6 +161,10 @@ impl Warning {
         })
     }
 }
+
+/// Least share of the integrated pixels in regions closed off by depth jumps for which
+/// [`Warning::of_closed_off`] warns.
+pub const GUESSED_SHARE: f64 = 0.01;
 
 /// Image numbers listed in a warning at most.
 const LISTED_IMAGES: usize = 12;
