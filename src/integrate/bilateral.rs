@@ -586,11 +586,8 @@ fn reintegrate(
     let mut count = 0;
     for i in 0..n {
         let pix = u.pixel[i] as usize;
-        for (axis, nb, flag) in [
-            (0, u.right[i], &mut cut.right[pix]),
-            (1, u.down[i], &mut cut.down[pix]),
-        ] {
-            if nb != NONE && w[i][axis] + 1.0 - w[nb as usize][axis] < CUT_LEVEL {
+        for (axis, flag) in [(0, &mut cut.right[pix]), (1, &mut cut.down[pix])] {
+            if edge_weight(u, w, i, axis).is_some_and(|v| v < CUT_LEVEL) {
                 *flag = true;
                 count += 1;
             }
