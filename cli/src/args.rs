@@ -615,6 +615,9 @@ pub struct SfsBenchArgs {
     /// Light slants from the view, degrees; lists are comma- or space-separated.
     #[arg(long, num_args = 1.., value_delimiter = ',', default_values_t = photostereo::eval::sfs::DEFAULT_SLANTS)]
     pub slants: Vec<f64>,
+    /// The methods to run (default: all); lists are comma- or space-separated.
+    #[arg(long, num_args = 1.., value_delimiter = ',', value_name = "METHOD")]
+    pub methods: Vec<SfsMethodArg>,
     /// Write `sfs.json` and the chart `sfs.svg/.png` here.
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
@@ -1253,9 +1256,13 @@ pub struct SfsArgs {
     /// the brightness of a lit pixel depend on its unknown distance).
     #[arg(long, default_value_t = photostereo::sfs::DEFAULT_SHADOW_LEVEL, value_name = "F")]
     pub shadow_level: f64,
-    /// Iteration limit (0: the method's default).
+    /// Iteration limit (0: the method's default; Horn: for each resolution).
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub iterations: usize,
+    /// Horn: solve at full resolution only, instead of from a start solved at lower
+    /// resolutions (the default when the mask keeps 3 000 pixels at half resolution).
+    #[arg(long)]
+    pub single_resolution: bool,
     /// Perspective: return the swept viscosity solution without the variational refinement
     /// (a least-squares fit of the whole image from it).
     #[arg(long)]

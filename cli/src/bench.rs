@@ -439,10 +439,15 @@ pub fn from_object(a: crate::args::FromObjectBenchArgs) -> Result<()> {
 /// `bench sfs`: every shape-from-shading method on rendered shapes, error against time.
 pub fn sfs(a: crate::args::SfsBenchArgs) -> Result<()> {
     use photostereo::eval::sfs::{SfsSweepOptions, sweep};
+    let defaults = SfsSweepOptions::default();
     let report = sweep(&SfsSweepOptions {
         size: a.size,
         slants: a.slants.clone(),
-        ..SfsSweepOptions::default()
+        methods: if a.methods.is_empty() {
+            defaults.methods
+        } else {
+            a.methods.iter().map(|&m| m.into()).collect()
+        },
     })?;
     if a.markdown {
         eprint!("{}", sfs_table(&report));
@@ -488,12 +493,12 @@ pub(crate) fn sfs_table(report: &photostereo::eval::sfs::SfsSweepReport) -> Stri
                     r.depth_absolute
                         .map_or_else(String::new, |v| format!("{:.2}%", 100.0 * v)),
                     r.iterations,
-                    r.refined
-                        .map_or_else(String::new, |k| if r.refined_coarse > 0 {
-                            format!(" + {k} (after {} at lower resolutions)", r.refined_coarse)
-                        } else {
-                            format!(" + {k}")
-                        }),
+                    match (r.refined, r.refined_coarse) {
+                        (Some(k), 0) => format!(" + {k}"),
+                        (Some(k), c) => format!(" + {k} (after {c} at lower resolutions)"),
+                        (None, 0) => String::new(),
+                        (None, c) => format!(" (after {c} at lower resolutions)"),
+                    },
                     if r.converged { "" } else { " (not converged)" },
                     r.seconds
                 );

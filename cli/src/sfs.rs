@@ -73,6 +73,9 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
     } else {
         SfsMethodArg::Horn
     });
+    if a.single_resolution && method != SfsMethodArg::Horn {
+        bail!("--single-resolution is for --method horn (the only method solved coarse to fine)");
+    }
     if method == SfsMethodArg::Perspective {
         return perspective(&a, &image, &mask, mask_source, material);
     }
@@ -113,6 +116,7 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         max_iterations: a.iterations,
         smoothness: a.smoothness,
         shadow_level: a.shadow_level,
+        coarse_to_fine: !a.single_resolution,
     };
     let r = shape_from_shading_with_progress(&image, &mask, &rmap, albedo, &options, progress)?;
     let (w, h) = (image.width(), image.height());
@@ -153,8 +157,13 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         },
     );
     say!(
-        "  {} iterations{} in {:.3} s; mean |E/ρ − R| {:.4}; median |curl| {:.2e}",
+        "  {} iterations{}{} in {:.3} s; mean |E/ρ − R| {:.4}; median |curl| {:.2e}",
         rep.iterations,
+        if rep.coarse_iterations > 0 {
+            format!(" (after {} at lower resolutions)", rep.coarse_iterations)
+        } else {
+            String::new()
+        },
         if rep.converged {
             ""
         } else {

@@ -1240,6 +1240,7 @@ fn sfs<'py>(
             max_iterations: iterations,
             smoothness: smoothness.unwrap_or(defaults.smoothness),
             shadow_level: shadow_level.unwrap_or(defaults.shadow_level),
+            coarse_to_fine: defaults.coarse_to_fine,
         };
         let (r, lit) = lib(py.detach(|| {
             let (rmap, lit) = photostereo::sfs::estimate::illumination(

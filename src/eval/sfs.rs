@@ -87,8 +87,8 @@ pub struct SfsRow {
     /// Perspective: whether the swept solution was refined (and in how many steps at full
     /// resolution); `None` for the other methods.
     pub refined: Option<usize>,
-    /// Perspective, refined: the refinement steps taken at lower resolutions to make its start
-    /// (0 otherwise).
+    /// The steps taken at lower resolutions to make the start: the refinement's (perspective,
+    /// refined) or the method's own iterations (Horn's coarse to fine); 0 otherwise.
     pub refined_coarse: usize,
     /// Solve time, seconds.
     pub seconds: f64,
@@ -251,7 +251,7 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
                         .report
                         .refinement
                         .as_ref()
-                        .map_or(0, |r| r.coarse_iterations),
+                        .map_or(result.report.coarse_iterations, |r| r.coarse_iterations),
                     seconds: result.report.seconds,
                     ..row(None)
                 });

@@ -162,6 +162,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         normals: Some(normals),
         iterations: 1,
         converged: true,
+        coarse_iterations: 0,
         singular,
         assumptions,
     })

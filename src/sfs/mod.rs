@@ -36,6 +36,7 @@ mod fast_marching;
 mod horn;
 mod line_search;
 pub mod perspective;
+pub(crate) mod pyramid;
 pub mod reflectance_map;
 mod tsai_shah;
 
@@ -162,6 +163,10 @@ pub struct SfsOptions {
     pub smoothness: f64,
     /// Relative brightness E/ρ below which a pixel is in shadow.
     pub shadow_level: f64,
+    /// Horn: solve at lower resolutions first (2×2 block means, while a level keeps 3 000
+    /// pixels) and start from that solution, refined at the final λ (default); `false` runs the
+    /// whole continuation in λ at full resolution only.
+    pub coarse_to_fine: bool,
 }
 
 impl Default for SfsOptions {
@@ -172,6 +177,7 @@ impl Default for SfsOptions {
             max_iterations: 0,
             smoothness: DEFAULT_SMOOTHNESS,
             shadow_level: DEFAULT_SHADOW_LEVEL,
+            coarse_to_fine: true,
         }
     }
 }
@@ -199,6 +205,9 @@ pub struct SfsReport {
     /// Iterations run (perspective: sweeps, at the resolution swept; the refinement's steps are
     /// in `refinement`).
     pub iterations: usize,
+    /// Iterations run at lower resolutions to make the start (Horn's coarse to fine, each
+    /// level on its own limit; 0 otherwise: the perspective refinement's are in `refinement`).
+    pub coarse_iterations: usize,
     /// Whether the iteration met its tolerance (perspective: the sweeps').
     pub converged: bool,
     /// Mean |E/ρ − R(p, q)| over lit pixels: how well the result explains the image.
@@ -256,6 +265,8 @@ pub(crate) struct Solved {
     /// Normals, when the method knows better than (p, q) (fast marching near the contour).
     pub normals: Option<Vec<Vector3<f64>>>,
     pub iterations: usize,
+    /// Iterations at lower resolutions that made the start (Horn's coarse to fine).
+    pub coarse_iterations: usize,
     pub converged: bool,
     pub singular: usize,
     pub assumptions: Vec<String>,
@@ -497,6 +508,7 @@ fn finish(
         too_bright_pixels: too_bright,
         singular_points: solved.singular,
         iterations: solved.iterations,
+        coarse_iterations: solved.coarse_iterations,
         converged: solved.converged,
         mean_abs_residual,
         median_abs_curl: curl.median_abs_curl,

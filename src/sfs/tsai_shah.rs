@@ -85,6 +85,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         normals: None,
         iterations,
         converged,
+        coarse_iterations: 0,
         singular: 0,
         assumptions: vec![
             "depth 0 outside the mask and at the image border (the surface meets its \

@@ -1190,6 +1190,7 @@ fn solve_swept(
         too_bright_pixels: too_bright,
         singular_points: singular,
         iterations: sweeps,
+        coarse_iterations: 0,
         converged,
         mean_abs_residual,
         median_abs_curl: curl.median_abs_curl,
@@ -1311,7 +1312,7 @@ fn coarse_start(
     for (k, &pix) in all.pixel.iter().enumerate() {
         let (c, r) = (pix as usize % w, pix as usize / w);
         let (mut sum, mut weight) = (0.0, 0.0);
-        for (x, y, wt) in refine::bilinear_from_half(c, r, cw, ch) {
+        for (x, y, wt) in crate::sfs::pyramid::bilinear_from_half(c, r, cw, ch) {
             let v = *clnz.at(x, y);
             if v.is_finite() && wt > 0.0 {
                 sum += wt * v;
