@@ -464,6 +464,7 @@ def sfs(
     refine: bool = True,
     refine_smoothness: Optional[float] = None,
     refine_iterations: int = 0,
+    coarse_to_fine: bool = True,
 ) -> Dict[str, Any]:
     """Shape from shading of one image, as the ``photostereo sfs`` command.
 
@@ -479,7 +480,10 @@ def sfs(
     Chellappa 1991: a Lambertian surface with sphere-like normals assumed), and a reflectance
     other than Lambert's needs both. ``boundary``: ``"occluding"`` (the mask's edge is an
     occluding contour) or ``"free"``; ``smoothness``: Horn's final weight (1e-4);
-    ``shadow_level``: pixels darker than this fraction of the albedo are in shadow (0.01).
+    ``shadow_level``: pixels darker than this fraction of the albedo are in shadow (0.01);
+    ``coarse_to_fine``: ``"horn"`` first solves the image's 2 x 2 block means where the mask
+    keeps 3000 pixels at half resolution (the command's ``--single-resolution`` is
+    ``coarse_to_fine=False``; refused for the other methods).
 
     Pinhole camera and a point light with fall-off (``"perspective"``, Prados and Faugeras
     2005, the default when ``light_position`` is given): ``camera`` is the 3 x 3 intrinsics K,
@@ -525,6 +529,7 @@ def sfs(
         bool(refine),
         _float(refine_smoothness, "refine_smoothness"),
         _int(refine_iterations, "refine_iterations", 0, 1_000_000),
+        bool(coarse_to_fine),
     )
     r["report"] = json.loads(r["report"])
     if r["estimate"] is not None:

@@ -1064,7 +1064,7 @@ fn grey_image_arg(obj: &Bound<'_, PyAny>, transfer: Transfer) -> PyRes<ScalarMap
 /// `fast-marching`; the light and albedo estimated where not given) or a pinhole camera with a
 /// point light (`perspective`).
 #[pyfunction]
-#[pyo3(signature = (image, mask=None, light=None, albedo=None, method=None, material="lambert", material_params=None, transfer="auto", boundary="occluding", iterations=0, smoothness=None, shadow_level=None, camera=None, light_position=None, light_intensity=None, refine=true, refine_smoothness=None, refine_iterations=0))]
+#[pyo3(signature = (image, mask=None, light=None, albedo=None, method=None, material="lambert", material_params=None, transfer="auto", boundary="occluding", iterations=0, smoothness=None, shadow_level=None, camera=None, light_position=None, light_intensity=None, refine=true, refine_smoothness=None, refine_iterations=0, coarse_to_fine=true))]
 #[allow(clippy::too_many_arguments)]
 fn sfs<'py>(
     py: Python<'py>,
@@ -1086,6 +1086,7 @@ fn sfs<'py>(
     refine: bool,
     refine_smoothness: Option<f64>,
     refine_iterations: usize,
+    coarse_to_fine: bool,
 ) -> PyRes<Bound<'py, PyDict>> {
     use photostereo::sfs::perspective::{PerspectiveOptions, PointLight, RefineOptions, refine};
     use photostereo::sfs::{Boundary, SfsMethod, SfsOptions};
@@ -1120,6 +1121,12 @@ fn sfs<'py>(
                 PyValueError::new_err(format!("method: {name:?}; one of {names:?} expected"))
             })?,
     };
+    if !coarse_to_fine && method != SfsMethod::Horn {
+        return Err(PyValueError::new_err(format!(
+            "coarse_to_fine: for the horn method (the only one solved coarse to fine), not {}",
+            method.name()
+        )));
+    }
     let out = PyDict::new(py);
     let result = if method == SfsMethod::Perspective {
         let Some(position) = light_position else {
@@ -1240,7 +1247,7 @@ fn sfs<'py>(
             max_iterations: iterations,
             smoothness: smoothness.unwrap_or(defaults.smoothness),
             shadow_level: shadow_level.unwrap_or(defaults.shadow_level),
-            coarse_to_fine: defaults.coarse_to_fine,
+            coarse_to_fine,
         };
         let (r, lit) = lib(py.detach(|| {
             let (rmap, lit) = photostereo::sfs::estimate::illumination(

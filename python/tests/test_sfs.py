@@ -45,6 +45,24 @@ def test_a_sphere_under_an_oblique_light(sphere):
     assert r["light_source"] == "given" and r["albedo_source"] == "given"
 
 
+def test_horn_coarse_to_fine_can_be_turned_off():
+    # 192 px: the sphere keeps over 3000 pixels at half resolution, so by default Horn solves
+    # it there first; coarse_to_fine=False solves at full resolution only. Both are accurate.
+    big = ps.render("sphere", 192, LIGHT[None, :], albedo=ALBEDO)
+    m = big["mask"]
+    runs = {
+        c2f: ps.sfs(big["images"][0], m, light=LIGHT, albedo=ALBEDO, coarse_to_fine=c2f)
+        for c2f in (True, False)
+    }
+    for c2f, r in runs.items():
+        err = mean_angle(r["normals"], big["normals"], m)
+        print(f"coarse to fine {c2f}: {err:.2f}°, {r['report']['iterations']} iterations after "
+              f"{r['report']['coarse_iterations']}")
+        assert r["report"]["converged"] and err < 2.0
+    assert runs[True]["report"]["coarse_iterations"] > 0
+    assert runs[False]["report"]["coarse_iterations"] == 0
+
+
 def test_light_and_albedo_are_estimated_when_not_given(sphere):
     r = ps.sfs(sphere["images"][0], sphere["mask"])
     assert r["light_source"] == "estimated" and r["albedo_source"] == "estimated"
@@ -119,6 +137,8 @@ def test_a_plane_through_a_pinhole_under_a_light_at_its_centre():
         ({"light": LIGHT, "boundary": "open"}, ValueError, "^boundary"),
         ({"light": LIGHT, "transfer": "gamma"}, ValueError, "^transfer"),
         ({"light": LIGHT, "albedo": -1.0}, ps.Error, "`albedo`"),
+        ({"method": "tsai-shah", "light": LIGHT, "coarse_to_fine": False}, ValueError,
+         "^coarse_to_fine"),
     ],
 )
 def test_bad_input_is_named(sphere, kwargs, error, words):

@@ -50,8 +50,8 @@
 //! The normal equations are assembled into their compressed columns directly: the pattern
 //! (at most 11 rows per column of the lower triangle) is gathered without sorting, the
 //! smoothness part SᵀS is computed once and scaled by λ, and each cell's data row adds its ten
-//! products at entries found once. Sorting the 5.3 million products of a 256² frame at every
-//! iteration took as long as the factorisation.
+//! products at entries found once. Sorting the 10.5 million products of a frame-filling 256² image
+//! at every iteration took as long as the factorisation.
 //!
 //! Boundary: the mask's edge is a free (natural) boundary. With [`Boundary::Occluding`] the
 //! height starts from the convex surface z = √(d(2D − d)) of the distance d to the edge (D its
@@ -91,6 +91,11 @@ const MAX_COLUMN: usize = 16;
 /// perspective refinement's limit (chosen there on the rendered shapes), which also keeps Horn
 /// off the levels of 1 300–2 000 pixels where it finds a wrong surface for a rough sphere.
 const MIN_COARSE_PIXELS: usize = 3000;
+
+/// The largest change of the height, relative to the start's largest height (or 1), under
+/// which the result is reported as its start unchanged: only a start where the energy's
+/// gradient vanishes (no step leaves it) stays that close.
+const STATIONARY: f64 = 1e-9;
 
 /// ∂p/∂z and ∂q/∂z of a cell for its corners (top-left, top-right, bottom-left, bottom-right).
 const DP: [f64; 4] = [-0.5, 0.5, -0.5, 0.5];
@@ -164,7 +169,7 @@ impl Cells {
 }
 
 /// The energy of Horn's method on one level, with its normal equations' sparsity pattern and
-/// their Cholesky analysis: the pattern is the same at every iteration, so it is sorted and
+/// their Cholesky analysis: the pattern is the same at every iteration, so it is gathered and
 /// analysed once, and only the values change.
 struct Problem<'a> {
     s: &'a Shading<'a>,
@@ -178,7 +183,8 @@ struct Problem<'a> {
     /// SᵀS (the smoothness rows' normal equations at λ = 1) at each entry of the pattern: the
     /// same at every iteration, scaled by λ.
     smooth_values: Vec<f64>,
-    /// The entries of each cell's data row's outer product (the order of [`lower_values`]).
+    /// The entries of each cell's data row's outer product, in the order the assembly adds
+    /// them (corners a, b with unknown(b) ≥ unknown(a), a outer).
     cell_slots: Vec<[usize; 10]>,
     /// The diagonal entry of each unknown.
     diagonal: Vec<usize>,
@@ -210,7 +216,7 @@ impl<'a> Problem<'a> {
             .collect();
         // The pattern's lower triangle, column by column: the unknowns at or after each that
         // share a cell or a smoothness row with it. Those lie in a window of 3 × 2 or 2 × 3
-        // cells, so a column has at most 11 rows (3 in its own image row, 5 in the next, 3 in
+        // pixels, so a column has at most 11 rows (3 in its own image row, 5 in the next, 3 in
         // the one after): collected without duplicates in place of sorting every product's
         // entries.
         let mut columns = vec![([0u32; MAX_COLUMN], 0u8); n];
@@ -254,7 +260,9 @@ impl<'a> Problem<'a> {
         // The entry of row `j` in column `i` (j ≥ i, in the pattern by construction).
         let slot = |j: usize, i: usize| -> usize {
             let column = &row_idx[col_ptr[i]..col_ptr[i + 1]];
-            col_ptr[i] + column.iter().position(|&r| r == j).unwrap_or(0)
+            let at = column.iter().position(|&r| r == j);
+            debug_assert!(at.is_some(), "entry ({j}, {i}) is not in the pattern");
+            col_ptr[i] + at.unwrap_or(0)
         };
         let mut smooth_values = vec![0.0; row_idx.len()];
         for (idx, coef) in &smooth {
@@ -331,6 +339,37 @@ impl<'a> Problem<'a> {
         d + lambda * sm
     }
 
+    /// The normal equations of the Gauss–Newton step at `z` and smoothness `lambda`: their lower
+    /// triangle J_dᵀJ_d + λ SᵀS into `values` (at the pattern's entries, without damping) and
+    /// their right-hand side J_dᵀ r − λ SᵀS z, returned (−∇E/2).
+    fn assemble(&self, z: &[f64], lambda: f64, values: &mut [f64]) -> Vec<f64> {
+        for (v, sv) in values.iter_mut().zip(&self.smooth_values) {
+            *v = lambda * sv;
+        }
+        let mut rhs = vec![0.0; self.s.u.len()];
+        for (c, (r0, coef)) in self.data(z).iter().enumerate() {
+            let idx = &self.cells.corners[c];
+            let slots = &self.cell_slots[c];
+            let mut t = 0;
+            for (a, &i) in idx.iter().enumerate() {
+                rhs[i] += coef[a] * r0;
+                for (b, &j) in idx.iter().enumerate() {
+                    if j >= i {
+                        values[slots[t]] += coef[a] * coef[b];
+                        t += 1;
+                    }
+                }
+            }
+        }
+        for row in &self.smooth {
+            let v = Self::smooth_value(z, row);
+            for (a, &i) in row.0.iter().enumerate() {
+                rhs[i] -= lambda * row.1[a] * v;
+            }
+        }
+        rhs
+    }
+
     /// Minimises the energy from `z`, in place: with `continuation`, λ starts at
     /// [`LAMBDA_START`] and is halved every iteration down to the final `smoothness`
     /// (Levenberg–Marquardt steps until it is reached); without, every iteration is at the final
@@ -344,11 +383,7 @@ impl<'a> Problem<'a> {
     ) -> Result<(usize, bool)> {
         let s = self.s;
         let n = s.u.len();
-        let max_iter = if s.options.max_iterations > 0 {
-            s.options.max_iterations
-        } else {
-            DEFAULT_MAX_ITERATIONS
-        };
+        let max_iter = max_iterations(s);
         // Sequential: faer's parallel factorisation spends more time synchronising than it
         // saves on these sizes (as in the perspective refinement).
         let mut work = CholeskyWork::new(&self.symbolic, Par::Seq)?;
@@ -367,32 +402,8 @@ impl<'a> Problem<'a> {
         while iterations < max_iter {
             iterations += 1;
             progress.advance(1);
-            let rows = self.data(z);
             let e0 = self.energy(z, lambda);
-            for (v, sv) in values.iter_mut().zip(&self.smooth_values) {
-                *v = lambda * sv;
-            }
-            let mut rhs = vec![0.0; n];
-            for (c, (r0, coef)) in rows.iter().enumerate() {
-                let idx = &self.cells.corners[c];
-                let slots = &self.cell_slots[c];
-                let mut t = 0;
-                for (a, &i) in idx.iter().enumerate() {
-                    rhs[i] += coef[a] * r0;
-                    for (b, &j) in idx.iter().enumerate() {
-                        if j >= i {
-                            values[slots[t]] += coef[a] * coef[b];
-                            t += 1;
-                        }
-                    }
-                }
-            }
-            for row in &self.smooth {
-                let v = Self::smooth_value(z, row);
-                for (a, &i) in row.0.iter().enumerate() {
-                    rhs[i] -= lambda * row.1[a] * v;
-                }
-            }
+            let rhs = self.assemble(z, lambda, &mut values);
             let at_floor = lambda <= floor;
             for (d, &at) in diag.iter_mut().zip(&self.diagonal) {
                 *d = values[at];
@@ -492,6 +503,15 @@ impl<'a> Problem<'a> {
     }
 }
 
+/// The iteration limit of each level: the options', or [`DEFAULT_MAX_ITERATIONS`].
+fn max_iterations(s: &Shading) -> usize {
+    if s.options.max_iterations > 0 {
+        s.options.max_iterations
+    } else {
+        DEFAULT_MAX_ITERATIONS
+    }
+}
+
 /// Moves the start `z` of `problem` by what solving the level of half its resolution changes:
 /// the image's 2×2 block means are solved from the start's block means (halved: heights are in
 /// each level's pixels), recursively while the levels keep [`MIN_COARSE_PIXELS`], the coarsest
@@ -522,15 +542,20 @@ fn from_half(problem: &Problem<'_>, z: &mut [f64]) -> Option<usize> {
         shadow,
         rmap: s.rmap,
         options: s.options,
-        progress: &crate::progress::Silent,
+        progress: s.progress,
     };
     let cproblem = Problem::new(&coarse).ok()?;
     let start: Vec<f64> = t.restrict(z).iter().map(|v| v / 2.0).collect();
     let mut cz = start.clone();
     let below = from_half(&cproblem, &mut cz);
-    let (iterations, _) = cproblem
-        .minimise(&mut cz, below.is_none(), &crate::progress::Silent)
-        .ok()?;
+    // Each level is a stage of its own, so that the progress shows from the coarsest level on.
+    s.progress.begin(
+        &format!("shape from shading (Horn), {}×{} level", t.w, t.h),
+        max_iterations(s) as u64,
+    );
+    let minimised = cproblem.minimise(&mut cz, below.is_none(), s.progress);
+    s.progress.end();
+    let (iterations, _) = minimised.ok()?;
     let change: Vec<f64> = cz.iter().zip(&start).map(|(a, b)| 2.0 * (a - b)).collect();
     let moved: Vec<f64> = z
         .iter()
@@ -574,6 +599,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
                 .to_string(),
         );
     }
+    let start = z.clone();
     let coarse = if s.options.coarse_to_fine {
         from_half(&problem, &mut z)
     } else {
@@ -586,14 +612,27 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
                 .to_string(),
         );
     }
-    let max_iter = if s.options.max_iterations > 0 {
-        s.options.max_iterations
-    } else {
-        DEFAULT_MAX_ITERATIONS
-    };
     s.progress
-        .begin("shape from shading (Horn)", max_iter as u64);
+        .begin("shape from shading (Horn)", max_iterations(s) as u64);
     let (iterations, converged) = problem.minimise(&mut z, coarse.is_none(), s.progress)?;
+    let mut warnings = Vec::new();
+    let scale = start.iter().fold(1.0, |m: f64, v| m.max(v.abs()));
+    let moved = z
+        .iter()
+        .zip(&start)
+        .fold(0.0, |m: f64, (a, b)| m.max((a - b).abs()));
+    if moved <= STATIONARY * scale {
+        // Under a light at the viewer a plane facing the camera has R_p = R_q = 0 in every
+        // cell: the energy's gradient is 0 there, and no step (nor a coarse level) leaves it.
+        warnings.push(
+            "the result is the start surface, unchanged: the energy does not change to first \
+             order there (a plane facing a light at the viewer is such a point, where a bump \
+             and a dent lower the energy alike), so the depth is not a reconstruction: light \
+             the scene off the view axis, or use the perspective method (a point light with \
+             its fall-off, well posed here)"
+                .to_string(),
+        );
+    }
     let cells = &problem.cells;
     // Pixel gradients: the mean of the adjacent cells' (central differences where none).
     let mut p = vec![0.0; n];
@@ -624,5 +663,122 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         converged,
         singular: 0,
         assumptions,
+        warnings,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sfs::SfsOptions;
+    use crate::sfs::reflectance_map::ReflectanceMap;
+    use nalgebra::Vector3;
+
+    /// The normal equations assembled into their compressed columns equal J_dᵀJ_d + λ SᵀS and
+    /// J_dᵀ r − λ SᵀS z formed densely from the same rows, on a mask with a hole, a notch, a
+    /// one-pixel spur and a lone pixel, with cells in shadow: every entry of the dense lower
+    /// triangle is in the pattern, at its value.
+    #[test]
+    fn assembly_matches_dense_normal_equations() {
+        let (w, h) = (11, 9);
+        let mut mask = Grid::new(w, h, false);
+        for r in 0..h {
+            for c in 0..w {
+                let hole = (3..5).contains(&r) && (4..6).contains(&c);
+                let notch = r == 0 && c >= 7;
+                let cut = c == 9 && r < 7;
+                mask.data_mut()[r * w + c] = !(hole || notch || cut);
+            }
+        }
+        // A spur one pixel wide, and a lone pixel.
+        mask.data_mut()[8 * w + 10] = false;
+        mask.data_mut()[2 * w + 10] = false;
+        let u = Unknowns::new(&mask);
+        let n = u.len();
+        // A smooth surface's brightness, some of it at the shadow level.
+        let z: Vec<f64> = (0..n)
+            .map(|k| {
+                let (r, c) = (
+                    (u.pixel[k] as usize / w) as f64,
+                    (u.pixel[k] as usize % w) as f64,
+                );
+                0.3 * (0.7 * c).sin() + 0.2 * (0.5 * r).cos() * c
+            })
+            .collect();
+        let e: Vec<f64> = (0..n)
+            .map(|k| {
+                let (r, c) = (u.pixel[k] as usize / w, u.pixel[k] as usize % w);
+                if r >= 5 && c <= 2 {
+                    0.0
+                } else {
+                    0.2 + 0.6 * ((k * 37) % 11) as f64 / 11.0
+                }
+            })
+            .collect();
+        let options = SfsOptions::default();
+        let shadow = e.iter().map(|&v| v <= options.shadow_level).collect();
+        let rmap = ReflectanceMap::lambertian(Vector3::new(0.4, -0.3, 0.87)).unwrap();
+        let s = Shading {
+            u,
+            e,
+            shadow,
+            rmap: &rmap,
+            options: &options,
+            progress: &crate::progress::Silent,
+        };
+        let problem = Problem::new(&s).unwrap();
+        assert!(problem.cells.shadow.iter().any(|&b| b));
+        let lambda = 0.037;
+        let mut values = vec![0.0; problem.row_idx.len()];
+        let rhs = problem.assemble(&z, lambda, &mut values);
+        let mut dense = vec![vec![0.0; n]; n];
+        let mut dense_rhs = vec![0.0; n];
+        for (c, (r0, coef)) in problem.data(&z).iter().enumerate() {
+            let idx = problem.cells.corners[c];
+            for a in 0..4 {
+                dense_rhs[idx[a]] += coef[a] * r0;
+                for b in 0..4 {
+                    dense[idx[a]][idx[b]] += coef[a] * coef[b];
+                }
+            }
+        }
+        for row in &problem.smooth {
+            let v = Problem::smooth_value(&z, row);
+            for a in 0..8 {
+                dense_rhs[row.0[a]] -= lambda * row.1[a] * v;
+                for b in 0..8 {
+                    dense[row.0[a]][row.0[b]] += lambda * row.1[a] * row.1[b];
+                }
+            }
+        }
+        let mut seen = vec![vec![false; n]; n];
+        for i in 0..n {
+            let column = problem.col_ptr[i]..problem.col_ptr[i + 1];
+            for (&j, &v) in problem.row_idx[column.clone()].iter().zip(&values[column]) {
+                assert!(j >= i, "entry ({j}, {i}) above the diagonal");
+                assert!(!seen[j][i], "entry ({j}, {i}) twice");
+                seen[j][i] = true;
+                let d = (v - dense[j][i]).abs();
+                assert!(d < 1e-12, "entry ({j}, {i}): {v} against {}", dense[j][i]);
+            }
+            assert!(seen[i][i], "diagonal {i} missing");
+            assert!(
+                (problem.diagonal[i] < problem.col_ptr[i + 1])
+                    && problem.row_idx[problem.diagonal[i]] == i
+            );
+            for j in i..n {
+                assert!(
+                    seen[j][i] || dense[j][i] == 0.0,
+                    "({j}, {i}) = {} is outside the pattern",
+                    dense[j][i]
+                );
+            }
+            assert!(
+                (rhs[i] - dense_rhs[i]).abs() < 1e-12,
+                "rhs {i}: {} against {}",
+                rhs[i],
+                dense_rhs[i]
+            );
+        }
+    }
 }

@@ -270,6 +270,8 @@ pub(crate) struct Solved {
     pub converged: bool,
     pub singular: usize,
     pub assumptions: Vec<String>,
+    /// What the method itself found wrong (added to the report's warnings).
+    pub warnings: Vec<String>,
 }
 
 /// Shape from shading of `image` (linear brightness) inside `mask`, for a surface of albedo
@@ -497,6 +499,7 @@ fn finish(
             solved.iterations
         ));
     }
+    warnings.extend(solved.warnings);
     let light = s.rmap.light();
     let report = SfsReport {
         method: s.options.method,

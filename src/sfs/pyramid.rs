@@ -25,6 +25,28 @@ pub(crate) fn bilinear_from_half(
     ]
 }
 
+/// The coarse unknown nearest the fine pixel (column `c`, row `r`) among the coarse pixels of the
+/// 3 × 3 around its own block (`cindex`: the coarse unknown of each coarse pixel, `usize::MAX`
+/// where there is none); `None` when there is none.
+fn nearest_coarse(c: usize, r: usize, cw: usize, ch: usize, cindex: &[usize]) -> Option<usize> {
+    let (x, y) = ((c as f64 - 0.5) / 2.0, (r as f64 - 0.5) / 2.0);
+    let (bx, by) = ((c / 2).min(cw - 1), (r / 2).min(ch - 1));
+    let mut best: Option<(f64, usize)> = None;
+    for cy in by.saturating_sub(1)..=(by + 1).min(ch - 1) {
+        for cx in bx.saturating_sub(1)..=(bx + 1).min(cw - 1) {
+            let j = cindex[cy * cw + cx];
+            if j == usize::MAX {
+                continue;
+            }
+            let d = (cx as f64 - x).powi(2) + (cy as f64 - y).powi(2);
+            if best.is_none_or(|(bd, _)| d < bd) {
+                best = Some((d, j));
+            }
+        }
+    }
+    best.map(|(_, j)| j)
+}
+
 /// Transfer between a level and the one of half its resolution: each coarse pixel is a 2×2
 /// block of fine pixels all in the level; a fine pixel's value is the bilinear interpolation of
 /// the coarse pixels around it, over those that exist.
@@ -45,9 +67,11 @@ pub(crate) struct Transfer {
 impl Transfer {
     /// The transfer from the level `grid` (row, column; row-major) of a `w × h` image; `None`
     /// when the half-resolution level would have fewer than `min_pixels` pixels, or when
-    /// a pixel of the level has no coarse pixel around it (a part of the mask thinner than a
-    /// block: its change could not be interpolated, and leaving it unmoved would tear the depth
-    /// there).
+    /// a pixel of the level has no coarse pixel next to its own block (a part of the mask
+    /// thinner than a block: its change could not be interpolated, and leaving it unmoved
+    /// would tear the depth there). A pixel whose bilinear stencil has no coarse pixel with a
+    /// weight (at the frame's edge, where the stencil is clamped to one side) takes the value
+    /// of the nearest coarse pixel next to its block.
     pub fn new(grid: &[(usize, usize)], w: usize, h: usize, min_pixels: usize) -> Option<Self> {
         let (cw, ch) = (w / 2, h / 2);
         if grid.len() < 4 * min_pixels || cw < 2 || ch < 2 {
@@ -83,9 +107,14 @@ impl Transfer {
             });
             let total: f64 = ws.iter().map(|p| p.1).sum();
             if total <= 1e-9 {
-                return None;
+                // No coarse pixel of the stencil exists with a weight (at the frame's edge the
+                // clamped stencil reaches only one side): the nearest coarse pixel next to the
+                // pixel's own block, held constant as at the far edges of odd sizes.
+                ws = [(0, 0.0); 4];
+                ws[0] = (nearest_coarse(c, r, cw, ch, &cindex)?, 1.0);
+            } else {
+                ws.iter_mut().for_each(|p| p.1 /= total);
             }
-            ws.iter_mut().for_each(|p| p.1 /= total);
             weights.push(ws);
         }
         Some(Transfer {
@@ -162,5 +191,34 @@ mod tests {
         spur.extend((0..h).map(|r| (r, 120)));
         spur.sort_unstable();
         assert!(Transfer::new(&spur, w, h, MIN).is_none());
+        // A frame-filling level whose left column is jagged (every other pixel out): the
+        // clamped stencil of (1, 0) reaches only coarse column 0, whose blocks are all broken
+        // there; it takes the nearest coarse pixel, and the level still has a transfer.
+        let jagged: Vec<(usize, usize)> = grid
+            .iter()
+            .copied()
+            .filter(|&(r, c)| !(c == 0 && r % 2 == 0))
+            .collect();
+        let t = Transfer::new(&jagged, w, h, MIN).unwrap();
+        let at = jagged.iter().position(|&p| p == (1, 0)).unwrap();
+        assert_eq!(
+            t.weights[at][0],
+            (t.grid.iter().position(|&p| p == (0, 1)).unwrap(), 1.0)
+        );
+        assert!(t.weights.iter().all(|ws| {
+            (ws.iter().map(|p| p.1).sum::<f64>() - 1.0).abs() < 1e-12
+                && ws.iter().all(|p| p.1 >= 0.0)
+        }));
+        let v: Vec<f64> = jagged
+            .iter()
+            .map(|&(r, c)| 1.0 + 0.01 * (r + c) as f64)
+            .collect();
+        let back = t.prolong(&t.restrict(&v));
+        let worst = v
+            .iter()
+            .zip(&back)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(worst < 0.03, "{worst}");
     }
 }

@@ -33,7 +33,8 @@
 //! # Solve
 //! Gauss–Newton with a line search: each step solves (JᵀJ + λLᵀL)δ = −∇E/2 (its diagonal
 //! raised by 10⁻⁶ of itself) by a sparse Cholesky factorisation (`faer`, nested dissection
-//! ordering analysed once), with the cells' Jacobian by central differences (so any reflectance
+//! ordering analysed once; factorised in single precision, refined in double:
+//! `integrate::sparse::MixedCholesky`), with the cells' Jacobian by central differences (so any reflectance
 //! the model holds can be fitted), and searches the length along δ by quadratic interpolation
 //! of E (backtracking while E has not fallen, and one shorter length when the parabola puts the
 //! minimum well short of a full step). It stops when a step lowers E by less than the tolerance
@@ -62,7 +63,7 @@
 //!   recovered.
 
 use crate::error::{Error, Result};
-use crate::integrate::sparse::{CholeskyWork, nested_dissection_of, symbolic_cholesky};
+use crate::integrate::sparse::{MixedCholesky, nested_dissection_of, symbolic_cholesky};
 use faer::Par;
 use nalgebra::Vector3;
 use rayon::prelude::*;
@@ -478,7 +479,7 @@ pub(super) fn refine(
     let symbolic = symbolic_cholesky(&problem.col_ptr, &problem.row_idx, problem.order.clone())?;
     // Sequential: on these sizes (10⁴–10⁵ unknowns) faer's parallel factorisation was slower
     // on 2 cores (34 000 unknowns: 0.10 s against 0.17 s).
-    let mut work = CholeskyWork::new(&symbolic, Par::Seq)?;
+    let mut work = MixedCholesky::new(&symbolic, Par::Seq)?;
 
     let mut energy = energy_start;
     let mut candidate = vec![0.0; n];
