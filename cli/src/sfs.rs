@@ -74,7 +74,9 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         SfsMethodArg::Horn
     });
     if a.single_resolution && method != SfsMethodArg::Horn {
-        bail!("--single-resolution is for --method horn (the only method solved coarse to fine)");
+        bail!(
+            "--single-resolution is for --method horn (the only method whose coarse-to-fine start can be turned off)"
+        );
     }
     if method == SfsMethodArg::Perspective {
         return perspective(&a, &image, &mask, mask_source, material);

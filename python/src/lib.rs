@@ -1123,7 +1123,7 @@ fn sfs<'py>(
     };
     if !coarse_to_fine && method != SfsMethod::Horn {
         return Err(PyValueError::new_err(format!(
-            "coarse_to_fine: for the horn method (the only one solved coarse to fine), not {}",
+            "coarse_to_fine: for the horn method (the only method whose coarse-to-fine start can be turned off), not {}",
             method.name()
         )));
     }

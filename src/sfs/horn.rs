@@ -93,8 +93,9 @@ const MAX_COLUMN: usize = 16;
 const MIN_COARSE_PIXELS: usize = 3000;
 
 /// The largest change of the height, relative to the start's largest height (or 1), under
-/// which the result is reported as its start unchanged: only a start where the energy's
-/// gradient vanishes (no step leaves it) stays that close.
+/// which the result is reported as its start unchanged (when it also explains the image
+/// poorly): only a start where the energy's gradient vanishes (no step leaves it) stays that
+/// close.
 const STATIONARY: f64 = 1e-9;
 
 /// ∂p/∂z and ∂q/∂z of a cell for its corners (top-left, top-right, bottom-left, bottom-right).
@@ -614,14 +615,28 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
     }
     s.progress
         .begin("shape from shading (Horn)", max_iterations(s) as u64);
-    let (iterations, converged) = problem.minimise(&mut z, coarse.is_none(), s.progress)?;
+    let minimised = problem.minimise(&mut z, coarse.is_none(), s.progress);
+    if minimised.is_err() {
+        s.progress.end();
+    }
+    let (iterations, converged) = minimised?;
     let mut warnings = Vec::new();
     let scale = start.iter().fold(1.0, |m: f64, v| m.max(v.abs()));
     let moved = z
         .iter()
         .zip(&start)
         .fold(0.0, |m: f64, (a, b)| m.max((a - b).abs()));
-    if moved <= STATIONARY * scale {
+    // A start that already explains the image (a plane under a light it faces obliquely) is a
+    // minimum, not a point the iteration could not leave: only a poor fit is flagged.
+    let lit: Vec<f64> = problem
+        .data(&z)
+        .iter()
+        .zip(&problem.cells.shadow)
+        .filter(|(_, sh)| !**sh)
+        .map(|((r, _), _)| r.abs())
+        .collect();
+    let poor = !lit.is_empty() && lit.iter().sum::<f64>() / lit.len() as f64 > super::POOR_FIT;
+    if z.iter().all(|v| v.is_finite()) && moved <= STATIONARY * scale && poor {
         // Under a light at the viewer a plane facing the camera has R_p = R_q = 0 in every
         // cell: the energy's gradient is 0 there, and no step (nor a coarse level) leaves it.
         warnings.push(

@@ -70,8 +70,8 @@ impl Transfer {
     /// a pixel of the level has no coarse pixel next to its own block (a part of the mask
     /// thinner than a block: its change could not be interpolated, and leaving it unmoved
     /// would tear the depth there). A pixel whose bilinear stencil has no coarse pixel with a
-    /// weight (at the frame's edge, where the stencil is clamped to one side) takes the value
-    /// of the nearest coarse pixel next to its block.
+    /// weight (at the frame's edge, where the stencil is clamped to one side, or at a jagged
+    /// contour) takes the value of the nearest coarse pixel next to its block.
     pub fn new(grid: &[(usize, usize)], w: usize, h: usize, min_pixels: usize) -> Option<Self> {
         let (cw, ch) = (w / 2, h / 2);
         if grid.len() < 4 * min_pixels || cw < 2 || ch < 2 {
