@@ -516,7 +516,7 @@ impl CholeskyWorkF32 {
     }
 
     /// As [`CholeskyWork::solve`]: A x = b in place for the lower triangle (`col_ptr`,
-    /// `row_idx`, `values`), factorised in `f32` and refined in `f64`. Returns the last
+    /// `row_idx`, `values`), factorised in `f32` and refined once in `f64`. Returns the
     /// refinement's correction relative to the solution (‖δx‖ / ‖x‖; 0 for b = 0).
     ///
     /// # Errors
@@ -548,43 +548,35 @@ impl CholeskyWorkF32 {
         for (xi, &v) in x.iter_mut().zip(&self.x) {
             *xi = s * f64::from(v);
         }
-        // Refinements: r = b − A x (A's lower triangle read both ways), x += A⁻¹ r with the
-        // same factor, until the correction is below REFINED of x, stops shrinking by half, or
-        // MAX_REFINEMENTS were made.
-        let mut last = f64::INFINITY;
-        for _ in 0..MAX_REFINEMENTS {
-            let mut r = b.clone();
-            for i in 0..n {
-                for t in col_ptr[i]..col_ptr[i + 1] {
-                    let (j, a) = (row_idx[t], values[t]);
-                    r[j] -= a * x[i];
-                    if j != i {
-                        r[i] -= a * x[j];
-                    }
+        // One refinement (Wilkinson): r = b − A x with A's lower triangle read both ways, then
+        // x += A⁻¹ r with the same factor. More refinements cost as much as they saved: at
+        // 65 000 unknowns the shape-from-shading systems needed all of up to four to reach 10⁻¹²,
+        // and the steps were then as slow as in `f64` (`bench sfs --size 256`).
+        let mut r = b;
+        for i in 0..n {
+            for t in col_ptr[i]..col_ptr[i + 1] {
+                let (j, a) = (row_idx[t], values[t]);
+                r[j] -= a * x[i];
+                if j != i {
+                    r[i] -= a * x[j];
                 }
             }
-            let s = scaled_f32(&r, &mut self.x);
-            solve_with(&llt, &mut self.x, &mut self.solve_mem, self.par);
-            let (mut change, mut size) = (0.0, 0.0);
-            for (xi, &v) in x.iter_mut().zip(&self.x) {
-                let d = s * f64::from(v);
-                change += d * d;
-                *xi += d;
-                size += *xi * *xi;
-            }
-            let relative = if size == 0.0 {
-                // x = 0 (b = 0): exact, unless the correction is not finite.
-                if change == 0.0 { 0.0 } else { f64::INFINITY }
-            } else {
-                (change / size).sqrt()
-            };
-            let stalled = relative.is_nan() || relative > 0.5 * last;
-            last = relative;
-            if relative <= REFINED || stalled {
-                break;
-            }
         }
-        Ok(last)
+        let s = scaled_f32(&r, &mut self.x);
+        solve_with(&llt, &mut self.x, &mut self.solve_mem, self.par);
+        let (mut change, mut size) = (0.0, 0.0);
+        for (xi, &v) in x.iter_mut().zip(&self.x) {
+            let d = s * f64::from(v);
+            change += d * d;
+            *xi += d;
+            size += *xi * *xi;
+        }
+        Ok(if size == 0.0 {
+            // x = 0 (b = 0): exact, unless the correction is not finite.
+            if change == 0.0 { 0.0 } else { f64::INFINITY }
+        } else {
+            (change / size).sqrt()
+        })
     }
 }
 
@@ -602,21 +594,11 @@ fn scaled_f32(v: &[f64], out: &mut Vec<f32>) -> f64 {
     s
 }
 
-/// The relative correction at which [`CholeskyWorkF32`] stops refining: the solution is then
-/// as accurate as an `f64` factorisation's.
-const REFINED: f64 = 1e-12;
-/// The most refinements [`CholeskyWorkF32`] makes. One: each costs two triangular solves with
-/// the factor and a product, and at 65 000 unknowns the shape-from-shading systems needed all
-/// of up to four to reach [`REFINED`], which made the steps as slow as in `f64` (measured with
-/// `bench sfs --size 256`); after one, the error is about the correction's own relative size
-/// times it, which [`MIXED_TOLERANCE`] bounds.
-const MAX_REFINEMENTS: usize = 1;
-
 /// The sparse Cholesky solves of a sequence of Gauss–Newton steps, in mixed precision: each
-/// system is factorised in `f32` and refined in `f64` ([`CholeskyWorkF32`]); when that fails
-/// (the rounded matrix is not positive definite, or the solution is not finite) or the last
+/// system is factorised in `f32` and refined once in `f64` ([`CholeskyWorkF32`]); when that
+/// fails (the rounded matrix is not positive definite, or the solution is not finite) or the
 /// refinement's correction exceeds [`MIXED_TOLERANCE`] of the solution (so ill-conditioned
-/// that the refinements stall), the system is solved again in `f64`
+/// that one refinement may not suffice), the system is solved again in `f64`
 /// ([`CholeskyWork`], allocated the first time it is needed).
 pub(crate) struct MixedCholesky {
     single: CholeskyWorkF32,

@@ -627,16 +627,19 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         .zip(&start)
         .fold(0.0, |m: f64, (a, b)| m.max((a - b).abs()));
     // A start that already explains the image (a plane under a light it faces obliquely) is a
-    // minimum, not a point the iteration could not leave: only a poor fit is flagged.
-    let lit: Vec<f64> = problem
-        .data(&z)
-        .iter()
-        .zip(&problem.cells.shadow)
-        .filter(|(_, sh)| !**sh)
-        .map(|((r, _), _)| r.abs())
-        .collect();
-    let poor = !lit.is_empty() && lit.iter().sum::<f64>() / lit.len() as f64 > super::POOR_FIT;
-    if z.iter().all(|v| v.is_finite()) && moved <= STATIONARY * scale && poor {
+    // minimum, not a point the iteration could not leave: only a poor fit is flagged (the
+    // residuals are evaluated only for a result that did not move).
+    let poor = || {
+        let lit: Vec<f64> = problem
+            .data(&z)
+            .iter()
+            .zip(&problem.cells.shadow)
+            .filter(|(_, sh)| !**sh)
+            .map(|((r, _), _)| r.abs())
+            .collect();
+        !lit.is_empty() && lit.iter().sum::<f64>() / lit.len() as f64 > super::POOR_FIT
+    };
+    if z.iter().all(|v| v.is_finite()) && moved <= STATIONARY * scale && poor() {
         // Under a light at the viewer a plane facing the camera has R_p = R_q = 0 in every
         // cell: the energy's gradient is 0 there, and no step (nor a coarse level) leaves it.
         warnings.push(
