@@ -85,6 +85,12 @@ pub use refine::{RefineOptions, RefineReport};
 pub const DEFAULT_MAX_SWEEPS: usize = 400;
 /// Default tolerance on the largest change of ln Z in a sweep.
 pub const DEFAULT_TOLERANCE: f64 = 1e-7;
+/// Precision of each pixel's root, relative to the sweep tolerance: a tenth of the change
+/// below which a pixel's update no longer wakes its neighbours (a hundredth of the tolerance).
+/// It was 10⁻¹² in ln Z, five digits finer than the default tolerance asks for; at 10⁻¹⁰ the
+/// rendered shapes of `bench sfs` keep their errors to the digits reported
+/// (docs/shape-from-shading.md).
+const ROOT_PRECISION: f64 = 1e-3;
 /// Samples of the reflectance's brightness over cos θ ∈ [0, 1] (its inverse is interpolated).
 const BRIGHTNESS_SAMPLES: usize = 2048;
 /// Mean relative residual above which the result is reported as not explaining the image. The
@@ -437,26 +443,28 @@ fn residual_at(model: &Model, px: &Pixel, z: f64, nb: [Option<f64>; 4], k: [f64;
     }
 }
 
-/// Solves one pixel's equation for its ln-depth, from `z0`, not above `upper`: the drift κm
-/// frozen at the current depth, refreshed at the new one until it stops moving (at most
-/// [`DRIFT_REFRESHES`] times; none for a light at the camera, whose drift is 0).
+/// Solves one pixel's equation for its ln-depth, from `z0`, not above `upper`, to within
+/// `precision`: the drift κm frozen at the current depth, refreshed at the new one until it
+/// moves by less than `precision` (at most [`DRIFT_REFRESHES`] times; none for a light at the
+/// camera, whose drift is 0).
 fn solve_pixel(
     model: &Model,
     px: &Pixel,
     z0: f64,
     (lower, upper): (f64, f64),
     nb: [Option<f64>; 4],
+    precision: f64,
 ) -> Option<f64> {
     let mut z = z0.clamp(lower, upper);
     for refresh in 0..DRIFT_REFRESHES {
         let (k, _) = model.terms(px, z);
-        let Some(next) = solve_frozen(model, px, z, (lower, upper), nb, k) else {
+        let Some(next) = solve_frozen(model, px, z, (lower, upper), nb, k, precision) else {
             // Rootless from the start, or after a first update (kept).
             return (refresh > 0).then_some(z);
         };
         let moved = (next - z).abs();
         z = next;
-        if model.at_camera || moved < 1e-12 {
+        if model.at_camera || moved < precision {
             break;
         }
     }
@@ -464,8 +472,9 @@ fn solve_pixel(
 }
 
 /// One pixel's equation with the drift `k` frozen: increasing in z, solved by bracketing and
-/// regula falsi; `None` when it has no root on the physical branch with these neighbours
-/// (where the light grazes the surface, the equation may not be solvable until they settle).
+/// regula falsi until the bracket is narrower than `precision`; `None` when it has no root on
+/// the physical branch with these neighbours (where the light grazes the surface, the equation
+/// may not be solvable until they settle).
 fn solve_frozen(
     model: &Model,
     px: &Pixel,
@@ -473,6 +482,7 @@ fn solve_frozen(
     (lower, upper): (f64, f64),
     nb: [Option<f64>; 4],
     k: [f64; 2],
+    precision: f64,
 ) -> Option<f64> {
     let f = |z: f64| residual_at(model, px, z, nb, k);
     let z0 = z0.clamp(lower, upper);
@@ -518,7 +528,7 @@ fn solve_frozen(
     // Regula falsi, Illinois variant.
     let mut side = 0i8;
     for _ in 0..60 {
-        if hi - lo < 1e-12 {
+        if hi - lo < precision {
             break;
         }
         let z = if flo.is_finite() && fhi.is_finite() {
@@ -826,6 +836,9 @@ fn solve_swept(
         // equation was then solved exactly): later sweeps touch only the pixels still moving.
         let mut dirty = vec![true; n];
         let settled = 0.01 * tolerance;
+        // Each pixel's root to a tenth of the motion that counts (`settled`): finer roots only
+        // move ln Z in digits that no sweep's stopping test or neighbour reads.
+        let precision = ROOT_PRECISION * tolerance;
         let mut sweeps = 0;
         let mut converged = false;
         let mut last_change = f64::INFINITY;
@@ -847,9 +860,14 @@ fn solve_swept(
                     }
                     dirty[k] = false;
                     // No root with these neighbours: the pixel waits for them to settle.
-                    let Some(new) =
-                        solve_pixel(&model, &pixels[k], z[k], (lower[k], upper[k]), nb(&z, k))
-                    else {
+                    let Some(new) = solve_pixel(
+                        &model,
+                        &pixels[k],
+                        z[k],
+                        (lower[k], upper[k]),
+                        nb(&z, k),
+                        precision,
+                    ) else {
                         rootless[k] = true;
                         continue;
                     };
