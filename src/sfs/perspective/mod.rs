@@ -85,12 +85,6 @@ pub use refine::{RefineOptions, RefineReport};
 pub const DEFAULT_MAX_SWEEPS: usize = 400;
 /// Default tolerance on the largest change of ln Z in a sweep.
 pub const DEFAULT_TOLERANCE: f64 = 1e-7;
-/// Precision of each pixel's root, relative to the sweep tolerance: a tenth of the change
-/// below which a pixel's update no longer wakes its neighbours (a hundredth of the tolerance).
-/// It was 10⁻¹² in ln Z, five digits finer than the default tolerance asks for; at 10⁻¹⁰ the
-/// rendered shapes of `bench sfs` keep their errors to the digits reported
-/// (docs/shape-from-shading.md).
-const ROOT_PRECISION: f64 = 1e-3;
 /// Samples of the reflectance's brightness over cos θ ∈ [0, 1] (its inverse is interpolated).
 const BRIGHTNESS_SAMPLES: usize = 2048;
 /// Mean relative residual above which the result is reported as not explaining the image. The
@@ -833,12 +827,14 @@ fn solve_swept(
         let (c0, c1, r0, r1) = (window.x0, window.x1 - 1, window.y0, window.y1 - 1);
         let mut rootless = vec![false; n];
         // A pixel is revisited only when a neighbour moved since its last update (its own
-        // equation was then solved exactly): later sweeps touch only the pixels still moving.
+        // equation was then solved to `precision`): later sweeps touch only the pixels still
+        // moving.
         let mut dirty = vec![true; n];
         let settled = 0.01 * tolerance;
-        // Each pixel's root to a tenth of the motion that counts (`settled`): finer roots only
-        // move ln Z in digits that no sweep's stopping test or neighbour reads.
-        let precision = ROOT_PRECISION * tolerance;
+        // Each pixel's root to a tenth of the motion that wakes its neighbours: finer roots
+        // only move ln Z in digits that neither the sweeps' stopping test nor a neighbour reads
+        // (10⁻¹² before; the errors of `bench sfs` are unchanged, docs/shape-from-shading.md).
+        let precision = 0.1 * settled;
         let mut sweeps = 0;
         let mut converged = false;
         let mut last_change = f64::INFINITY;
