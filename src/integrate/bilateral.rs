@@ -581,9 +581,9 @@ fn closed_off(u: &Unknowns, cut: &Cuts) -> ClosedOff {
 /// the regions' indicators is removed exactly: x += Z (ZᵀAZ)⁻¹ Zᵀ(b − A x), the Galerkin
 /// correction of a two-level deflation (Nicolaides, "Deflation of conjugate gradients with
 /// applications to boundary value problems", SIAM J. Numer. Anal. 24, 1987). It leaves the
-/// error A-orthogonal to Z, where A's spectrum is that of the regions' own Laplacians, and
-/// never raises |e|_A; the rule's bound then holds component by component as it does for
-/// masked least squares. ZᵀAZ is the graph Laplacian of the regions, weighted by the cut
+/// error A-orthogonal to Z, where A's smallest eigenvalues are roughly those of the regions'
+/// own Laplacians, and never raises |e|_A, so the rule's bound no longer hides the shift of
+/// a whole region. ZᵀAZ is the graph Laplacian of the regions, weighted by the cut
 /// edges between them; one region per connected part of the domain is pinned.
 struct RegionOffsets {
     /// Region of each unknown, numbered from 0.
