@@ -544,10 +544,16 @@ fn close_cuts(u: &Unknowns, w: &[[f64; 2]], cut: &mut Cuts, weak: f64) -> usize 
 
 /// The regions that `cut` closes off ([`ClosedOff`]): every connected component through uncut
 /// edges but the largest of each connected part of the domain.
+#[cfg(test)]
 fn closed_off(u: &Unknowns, cut: &Cuts) -> ClosedOff {
-    let label = regions(u, cut);
+    closed_off_in(u, &regions(u, cut))
+}
+
+/// The regions closed off ([`ClosedOff`]), from the labels of the components through uncut
+/// edges ([`regions`]): every component but the largest of each connected part of the domain.
+fn closed_off_in(u: &Unknowns, label: &[u32]) -> ClosedOff {
     let mut size = vec![0usize; u.len()];
-    for &l in &label {
+    for &l in label {
         size[l as usize] += 1;
     }
     // The largest region of each part of the domain.
@@ -594,10 +600,10 @@ struct RegionOffsets {
 }
 
 impl RegionOffsets {
-    /// The regions of `cut`; `None` with more than [`MAX_DEFLATED_REGIONS`]. (With one region
-    /// a part there is no offset to deflate, and the correction changes nothing.)
-    fn new(u: &Unknowns, cut: &Cuts) -> Option<Self> {
-        let label = regions(u, cut);
+    /// The regions of the labels of [`regions`]; `None` with more than
+    /// [`MAX_DEFLATED_REGIONS`]. (With one region a part there is no offset to deflate, and the
+    /// correction changes nothing.)
+    fn new(u: &Unknowns, label: &[u32]) -> Option<Self> {
         let mut number = vec![NONE; u.len()];
         let mut regions = 0usize;
         let region: Vec<u32> = label
@@ -695,7 +701,9 @@ fn reintegrate(
         }
     }
     count += close_cuts(u, w, &mut cut, WEAK_LEVEL);
-    let closed = closed_off(u, &cut);
+    // The regions through uncut edges: what the cuts close off, and the offsets deflated below.
+    let label = regions(u, &cut);
+    let closed = closed_off_in(u, &label);
     let (p, q) = normal_gradients(normals, domain, camera);
     let (right, down) = edge_differences_with_cuts(&p, &q, domain, &Censoring::None, Some(&cut));
     // Across a cut, the difference without the cut: what the floor weight pulls towards.
@@ -749,8 +757,9 @@ fn reintegrate(
     // Solved by multigrid-preconditioned conjugate gradients, the system stops at the data's
     // noise, with the offsets of the regions the cuts separate deflated (`RegionOffsets`).
     let mut offsets = (method == SolveMethod::MultigridCg)
-        .then(|| RegionOffsets::new(u, &cut))
+        .then(|| RegionOffsets::new(u, &label))
         .flatten();
+    drop(label);
     // The edges in the order of unknown then axis, as they were listed before.
     let mut a = Stencil::zeros(n);
     let mut rhs = vec![0f64; n];
@@ -808,10 +817,12 @@ mod tests {
     use super::*;
     use crate::grid::Grid;
 
-    /// Weights on a 12×12 grid whose edges weigh `edge(x, y, axis)` (axis 0: the edge from
+    /// Weights on an n×n grid whose edges weigh `edge(x, y, axis)` (axis 0: the edge from
     /// pixel (x, y) to its right, 1: to the pixel below), and the cuts below [`CUT_LEVEL`].
-    fn weighted_grid(edge: impl Fn(usize, usize, usize) -> f64) -> (Unknowns, Vec<[f64; 2]>, Cuts) {
-        let n = 12;
+    fn weighted_grid(
+        n: usize,
+        edge: impl Fn(usize, usize, usize) -> f64,
+    ) -> (Unknowns, Vec<[f64; 2]>, Cuts) {
         let u = Unknowns::new(&Grid::new(n, n, true));
         // Edge weight w_i + 1 − w_j along each row (axis 0) and each column (axis 1): each
         // line starts at 0.5 and the next pixel's weight follows from the edge's.
@@ -858,7 +869,7 @@ mod tests {
     /// is reported; the weak edge that continues the contour but closes nothing stays uncut.
     #[test]
     fn hysteresis_closes_a_weak_gap_and_nothing_else() {
-        let (u, w, mut cut) = weighted_grid(square(0.7));
+        let (u, w, mut cut) = weighted_grid(12, square(0.7));
         assert_eq!(closed_off(&u, &cut), ClosedOff::default());
         assert_eq!(close_cuts(&u, &w, &mut cut, WEAK_LEVEL), 1);
         assert!(cut.right[5 * 12 + 6] && !cut.right[2 * 12 + 2]);
@@ -875,7 +886,7 @@ mod tests {
     /// A gap at or above [`WEAK_LEVEL`] stays open: nothing is closed off.
     #[test]
     fn hysteresis_leaves_a_strong_gap_open() {
-        let (u, w, mut cut) = weighted_grid(square(0.9));
+        let (u, w, mut cut) = weighted_grid(12, square(0.9));
         assert_eq!(close_cuts(&u, &w, &mut cut, WEAK_LEVEL), 0);
         assert!(!cut.right[5 * 12 + 6] && !cut.right[2 * 12 + 2]);
         assert_eq!(closed_off(&u, &cut), ClosedOff::default());
@@ -910,30 +921,15 @@ mod tests {
                 .cast::<f32>()
         });
         let domain = Grid::new(n, n, true);
-        let u = Unknowns::new(&domain);
-        // Weights whose edges weigh 0.1 (cut) across the rim and 1 elsewhere: along each line
-        // the next pixel's weight follows from the edge's (w_i + 1 − w_j).
-        let mut w = vec![[0.5f64; 2]; n * n];
-        for y in 0..n {
-            for x in 0..n - 1 {
-                let e = if on_ball(x, y) != on_ball(x + 1, y) {
-                    0.1
-                } else {
-                    1.0
-                };
-                w[y * n + x + 1][0] = w[y * n + x][0] + 1.0 - e;
+        // Edges across the rim weigh 0.1 (cut), the others 1.
+        let (u, w, _) = weighted_grid(n, |x, y, axis| {
+            let (x2, y2) = if axis == 0 { (x + 1, y) } else { (x, y + 1) };
+            if on_ball(x, y) != on_ball(x2, y2) {
+                0.1
+            } else {
+                1.0
             }
-        }
-        for x in 0..n {
-            for y in 0..n - 1 {
-                let e = if on_ball(x, y) != on_ball(x, y + 1) {
-                    0.1
-                } else {
-                    1.0
-                };
-                w[(y + 1) * n + x][1] = w[y * n + x][1] + 1.0 - e;
-            }
-        }
+        });
         let coeff = coefficients(&normals, &u, None);
         let solved = |solver: LinearSolver| {
             let mut z = vec![0.0; u.len()];
@@ -1020,7 +1016,7 @@ mod tests {
             s / m as f64
         };
         let offsets = || {
-            let mut o = RegionOffsets::new(&u, &cut).unwrap();
+            let mut o = RegionOffsets::new(&u, &regions(&u, &cut)).unwrap();
             for &(i, j, omega) in &edges {
                 o.add_edge(i, j, omega);
             }
