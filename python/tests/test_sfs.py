@@ -85,6 +85,31 @@ def test_the_reflectance_is_the_one_given():
     assert a < 2.0 and a < 0.5 * b
 
 
+def test_horn_warns_when_its_outline_contradicts_the_occluding_boundary():
+    # A rough sphere at 64²: Horn settles on a surface that explains the image as well as the
+    # right one but turns the normals beside the outline away from it (cli/tests/sfs.rs).
+    params = {"sigma": 0.4}
+    small = ps.render("sphere", 64, LIGHT[None, :], albedo=ALBEDO, material="oren-nayar",
+                      material_params=params)
+    m = small["mask"]
+    with pytest.warns(ps.PhotostereoWarning, match="contradicts the occluding boundary"):
+        r = ps.sfs(small["images"][0], m, light=LIGHT, albedo=ALBEDO, material="oren-nayar",
+                   material_params=params)
+    outline = r["report"]["outline"]
+    err = mean_angle(r["normals"], small["normals"], m)
+    print(f"rough sphere 64²: {err:.1f}°, {100 * outline['misaligned_fraction']:.0f}% of "
+          f"{outline['pixels']} outline pixels misaligned")
+    assert err > 12.0 and outline["misaligned_fraction"] > 0.25
+    # The same sphere at 96² is solved, and nothing is said.
+    big = ps.render("sphere", 96, LIGHT[None, :], albedo=ALBEDO, material="oren-nayar",
+                    material_params=params)
+    r = ps.sfs(big["images"][0], big["mask"], light=LIGHT, albedo=ALBEDO,
+               material="oren-nayar", material_params=params)
+    assert mean_angle(r["normals"], big["normals"], big["mask"]) < 3.0
+    assert r["report"]["outline"]["misaligned_fraction"] < 0.05
+    assert not any("occluding boundary" in w for w in r["warnings"])
+
+
 def test_a_plane_through_a_pinhole_under_a_light_at_its_centre():
     # A plane facing the camera at depth Z0, the light at the camera centre: a pixel's ray
     # meets it at distance r = Z0 sqrt(1 + x² + y²) (x, y normalised), where cos θ = Z0 / r

@@ -60,6 +60,18 @@ pub const DEFAULT_SHADOW_LEVEL: f64 = 0.01;
 const TOO_BRIGHT_WARN: f64 = 0.01;
 /// Mean |E/ρ − R| above which the shading is reported as not fitting.
 const POOR_FIT: f64 = 0.02;
+/// Angle (degrees) by which a normal beside the mask's outline may turn from the outline's
+/// outward direction, in the image plane, and still agree with an occluding contour there: the
+/// outward direction is taken from the pixel's eight neighbours, which resolve directions
+/// 45° apart, so a smaller angle can be the outline's quantisation alone.
+pub const OUTLINE_TOLERANCE_DEG: f64 = 45.0;
+/// Fraction of the outline's pixels turned by more than [`OUTLINE_TOLERANCE_DEG`] above which a
+/// result that assumed an occluding boundary is reported as contradicting it. Chosen on rendered
+/// scenes (sphere, ellipsoid, vase, bust; Lambertian and Oren–Nayar σ = 0.4; frontal, 30° and
+/// 40° lights; 32²–128²): solves within 6° of the truth reach at most 0.18 (the vase, whose cut
+/// ends are not occluding), solves under an oblique light more than 12.5° off at least 0.35
+/// (docs/shape-from-shading.md, "Does the result honour the occluding boundary?").
+pub const OUTLINE_MISALIGNED_WARN: f64 = 0.25;
 /// Largest gradient magnitude any method returns (a slope of 89.4°).
 pub(crate) const MAX_GRADIENT: f64 = 100.0;
 
@@ -224,6 +236,83 @@ pub struct SfsReport {
     pub warnings: Vec<String>,
     /// The variational refinement's report (perspective only; `None` when not run).
     pub refinement: Option<perspective::RefineReport>,
+    /// How well the normals beside the mask's outline agree with an occluding contour there
+    /// (Horn's method under [`Boundary::Occluding`], when the outline is inside the image;
+    /// `None` otherwise).
+    pub outline: Option<OutlineAgreement>,
+}
+
+/// Whether a result honours the occluding boundary it assumed: at an occluding contour the
+/// surface turns away from the camera, so a normal beside the mask's outline points outwards,
+/// along the outline's normal in the image (Ikeuchi and Horn, "Numerical shape from shading and
+/// occluding boundaries", Artificial Intelligence 17, 1981). A solve that settled on another
+/// surface explaining the image as well (a rough surface's flatter reflectance map, a small
+/// image) turns those normals elsewhere, while its residual stays as low as a correct solve's.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct OutlineAgreement {
+    /// Mask pixels with a neighbour (of eight) outside the mask but inside the image (the
+    /// image's border is not an outline), except where the offsets to those neighbours cancel
+    /// (a line one pixel wide has no outward direction).
+    pub pixels: usize,
+    /// Mean angle, in the image plane, between those pixels' normals and the outline's outward
+    /// direction (the sum of the offsets to the outside neighbours), degrees.
+    pub mean_angle_deg: f64,
+    /// Fraction of them turned by more than [`OUTLINE_TOLERANCE_DEG`].
+    pub misaligned_fraction: f64,
+}
+
+/// [`OutlineAgreement`] of `normals` over the unknowns `u`; `None` when no unknown touches a
+/// pixel outside the mask inside the image.
+pub(crate) fn outline_agreement(u: &Unknowns, normals: &NormalMap) -> Option<OutlineAgreement> {
+    let (w, h) = (u.w, u.h);
+    let mut inside = vec![false; w * h];
+    for &p in &u.pixel {
+        inside[p as usize] = true;
+    }
+    let (mut pixels, mut sum, mut misaligned) = (0usize, 0.0, 0usize);
+    for &p in &u.pixel {
+        let (x, y) = ((p as usize % w) as i64, (p as usize / w) as i64);
+        // Outward, x right and y up (rows run down).
+        let (mut ox, mut oy) = (0.0f64, 0.0f64);
+        for dy in -1i64..=1 {
+            for dx in -1i64..=1 {
+                let (a, b) = (x + dx, y + dy);
+                if (dx, dy) != (0, 0)
+                    && (0..w as i64).contains(&a)
+                    && (0..h as i64).contains(&b)
+                    && !inside[b as usize * w + a as usize]
+                {
+                    ox += dx as f64;
+                    oy -= dy as f64;
+                }
+            }
+        }
+        let out = ox.hypot(oy);
+        let n = normals.data()[p as usize].cast::<f64>();
+        if out == 0.0 || !n.iter().all(|v| v.is_finite()) {
+            continue;
+        }
+        // A normal facing the camera has no direction in the image: 90°, as a random one's mean.
+        let along = n.x.hypot(n.y);
+        let angle = if along > 0.0 {
+            ((n.x * ox + n.y * oy) / (along * out))
+                .clamp(-1.0, 1.0)
+                .acos()
+                .to_degrees()
+        } else {
+            90.0
+        };
+        pixels += 1;
+        sum += angle;
+        if angle > OUTLINE_TOLERANCE_DEG {
+            misaligned += 1;
+        }
+    }
+    (pixels > 0).then(|| OutlineAgreement {
+        pixels,
+        mean_angle_deg: sum / pixels as f64,
+        misaligned_fraction: misaligned as f64 / pixels as f64,
+    })
 }
 
 /// The result of [`shape_from_shading`].
@@ -501,6 +590,25 @@ fn finish(
             solved.iterations
         ));
     }
+    let outline = (s.options.method == SfsMethod::Horn
+        && s.options.boundary == Boundary::Occluding)
+        .then(|| outline_agreement(&s.u, &normals))
+        .flatten();
+    if let Some(o) = outline
+        && o.misaligned_fraction > OUTLINE_MISALIGNED_WARN
+    {
+        warnings.push(format!(
+            "the result contradicts the occluding boundary it assumed: {:.0}% of the {} pixels \
+             beside the mask's outline have normals turned more than {OUTLINE_TOLERANCE_DEG:.0}° \
+             from it (mean {:.1}°). Either the outline is not an occluding contour there, or \
+             the iteration settled on another surface that explains the image as well (a rough \
+             or small image admits several); the shape is probably wrong: try the perspective \
+             method with the light's position, or a larger image",
+            100.0 * o.misaligned_fraction,
+            o.pixels,
+            o.mean_angle_deg
+        ));
+    }
     warnings.extend(solved.warnings);
     let light = s.rmap.light();
     let report = SfsReport {
@@ -521,6 +629,7 @@ fn finish(
         assumptions: solved.assumptions,
         warnings,
         refinement: None,
+        outline,
     };
     Ok(SfsResult {
         depth,
@@ -672,4 +781,57 @@ pub fn object_mask(image: &ScalarMap) -> Mask {
         }
     }
     Grid::from_fn(w, h, |x, y| !background[y * w + x])
+}
+
+#[cfg(test)]
+mod outline_tests {
+    use super::*;
+
+    /// A disc of radius 12 in a 40×32 image, with its normals given by `f(x, y)` (x right, y up,
+    /// from the centre).
+    fn disc(f: impl Fn(f64, f64) -> Vector3<f64>) -> (Unknowns, NormalMap) {
+        let (w, h, r) = (40usize, 32usize, 12.0);
+        let at = |i: usize| ((i % w) as f64 - 20.0, 16.0 - (i / w) as f64);
+        let mask = Grid::from_fn(w, h, |x, y| {
+            let (dx, dy) = at(y * w + x);
+            dx.hypot(dy) < r
+        });
+        let normals = Grid::from_fn(w, h, |x, y| {
+            let (dx, dy) = at(y * w + x);
+            f(dx / r, dy / r).cast::<f32>()
+        });
+        (Unknowns::new(&mask), normals)
+    }
+
+    fn sphere(x: f64, y: f64) -> Vector3<f64> {
+        Vector3::new(x, y, (1.0 - x * x - y * y).max(0.0).sqrt())
+    }
+
+    /// The true normals of a sphere agree with its outline to within the outline's
+    /// quantisation; the same normals turned 90° about the view (a surface whose slope runs
+    /// along the outline) are all misaligned, at a mean of 90°; normals facing the camera have
+    /// no direction in the image and count as misaligned.
+    #[test]
+    fn a_spheres_outline_agrees_and_a_turned_one_does_not() {
+        let (u, n) = disc(sphere);
+        let a = outline_agreement(&u, &n).unwrap();
+        assert!(a.pixels > 40, "{a:?}");
+        assert_eq!(a.misaligned_fraction, 0.0, "{a:?}");
+        assert!(a.mean_angle_deg < 15.0, "{a:?}");
+        let (u, n) = disc(|x, y| sphere(-y, x));
+        let turned = outline_agreement(&u, &n).unwrap();
+        assert_eq!(turned.pixels, a.pixels);
+        assert!(turned.misaligned_fraction > 0.95, "{turned:?}");
+        assert!((turned.mean_angle_deg - 90.0).abs() < 15.0, "{turned:?}");
+        let (u, n) = disc(|_, _| Vector3::z());
+        assert_eq!(outline_agreement(&u, &n).unwrap().misaligned_fraction, 1.0);
+    }
+
+    /// A mask that fills the image has no outline inside it: nothing is judged.
+    #[test]
+    fn the_image_border_is_not_an_outline() {
+        let mask = Grid::new(20, 10, true);
+        let normals = Grid::new(20, 10, Vector3::new(0.0f32, 0.0, 1.0));
+        assert!(outline_agreement(&Unknowns::new(&mask), &normals).is_none());
+    }
 }

@@ -1212,6 +1212,7 @@ fn solve_swept(
         assumptions,
         warnings,
         refinement,
+        outline: None,
     };
     let swept_size = coarse.unwrap_or((w, h));
     Ok((
