@@ -175,6 +175,16 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         rep.mean_abs_residual,
         rep.median_abs_curl
     );
+    if let Some(o) = &rep.outline {
+        say!(
+            "  outline: {:.0}% of {} pixels with normals more than {:.0}° from its outward \
+             direction (mean {:.1}°)",
+            100.0 * o.misaligned_fraction,
+            o.pixels,
+            photostereo::sfs::OUTLINE_TOLERANCE_DEG,
+            o.mean_angle_deg
+        );
+    }
     tell(rep, &a.output);
     Ok(())
 }

@@ -463,6 +463,18 @@ fn sfs_command_end_to_end() {
     let e = angular_errors(&normals, &truth.normals, &truth.mask).unwrap();
     assert_eq!(e.pixels, truth.mask.count());
     assert!(e.mean_deg < 2.0, "CLI normals {:.2}°", e.mean_deg);
+    // The outline agrees with the occluding boundary Horn assumed, and both the summary and
+    // the report say how well.
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(said.contains("  outline: 0% of "), "{said}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let outline = &report["result"]["outline"];
+    assert!(outline["pixels"].as_u64().unwrap() > 100, "{outline}");
+    assert!(
+        outline["misaligned_fraction"].as_f64().unwrap() < 0.05,
+        "{outline}"
+    );
     // Again without the light or the albedo: both estimated, and the report says so.
     let out2 = dir.path().join("estimated");
     let o = cli(&[
