@@ -3,6 +3,8 @@ with the light given and estimated, a reflectance other than Lambert's, a plane 
 pinhole camera under a light at its centre (closed form), and refusals that name what is
 wrong. The bounds are those of the command's tests (`cli/tests/sfs.rs`)."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -86,28 +88,33 @@ def test_the_reflectance_is_the_one_given():
 
 
 def test_horn_warns_when_its_outline_contradicts_the_occluding_boundary():
-    # A rough sphere at 64²: Horn settles on a surface that explains the image as well as the
-    # right one but turns the normals beside the outline away from it (cli/tests/sfs.rs).
+    # Rough spheres at 64² and 96²: at 64² Horn settles on a surface that explains the image as
+    # well as the right one but turns the normals beside the outline away from it
+    # (cli/tests/sfs.rs, which also asserts that both cases occur). The warning reaches Python
+    # as a PhotostereoWarning exactly when the report's outline is misaligned, and it is never
+    # a false alarm. (Should Horn learn to solve the 64² one, take a scene it still fails on:
+    # the warning's path must stay tested.)
     params = {"sigma": 0.4}
-    small = ps.render("sphere", 64, LIGHT[None, :], albedo=ALBEDO, material="oren-nayar",
-                      material_params=params)
-    m = small["mask"]
-    with pytest.warns(ps.PhotostereoWarning, match="contradicts the occluding boundary"):
-        r = ps.sfs(small["images"][0], m, light=LIGHT, albedo=ALBEDO, material="oren-nayar",
-                   material_params=params)
-    outline = r["report"]["outline"]
-    err = mean_angle(r["normals"], small["normals"], m)
-    print(f"rough sphere 64²: {err:.1f}°, {100 * outline['misaligned_fraction']:.0f}% of "
-          f"{outline['pixels']} outline pixels misaligned")
-    assert err > 12.0 and outline["misaligned_fraction"] > 0.25
-    # The same sphere at 96² is solved, and nothing is said.
-    big = ps.render("sphere", 96, LIGHT[None, :], albedo=ALBEDO, material="oren-nayar",
-                    material_params=params)
-    r = ps.sfs(big["images"][0], big["mask"], light=LIGHT, albedo=ALBEDO,
-               material="oren-nayar", material_params=params)
-    assert mean_angle(r["normals"], big["normals"], big["mask"]) < 3.0
-    assert r["report"]["outline"]["misaligned_fraction"] < 0.05
-    assert not any("occluding boundary" in w for w in r["warnings"])
+    seen = []
+    for size in (64, 96):
+        sc = ps.render("sphere", size, LIGHT[None, :], albedo=ALBEDO, material="oren-nayar",
+                       material_params=params)
+        m = sc["mask"]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            r = ps.sfs(sc["images"][0], m, light=LIGHT, albedo=ALBEDO, material="oren-nayar",
+                       material_params=params)
+        outline = r["report"]["outline"]
+        err = mean_angle(r["normals"], sc["normals"], m)
+        warned = any(issubclass(w.category, ps.PhotostereoWarning)
+                     and "contradicts the occluding boundary" in str(w.message) for w in caught)
+        print(f"rough sphere {size}²: {err:.1f}°, {100 * outline['misaligned_fraction']:.0f}% of "
+              f"{outline['pixels']} outline pixels misaligned, warned {warned}")
+        assert warned == (outline["misaligned_fraction"] > 0.25)
+        assert warned == any("occluding boundary" in w for w in r["warnings"])
+        assert err > 12.0 if warned else err < 6.0
+        seen.append(warned)
+    assert seen == [True, False]
 
 
 def test_a_plane_through_a_pinhole_under_a_light_at_its_centre():
