@@ -188,6 +188,15 @@ impl Unknowns {
         }
     }
 
+    /// Whether each pixel of the image (row-major) is an unknown.
+    pub fn inside(&self) -> Vec<bool> {
+        let mut inside = vec![false; self.w * self.h];
+        for &p in &self.pixel {
+            inside[p as usize] = true;
+        }
+        inside
+    }
+
     /// Scatters per-unknown values into a map, NaN elsewhere.
     pub fn to_map(&self, z: &[f64]) -> ScalarMap {
         let mut out = Grid::new(self.w, self.h, f32::NAN);

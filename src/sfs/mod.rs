@@ -265,10 +265,7 @@ pub struct OutlineAgreement {
 /// pixel outside the mask inside the image.
 pub(crate) fn outline_agreement(u: &Unknowns, normals: &NormalMap) -> Option<OutlineAgreement> {
     let (w, h) = (u.w, u.h);
-    let mut inside = vec![false; w * h];
-    for &p in &u.pixel {
-        inside[p as usize] = true;
-    }
+    let inside = u.inside();
     let (mut pixels, mut sum, mut misaligned) = (0usize, 0.0, 0usize);
     for &p in &u.pixel {
         let (x, y) = ((p as usize % w) as i64, (p as usize / w) as i64);
@@ -648,10 +645,7 @@ fn finish(
 /// functions", Theory of Computing 2012). `None` when no pixel of the image is outside the mask.
 pub(crate) fn distance_to_edge(u: &Unknowns) -> Option<Vec<f64>> {
     let (w, h) = (u.w, u.h);
-    let mut inside = vec![false; w * h];
-    for &p in &u.pixel {
-        inside[p as usize] = true;
-    }
+    let inside = u.inside();
     if inside.iter().all(|&b| b) {
         return None;
     }
