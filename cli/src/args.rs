@@ -1263,6 +1263,11 @@ pub struct SfsArgs {
     /// resolutions (the default when the mask keeps 3 000 pixels at half resolution).
     #[arg(long)]
     pub single_resolution: bool,
+    /// Horn: when the result contradicts the occluding boundary on an image too small for a
+    /// coarse-to-fine start, do not solve it again upsampled 2× (the default tries, and keeps
+    /// that result only when it honours the boundary).
+    #[arg(long)]
+    pub no_outline_repair: bool,
     /// Perspective: return the swept viscosity solution without the variational refinement
     /// (a least-squares fit of the whole image from it).
     #[arg(long)]

@@ -73,6 +73,9 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
     } else {
         SfsMethodArg::Horn
     });
+    if a.no_outline_repair && method != SfsMethodArg::Horn {
+        bail!("--no-outline-repair is for --method horn (the only method that checks the outline)");
+    }
     if a.single_resolution && method != SfsMethodArg::Horn {
         bail!(
             "--single-resolution is for --method horn (the only method whose coarse-to-fine start can be turned off)"
@@ -119,6 +122,7 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         smoothness: a.smoothness,
         shadow_level: a.shadow_level,
         coarse_to_fine: !a.single_resolution,
+        outline_repair: !a.no_outline_repair,
     };
     let r = shape_from_shading_with_progress(&image, &mask, &rmap, albedo, &options, progress)?;
     let (w, h) = (image.width(), image.height());
@@ -183,6 +187,22 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
             o.pixels,
             photostereo::sfs::OUTLINE_TOLERANCE_DEG,
             o.mean_angle_deg
+        );
+    }
+    if let Some(r) = &rep.outline_repair {
+        say!(
+            "  outline repair: the first solve had {:.0}% misaligned; solved again upsampled 2× \
+             ({} iterations{}): {}",
+            100.0 * r.first.misaligned_fraction,
+            r.iterations,
+            if r.converged { "" } else { ", not converged" },
+            match (r.kept, r.upsampled) {
+                (true, Some(u)) =>
+                    format!("{:.0}% misaligned, kept", 100.0 * u.misaligned_fraction),
+                (false, Some(u)) =>
+                    format!("{:.0}% misaligned, not kept", 100.0 * u.misaligned_fraction),
+                (_, None) => "no result, not kept".to_string(),
+            }
         );
     }
     tell(rep, &a.output);

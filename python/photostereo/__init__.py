@@ -465,6 +465,7 @@ def sfs(
     refine_smoothness: Optional[float] = None,
     refine_iterations: int = 0,
     coarse_to_fine: bool = True,
+    outline_repair: bool = True,
 ) -> Dict[str, Any]:
     """Shape from shading of one image, as the ``photostereo sfs`` command.
 
@@ -483,7 +484,11 @@ def sfs(
     ``shadow_level``: pixels darker than this fraction of the albedo are in shadow (0.01);
     ``coarse_to_fine``: ``"horn"`` first solves the image's 2 x 2 block means where the mask
     keeps 3000 pixels at half resolution (the command's ``--single-resolution`` is
-    ``coarse_to_fine=False``; refused for the other methods).
+    ``coarse_to_fine=False``; refused for the other methods); ``outline_repair``: when
+    ``"horn"``'s result contradicts the occluding boundary on an image too small for a
+    coarse-to-fine start, it solves the image again upsampled 2x and returns that result if it
+    honours the boundary (the report's "outline_repair" says what was done; the command's
+    ``--no-outline-repair`` is ``outline_repair=False``).
 
     Pinhole camera and a point light with fall-off (``"perspective"``, Prados and Faugeras
     2005, the default when ``light_position`` is given): ``camera`` is the 3 x 3 intrinsics K,
@@ -532,6 +537,7 @@ def sfs(
         _float(refine_smoothness, "refine_smoothness"),
         _int(refine_iterations, "refine_iterations", 0, 1_000_000),
         bool(coarse_to_fine),
+        bool(outline_repair),
     )
     r["report"] = json.loads(r["report"])
     if r["estimate"] is not None:

@@ -35,6 +35,7 @@ pub mod estimate;
 mod fast_marching;
 mod horn;
 mod line_search;
+pub mod outline_repair;
 pub mod perspective;
 pub(crate) mod pyramid;
 pub mod reflectance_map;
@@ -181,6 +182,10 @@ pub struct SfsOptions {
     /// pixels) and start from that solution, refined at the final λ (default); `false` runs the
     /// whole continuation in λ at full resolution only.
     pub coarse_to_fine: bool,
+    /// Horn with an occluding boundary: when the result contradicts that boundary and the image
+    /// is too small for a coarse-to-fine start, solve it again upsampled 2× and return that
+    /// result if it honours the boundary ([`outline_repair`]; default `true`).
+    pub outline_repair: bool,
 }
 
 impl Default for SfsOptions {
@@ -192,6 +197,7 @@ impl Default for SfsOptions {
             smoothness: DEFAULT_SMOOTHNESS,
             shadow_level: DEFAULT_SHADOW_LEVEL,
             coarse_to_fine: true,
+            outline_repair: true,
         }
     }
 }
@@ -240,6 +246,8 @@ pub struct SfsReport {
     /// (Horn's method under [`Boundary::Occluding`], when the outline is inside the image;
     /// `None` otherwise).
     pub outline: Option<OutlineAgreement>,
+    /// What the outline repair did, when it was tried ([`outline_repair`]; Horn only).
+    pub outline_repair: Option<outline_repair::OutlineRepair>,
 }
 
 /// Whether a result honours the occluding boundary it assumed: at an occluding contour the
@@ -495,10 +503,10 @@ pub fn shape_from_shading_with_progress(
         options,
         progress,
     };
-    let solved = match options.method {
-        SfsMethod::Horn => horn::solve(&shading)?,
-        SfsMethod::TsaiShah => tsai_shah::solve(&shading)?,
-        SfsMethod::FastMarching => fast_marching::solve(&shading)?,
+    let (solved, repair) = match options.method {
+        SfsMethod::Horn => outline_repair::solve(&shading)?,
+        SfsMethod::TsaiShah => (tsai_shah::solve(&shading)?, None),
+        SfsMethod::FastMarching => (fast_marching::solve(&shading)?, None),
         SfsMethod::Perspective => {
             return Err(Error::param(
                 "method",
@@ -506,7 +514,7 @@ pub fn shape_from_shading_with_progress(
             ));
         }
     };
-    finish(shading, solved, albedo, too_bright, start)
+    finish(shading, solved, repair, albedo, too_bright, start)
 }
 
 /// Checks a shadow level: finite, in [0, 1).
@@ -525,6 +533,7 @@ pub(crate) fn check_shadow_level(level: f64) -> Result<()> {
 fn finish(
     s: Shading,
     solved: Solved,
+    repair: Option<outline_repair::OutlineRepair>,
     albedo: f64,
     too_bright: usize,
     start: Instant,
@@ -600,10 +609,26 @@ fn finish(
              from it (mean {:.1}°). Either the outline is not an occluding contour there, or \
              the iteration settled on another surface that explains the image as well (a rough \
              or small image admits several); the shape is probably wrong: try the perspective \
-             method with the light's position, or a larger image",
+             method with the light's position, or a larger image{}",
             100.0 * o.misaligned_fraction,
             o.pixels,
-            o.mean_angle_deg
+            o.mean_angle_deg,
+            match repair.and_then(|r| r.upsampled) {
+                Some(u) if u.misaligned_fraction <= OUTLINE_MISALIGNED_WARN => {
+                    " (solved again upsampled 2×, it honoured the boundary but did not converge, \
+                     so it was not kept)"
+                        .to_string()
+                }
+                Some(u) => format!(
+                    " (solved again upsampled 2×, it contradicted the boundary too: {:.0}% \
+                     misaligned)",
+                    100.0 * u.misaligned_fraction
+                ),
+                None if repair.is_some() => {
+                    " (solving it again upsampled 2× did not give a result)".to_string()
+                }
+                None => String::new(),
+            }
         ));
     }
     warnings.extend(solved.warnings);
@@ -627,6 +652,7 @@ fn finish(
         warnings,
         refinement: None,
         outline,
+        outline_repair: repair,
     };
     Ok(SfsResult {
         depth,

@@ -1213,6 +1213,7 @@ fn solve_swept(
         warnings,
         refinement,
         outline: None,
+        outline_repair: None,
     };
     let swept_size = coarse.unwrap_or((w, h));
     Ok((
