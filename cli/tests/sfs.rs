@@ -1088,3 +1088,104 @@ fn horn_repairs_an_outline_it_contradicts_only_when_a_finer_solve_honours_it() {
         "{kept} kept, {repaired} within 6°, {declined} declined"
     );
 }
+
+/// The outline repair from the command: a Lambertian ellipsoid at 48² under a light 40° off the
+/// view, which Horn's first solve gets 26° wrong, is repaired; the summary says so and
+/// report.json holds the repair. `--no-outline-repair` returns the first solve, warned, and is
+/// refused for a method without the outline check.
+#[test]
+fn sfs_command_repairs_an_outline_it_contradicts() {
+    const N: usize = 48;
+    let l = light(40.0, 120.0);
+    let scene =
+        SceneKind::Ellipsoid.build(N, Albedo::Constant(ALBEDO as f32), Material::lambertian());
+    let lights = Lights::new(vec![Light::new(l)]).unwrap();
+    let r = render(&scene, &lights, &RenderOptions::default()).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("ellipsoid.png");
+    let codes: Vec<u16> = r.images[0][0]
+        .data()
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16)
+        .collect();
+    photostereo::io::output::write_png16(&png, N, N, 1, &codes).unwrap();
+    let mask_png = dir.path().join("mask.png");
+    let mask_bytes: Vec<u8> = r
+        .truth
+        .mask
+        .data()
+        .iter()
+        .map(|&m| u8::from(m) * 255)
+        .collect();
+    photostereo::io::output::write_png8(&mask_png, N, N, 1, &mask_bytes).unwrap();
+    let light_arg = format!("{},{},{}", l.x, l.y, l.z);
+    let run = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(name);
+        let mut args = vec![
+            "sfs",
+            png.to_str().unwrap(),
+            "--light",
+            &light_arg,
+            "--albedo",
+            "0.8",
+            "--mask",
+            mask_png.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let o = cli(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let said = format!(
+            "{}{}",
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr)
+        );
+        let normals = photostereo::io::decode::read_normal_map(&out.join("normal.exr")).unwrap();
+        let e = angular_errors(&normals, &r.truth.normals, &r.truth.mask)
+            .unwrap()
+            .mean_deg;
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
+                .unwrap();
+        (said, e, report)
+    };
+    let (said, e, report) = run("repaired", &[]);
+    println!("repaired: {e:.1}°\n{said}");
+    assert!(e < 6.0, "{e:.1}°");
+    assert!(
+        said.contains("  outline repair: ") && said.contains(", kept"),
+        "{said}"
+    );
+    assert!(
+        !said.contains("contradicts the occluding boundary"),
+        "{said}"
+    );
+    let repair = &report["result"]["outline_repair"];
+    assert_eq!(repair["kept"], serde_json::Value::Bool(true), "{repair}");
+    assert!(repair["first"]["misaligned_fraction"].as_f64().unwrap() > OUTLINE_MISALIGNED_WARN);
+    let (said, e, report) = run("first", &["--no-outline-repair"]);
+    println!("not repaired: {e:.1}°");
+    assert!(e > 12.0, "{e:.1}°");
+    assert!(
+        said.contains("contradicts the occluding boundary"),
+        "{said}"
+    );
+    assert!(!said.contains("outline repair"), "{said}");
+    assert!(report["result"]["outline_repair"].is_null());
+    let o = cli(&[
+        "sfs",
+        png.to_str().unwrap(),
+        "--light",
+        &light_arg,
+        "--method",
+        "tsai-shah",
+        "--no-outline-repair",
+        "-o",
+        dir.path().join("refused").to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("--no-outline-repair is for --method horn")
+    );
+}

@@ -92,8 +92,8 @@ def test_horn_warns_when_its_outline_contradicts_the_occluding_boundary():
     # well as the right one but turns the normals beside the outline away from it
     # (cli/tests/sfs.rs, which also asserts that both cases occur). The warning reaches Python
     # as a PhotostereoWarning exactly when the report's outline is misaligned, and it is never
-    # a false alarm. (Should Horn learn to solve the 64² one, take a scene it still fails on:
-    # the warning's path must stay tested.)
+    # a false alarm. The outline repair, which solves the 64² one (next test), is turned off:
+    # this is the check's own path.
     params = {"sigma": 0.4}
     seen = []
     for size in (64, 96):
@@ -103,7 +103,8 @@ def test_horn_warns_when_its_outline_contradicts_the_occluding_boundary():
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             r = ps.sfs(sc["images"][0], m, light=LIGHT, albedo=ALBEDO, material="oren-nayar",
-                       material_params=params)
+                       material_params=params, outline_repair=False)
+        assert r["report"]["outline_repair"] is None
         outline = r["report"]["outline"]
         err = mean_angle(r["normals"], sc["normals"], m)
         warned = any(issubclass(w.category, ps.PhotostereoWarning)
@@ -115,6 +116,37 @@ def test_horn_warns_when_its_outline_contradicts_the_occluding_boundary():
         assert err > 12.0 if warned else err < 6.0
         seen.append(warned)
     assert seen == [True, False]
+
+
+def test_horn_repairs_a_result_that_contradicts_its_outline():
+    # The same rough sphere at 64²: the first solve contradicts the occluding boundary, so it
+    # is solved again upsampled 2x, and that result, which honours the boundary, is returned
+    # without the warning; outline_repair=False returns the first one, warned.
+    params = {"sigma": 0.4}
+    sc = ps.render("sphere", 64, LIGHT[None, :], albedo=ALBEDO, material="oren-nayar",
+                   material_params=params)
+    m = sc["mask"]
+    kw = dict(light=LIGHT, albedo=ALBEDO, material="oren-nayar", material_params=params)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        first = ps.sfs(sc["images"][0], m, outline_repair=False, **kw)
+        repaired = ps.sfs(sc["images"][0], m, **kw)
+    e_first = mean_angle(first["normals"], sc["normals"], m)
+    e = mean_angle(repaired["normals"], sc["normals"], m)
+    repair = repaired["report"]["outline_repair"]
+    print(f"rough sphere 64²: first {e_first:.1f}°, repaired {e:.1f}°, {repair}")
+    assert repair["kept"] and repair["converged"]
+    assert repair["first"]["misaligned_fraction"] > 0.25
+    assert repair["first"] == first["report"]["outline"]
+    assert repair["upsampled"]["misaligned_fraction"] <= 0.25
+    assert repaired["report"]["outline"]["misaligned_fraction"] <= 0.25
+    assert e_first > 12.0 and e < 6.0
+    assert not any("occluding boundary" in w for w in repaired["warnings"])
+    assert any("outline repair" in a for a in repaired["report"]["assumptions"])
+    assert sum("contradicts the occluding boundary" in str(w.message) for w in caught) == 1
+    with pytest.raises(ValueError, match="outline_repair"):
+        ps.sfs(sc["images"][0], m, light=LIGHT, albedo=ALBEDO, method="tsai-shah",
+               outline_repair=False)
 
 
 def test_a_plane_through_a_pinhole_under_a_light_at_its_centre():
