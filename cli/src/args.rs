@@ -1268,6 +1268,10 @@ pub struct SfsArgs {
     /// that result only when it honours the boundary).
     #[arg(long)]
     pub no_outline_repair: bool,
+    /// Horn: run the continuation in the smoothness weight once, instead of repeating it from
+    /// its own result while that lowers the energy (faster, and on most shapes less accurate).
+    #[arg(long)]
+    pub no_restarts: bool,
     /// Perspective: return the swept viscosity solution without the variational refinement
     /// (a least-squares fit of the whole image from it).
     #[arg(long)]

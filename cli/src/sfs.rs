@@ -76,6 +76,9 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
     if a.no_outline_repair && method != SfsMethodArg::Horn {
         bail!("--no-outline-repair is for --method horn (the only method that checks the outline)");
     }
+    if a.no_restarts && method != SfsMethodArg::Horn {
+        bail!("--no-restarts is for --method horn (the only method that repeats its continuation)");
+    }
     if a.single_resolution && method != SfsMethodArg::Horn {
         bail!(
             "--single-resolution is for --method horn (the only method whose coarse-to-fine start can be turned off)"
@@ -123,6 +126,7 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         shadow_level: a.shadow_level,
         coarse_to_fine: !a.single_resolution,
         outline_repair: !a.no_outline_repair,
+        restarts: !a.no_restarts,
     };
     let r = shape_from_shading_with_progress(&image, &mask, &rmap, albedo, &options, progress)?;
     let (w, h) = (image.width(), image.height());
@@ -163,12 +167,17 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         },
     );
     say!(
-        "  {} iterations{}{} in {:.3} s; mean |E/ρ − R| {:.4}; median |curl| {:.2e}",
+        "  {} iterations{}{}{} in {:.3} s; mean |E/ρ − R| {:.4}; median |curl| {:.2e}",
         rep.iterations,
         if rep.coarse_iterations > 0 {
             format!(" (after {} at lower resolutions)", rep.coarse_iterations)
         } else {
             String::new()
+        },
+        match rep.restarts {
+            0 => String::new(),
+            1 => ", the continuation repeated once from its result".to_string(),
+            k => format!(", the continuation repeated {k} times from its result"),
         },
         if rep.converged {
             ""

@@ -466,6 +466,7 @@ def sfs(
     refine_iterations: int = 0,
     coarse_to_fine: bool = True,
     outline_repair: bool = True,
+    restarts: bool = True,
 ) -> Dict[str, Any]:
     """Shape from shading of one image, as the ``photostereo sfs`` command.
 
@@ -488,7 +489,11 @@ def sfs(
     ``"horn"``'s result contradicts the occluding boundary on an image too small for a
     coarse-to-fine start, it solves the image again upsampled 2x and returns that result if it
     honours the boundary (the report's "outline_repair" says what was done; the command's
-    ``--no-outline-repair`` is ``outline_repair=False``).
+    ``--no-outline-repair`` is ``outline_repair=False``); ``restarts``: ``"horn"`` repeats its
+    continuation in the smoothness weight from its own result while that lowers the energy
+    without contradicting the occluding boundary (the report's "restarts" counts the repeats
+    kept; ``restarts=False``, the command's ``--no-restarts``, runs it once: faster, and on
+    most shapes less accurate).
 
     Pinhole camera and a point light with fall-off (``"perspective"``, Prados and Faugeras
     2005, the default when ``light_position`` is given): ``camera`` is the 3 x 3 intrinsics K,
@@ -538,6 +543,7 @@ def sfs(
         _int(refine_iterations, "refine_iterations", 0, 1_000_000),
         bool(coarse_to_fine),
         bool(outline_repair),
+        bool(restarts),
     )
     r["report"] = json.loads(r["report"])
     if r["estimate"] is not None:

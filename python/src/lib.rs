@@ -1064,7 +1064,7 @@ fn grey_image_arg(obj: &Bound<'_, PyAny>, transfer: Transfer) -> PyRes<ScalarMap
 /// `fast-marching`; the light and albedo estimated where not given) or a pinhole camera with a
 /// point light (`perspective`).
 #[pyfunction]
-#[pyo3(signature = (image, mask=None, light=None, albedo=None, method=None, material="lambert", material_params=None, transfer="auto", boundary="occluding", iterations=0, smoothness=None, shadow_level=None, camera=None, light_position=None, light_intensity=None, refine=true, refine_smoothness=None, refine_iterations=0, coarse_to_fine=true, outline_repair=true))]
+#[pyo3(signature = (image, mask=None, light=None, albedo=None, method=None, material="lambert", material_params=None, transfer="auto", boundary="occluding", iterations=0, smoothness=None, shadow_level=None, camera=None, light_position=None, light_intensity=None, refine=true, refine_smoothness=None, refine_iterations=0, coarse_to_fine=true, outline_repair=true, restarts=true))]
 #[allow(clippy::too_many_arguments)]
 fn sfs<'py>(
     py: Python<'py>,
@@ -1088,6 +1088,7 @@ fn sfs<'py>(
     refine_iterations: usize,
     coarse_to_fine: bool,
     outline_repair: bool,
+    restarts: bool,
 ) -> PyRes<Bound<'py, PyDict>> {
     use photostereo::sfs::perspective::{PerspectiveOptions, PointLight, RefineOptions, refine};
     use photostereo::sfs::{Boundary, SfsMethod, SfsOptions};
@@ -1131,6 +1132,12 @@ fn sfs<'py>(
     if !outline_repair && method != SfsMethod::Horn {
         return Err(PyValueError::new_err(format!(
             "outline_repair: for the horn method (the only method that checks the outline), not {}",
+            method.name()
+        )));
+    }
+    if !restarts && method != SfsMethod::Horn {
+        return Err(PyValueError::new_err(format!(
+            "restarts: for the horn method (the only method that repeats its continuation), not {}",
             method.name()
         )));
     }
@@ -1256,6 +1263,7 @@ fn sfs<'py>(
             shadow_level: shadow_level.unwrap_or(defaults.shadow_level),
             coarse_to_fine,
             outline_repair,
+            restarts,
         };
         let (r, lit) = lib(py.detach(|| {
             let (rmap, lit) = photostereo::sfs::estimate::illumination(

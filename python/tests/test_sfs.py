@@ -149,6 +149,26 @@ def test_horn_repairs_a_result_that_contradicts_its_outline():
                outline_repair=False)
 
 
+def test_horn_repeats_its_continuation_where_that_lowers_the_energy():
+    # A bust at 128² under the 30° light: repeating the continuation from its own result (the
+    # default) ends much nearer the truth than one continuation (restarts=False), and the report
+    # counts the repeats kept.
+    sc = ps.render("bust", 128, LIGHT[None, :], albedo=ALBEDO)
+    m = sc["mask"]
+    once = ps.sfs(sc["images"][0], m, light=LIGHT, albedo=ALBEDO, restarts=False)
+    repeated = ps.sfs(sc["images"][0], m, light=LIGHT, albedo=ALBEDO)
+    e_once = mean_angle(once["normals"], sc["normals"], m)
+    e = mean_angle(repeated["normals"], sc["normals"], m)
+    print(f"bust 128², 30°: once {e_once:.2f}°, repeated {repeated['report']['restarts']} "
+          f"times {e:.2f}°")
+    assert once["report"]["restarts"] == 0
+    assert repeated["report"]["restarts"] > 0 and repeated["report"]["converged"]
+    assert e < e_once - 1.5
+    with pytest.raises(ValueError, match="restarts"):
+        ps.sfs(sc["images"][0], m, light=LIGHT, albedo=ALBEDO, method="tsai-shah",
+               restarts=False)
+
+
 def test_a_plane_through_a_pinhole_under_a_light_at_its_centre():
     # A plane facing the camera at depth Z0, the light at the camera centre: a pixel's ray
     # meets it at distance r = Z0 sqrt(1 + x² + y²) (x, y normalised), where cos θ = Z0 / r

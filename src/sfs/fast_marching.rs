@@ -163,6 +163,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         iterations: 1,
         converged: true,
         coarse_iterations: 0,
+        restarts: 0,
         warnings: Vec::new(),
         singular,
         assumptions,

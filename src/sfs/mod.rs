@@ -186,6 +186,10 @@ pub struct SfsOptions {
     /// is too small for a coarse-to-fine start, solve it again upsampled 2× and return that
     /// result if it honours the boundary ([`outline_repair`]; default `true`).
     pub outline_repair: bool,
+    /// Horn: repeat the continuation in λ from its own result while that converges, lowers
+    /// the energy and does not contradict the occluding boundary (at most
+    /// [`horn::MAX_RESTARTS`] times; default `true`); `false` runs it once.
+    pub restarts: bool,
 }
 
 impl Default for SfsOptions {
@@ -198,6 +202,7 @@ impl Default for SfsOptions {
             shadow_level: DEFAULT_SHADOW_LEVEL,
             coarse_to_fine: true,
             outline_repair: true,
+            restarts: true,
         }
     }
 }
@@ -228,6 +233,9 @@ pub struct SfsReport {
     /// Iterations run at lower resolutions to make the start (Horn's coarse to fine, each
     /// level on its own limit; 0 otherwise: the perspective refinement's are in `refinement`).
     pub coarse_iterations: usize,
+    /// Horn: how many times the continuation in λ was repeated from its own result and kept
+    /// (each converged and lowered the energy; counted in the iterations above). 0 otherwise.
+    pub restarts: usize,
     /// Whether the iteration met its tolerance (perspective: the sweeps').
     pub converged: bool,
     /// Mean |E/ρ − R(p, q)| over lit pixels: how well the result explains the image.
@@ -363,6 +371,8 @@ pub(crate) struct Solved {
     pub iterations: usize,
     /// Iterations at lower resolutions that made the start (Horn's coarse to fine).
     pub coarse_iterations: usize,
+    /// Repeats of Horn's continuation in λ from its own result that were kept.
+    pub restarts: usize,
     pub converged: bool,
     pub singular: usize,
     pub assumptions: Vec<String>,
@@ -644,6 +654,7 @@ fn finish(
         singular_points: solved.singular,
         iterations: solved.iterations,
         coarse_iterations: solved.coarse_iterations,
+        restarts: solved.restarts,
         converged: solved.converged,
         mean_abs_residual,
         median_abs_curl: curl.median_abs_curl,

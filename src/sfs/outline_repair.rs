@@ -59,13 +59,26 @@ pub struct OutlineRepair {
 
 /// The outline agreement of a solver's result over the unknowns `u`.
 pub(crate) fn agreement(u: &Unknowns, solved: &Solved) -> Option<OutlineAgreement> {
+    match &solved.normals {
+        Some(v) => agreement_of(u, |k| v[k]),
+        None => agreement_of_gradients(u, &solved.p, &solved.q),
+    }
+}
+
+/// The outline agreement of the gradients (`p`, `q`) of the unknowns `u`.
+pub(crate) fn agreement_of_gradients(
+    u: &Unknowns,
+    p: &[f64],
+    q: &[f64],
+) -> Option<OutlineAgreement> {
+    agreement_of(u, |k| normal_from_gradient(p[k], q[k]))
+}
+
+/// The outline agreement of the normals `normal(k)` of the unknowns `u`.
+fn agreement_of(u: &Unknowns, normal: impl Fn(usize) -> Vector3<f64>) -> Option<OutlineAgreement> {
     let mut normals: NormalMap = Grid::new(u.w, u.h, Vector3::repeat(f32::NAN));
     for (k, &pix) in u.pixel.iter().enumerate() {
-        let n = match &solved.normals {
-            Some(v) => v[k],
-            None => normal_from_gradient(solved.p[k], solved.q[k]),
-        };
-        normals.data_mut()[pix as usize] = n.cast::<f32>();
+        normals.data_mut()[pix as usize] = normal(k).cast::<f32>();
     }
     outline_agreement(u, &normals)
 }
@@ -198,6 +211,7 @@ fn downsampled(s: &Shading, fu: &Unknowns, fine: &Solved) -> Solved {
         normals: None,
         iterations: fine.iterations,
         coarse_iterations: fine.coarse_iterations,
+        restarts: fine.restarts,
         converged: fine.converged,
         singular: 0,
         assumptions,

@@ -86,6 +86,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         iterations,
         converged,
         coarse_iterations: 0,
+        restarts: 0,
         warnings: Vec::new(),
         singular: 0,
         assumptions: vec![

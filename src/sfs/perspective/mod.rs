@@ -1205,6 +1205,7 @@ fn solve_swept(
         singular_points: singular,
         iterations: sweeps,
         coarse_iterations: 0,
+        restarts: 0,
         converged,
         mean_abs_residual,
         median_abs_curl: curl.median_abs_curl,
