@@ -47,9 +47,10 @@
 //! for a rough sphere at 48²–64² (about 1 300–2 000 pixels), and a coarse level that small
 //! would hand it to every finer one.
 //!
-//! Repeated continuation ([`SfsOptions::restarts`](super::SfsOptions), on by default): the
-//! continuation in λ (at the coarsest level, or at full resolution when there is no coarse
-//! level) is run again from its own result, λ raised to its start and lowered again, while a
+//! Repeated continuation ([`SfsOptions::restarts`](super::SfsOptions), on by default): at every
+//! level below the full resolution, and at the full resolution when it has no coarse start, the
+//! continuation in λ is run again from the level's result (λ raised to its start and lowered
+//! again), while a
 //! repeat converges, lowers the energy at the final λ by more than [`TOLERANCE`] of it and,
 //! with an occluding boundary, does not contradict it (its outline's misaligned fraction at most
 //! [`super::OUTLINE_MISALIGNED_WARN`] or no more than before); at most [`MAX_RESTARTS`] times.
@@ -425,21 +426,23 @@ impl<'a> Problem<'a> {
             .map(|a| a.misaligned_fraction)
     }
 
-    /// The continuation in λ from `z` ([`Self::minimise`]), then repeated from its own result
-    /// while a repeat converges and lowers the energy at the final λ by more than
+    /// Minimises from `z` ([`Self::minimise`], with the continuation in λ when
+    /// `first_continuation`, else at the final λ only), then repeats the whole continuation
+    /// from the result while a repeat converges and lowers the energy at the final λ by more than
     /// [`TOLERANCE`] of it without contradicting the occluding boundary (with
     /// [`Boundary::Occluding`], its outline's misaligned fraction at most
     /// [`super::OUTLINE_MISALIGNED_WARN`], or no more than before), at most [`MAX_RESTARTS`]
     /// times; the first repeat that does not is dropped and ends them. Returns the iterations
-    /// run (the dropped repeat's included), whether the first continuation converged, and the
+    /// run (the dropped repeat's included), whether the first minimisation converged, and the
     /// repeats kept.
     fn continued(
         &self,
         z: &mut [f64],
+        first_continuation: bool,
         progress: &dyn crate::progress::Progress,
     ) -> Result<(usize, bool, usize)> {
         let before = z.to_vec();
-        let (mut iterations, converged) = self.minimise(z, true, progress)?;
+        let (mut iterations, converged) = self.minimise(z, first_continuation, progress)?;
         // A continuation that returned its start (a stationary point: a plane facing a light
         // at the viewer) would return it again.
         if !self.s.options.restarts || !converged || z == before.as_slice() {
@@ -610,10 +613,10 @@ impl<'a> Problem<'a> {
 /// Repeats of the continuation in λ from its own result at most ([`Problem::continued`]).
 pub const MAX_RESTARTS: usize = 8;
 
-/// The progress stage's total for a level of `s`: its iteration limit, times the runs of the
-/// continuation at most where it is run and repeated ([`Problem::continued`]).
-fn stage_total(s: &Shading, continuation: bool) -> u64 {
-    let runs = if continuation && s.options.restarts {
+/// The progress stage's total for a level of `s`: its iteration limit, times the runs at most
+/// where the continuation is repeated (`repeated`, [`Problem::continued`]).
+fn stage_total(s: &Shading, repeated: bool) -> u64 {
+    let runs = if repeated && s.options.restarts {
         1 + MAX_RESTARTS
     } else {
         1
@@ -635,8 +638,8 @@ fn max_iterations(s: &Shading) -> usize {
 /// each level's pixels), recursively while the levels keep [`MIN_COARSE_PIXELS`], the coarsest
 /// with the whole continuation in λ; the change, interpolated back and doubled, is added to `z`,
 /// which keeps the start's own detail (the steep rim of the convex start). Returns the
-/// iterations run at the lower resolutions and the repeats of the continuation kept at the
-/// coarsest ([`Problem::continued`]) when the change was kept; `None` (and `z` as it
+/// iterations run at the lower resolutions and the repeats of the continuation kept there
+/// ([`Problem::continued`]) when the change was kept; `None` (and `z` as it
 /// was) when there is no such level (too small, or a part of the mask thinner than a block),
 /// when the solve there fails, or when the change does not lower the energy at this level.
 fn from_half(problem: &Problem<'_>, z: &mut [f64]) -> Option<(usize, usize)> {
@@ -670,15 +673,9 @@ fn from_half(problem: &Problem<'_>, z: &mut [f64]) -> Option<(usize, usize)> {
     // Each level is a stage of its own, so that the progress shows from the coarsest level on.
     s.progress.begin(
         &format!("shape from shading (Horn), {}×{} level", t.w, t.h),
-        stage_total(s, below.is_none()),
+        stage_total(s, true),
     );
-    let minimised = if below.is_none() {
-        cproblem.continued(&mut cz, s.progress)
-    } else {
-        cproblem
-            .minimise(&mut cz, false, s.progress)
-            .map(|(its, converged)| (its, converged, 0))
-    };
+    let minimised = cproblem.continued(&mut cz, below.is_none(), s.progress);
     s.progress.end();
     let (iterations, _, repeats) = minimised.ok()?;
     let change: Vec<f64> = cz.iter().zip(&start).map(|(a, b)| 2.0 * (a - b)).collect();
@@ -743,7 +740,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         stage_total(s, coarse.is_none()),
     );
     let minimised = if coarse.is_none() {
-        problem.continued(&mut z, s.progress)
+        problem.continued(&mut z, true, s.progress)
     } else {
         problem
             .minimise(&mut z, false, s.progress)
