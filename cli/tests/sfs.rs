@@ -420,21 +420,10 @@ fn sfs_command_end_to_end() {
     let (image, truth) = rendered(SceneKind::Sphere, l, 0.0, 0);
     let dir = tempfile::tempdir().unwrap();
     let png = dir.path().join("sphere.png");
-    let codes: Vec<u16> = image
-        .data()
-        .iter()
-        .map(|v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16)
-        .collect();
-    photostereo::io::output::write_png16(&png, SIZE, SIZE, 1, &codes).unwrap();
+    write_grey_png16(&png, &image);
     // The mask: without one, shadows touching the black background would be cut out.
     let mask_png = dir.path().join("mask.png");
-    let mask_bytes: Vec<u8> = truth
-        .mask
-        .data()
-        .iter()
-        .map(|&m| u8::from(m) * 255)
-        .collect();
-    photostereo::io::output::write_png8(&mask_png, SIZE, SIZE, 1, &mask_bytes).unwrap();
+    write_mask_png(&mask_png, &truth.mask);
     let mask_arg = mask_png.to_str().unwrap();
     let out = dir.path().join("out");
     let light_arg = format!("{},{},{}", l.x, l.y, l.z);
@@ -628,21 +617,9 @@ fn sfs_perspective_command_end_to_end() {
         )
         .unwrap();
         let png = dir.path().join(format!("{name}.png"));
-        let codes: Vec<u16> = r.images[0][0]
-            .data()
-            .iter()
-            .map(|v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16)
-            .collect();
-        photostereo::io::output::write_png16(&png, size, size, 1, &codes).unwrap();
+        write_grey_png16(&png, &r.images[0][0]);
         let mask_png = dir.path().join("mask.png");
-        let mask_bytes: Vec<u8> = r
-            .truth
-            .mask
-            .data()
-            .iter()
-            .map(|&m| u8::from(m) * 255)
-            .collect();
-        photostereo::io::output::write_png8(&mask_png, size, size, 1, &mask_bytes).unwrap();
+        write_mask_png(&mask_png, &r.truth.mask);
         let k = dir.path().join("K.txt");
         std::fs::write(
             &k,
@@ -765,14 +742,7 @@ fn sfs_brdf_reaches_horn() {
     let exr = dir.path().join("rough.exr");
     photostereo::io::output::write_exr(&exr, SIZE, SIZE, &[("Y", image.data())], &[]).unwrap();
     let mask_png = dir.path().join("mask.png");
-    let mask_bytes: Vec<u8> = r
-        .truth
-        .mask
-        .data()
-        .iter()
-        .map(|&m| u8::from(m) * 255)
-        .collect();
-    photostereo::io::output::write_png8(&mask_png, SIZE, SIZE, 1, &mask_bytes).unwrap();
+    write_mask_png(&mask_png, &r.truth.mask);
     let light_arg = format!("{},{},{}", l.x, l.y, l.z);
     let mut errors = Vec::new();
     for (name, brdf) in [
@@ -1212,6 +1182,22 @@ fn sfs_command_repeats_the_continuation() {
     files.refused("--no-restarts");
 }
 
+/// Writes `image` (clamped to [0, 1]) as a 16-bit grey PNG.
+fn write_grey_png16(path: &std::path::Path, image: &ScalarMap) {
+    let codes: Vec<u16> = image
+        .data()
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16)
+        .collect();
+    photostereo::io::output::write_png16(path, image.width(), image.height(), 1, &codes).unwrap();
+}
+
+/// Writes `mask` as an 8-bit PNG (255 inside).
+fn write_mask_png(path: &std::path::Path, mask: &Mask) {
+    let bytes: Vec<u8> = mask.data().iter().map(|&m| u8::from(m) * 255).collect();
+    photostereo::io::output::write_png8(path, mask.width(), mask.height(), 1, &bytes).unwrap();
+}
+
 /// A rendered Lambertian scene written as the `sfs` command's inputs (a 16-bit image and a
 /// mask) in a temporary folder, with its truth and light.
 struct SfsFiles {
@@ -1229,21 +1215,9 @@ impl SfsFiles {
         let r = render(&scene, &lights, &RenderOptions::default()).unwrap();
         let dir = tempfile::tempdir().unwrap();
         let png = dir.path().join(format!("{}.png", kind.name()));
-        let codes: Vec<u16> = r.images[0][0]
-            .data()
-            .iter()
-            .map(|v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16)
-            .collect();
-        photostereo::io::output::write_png16(&png, n, n, 1, &codes).unwrap();
+        write_grey_png16(&png, &r.images[0][0]);
         let mask = dir.path().join("mask.png");
-        let mask_bytes: Vec<u8> = r
-            .truth
-            .mask
-            .data()
-            .iter()
-            .map(|&m| u8::from(m) * 255)
-            .collect();
-        photostereo::io::output::write_png8(&mask, n, n, 1, &mask_bytes).unwrap();
+        write_mask_png(&mask, &r.truth.mask);
         SfsFiles {
             dir,
             png,
