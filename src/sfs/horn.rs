@@ -441,11 +441,15 @@ impl<'a> Problem<'a> {
         first_continuation: bool,
         progress: &dyn crate::progress::Progress,
     ) -> Result<(usize, bool, usize)> {
+        if !self.s.options.restarts {
+            let (iterations, converged) = self.minimise(z, first_continuation, progress)?;
+            return Ok((iterations, converged, 0));
+        }
         let before = z.to_vec();
         let (mut iterations, converged) = self.minimise(z, first_continuation, progress)?;
         // A continuation that returned its start (a stationary point: a plane facing a light
         // at the viewer) would return it again.
-        if !self.s.options.restarts || !converged || z == before.as_slice() {
+        if !converged || z == before.as_slice() {
             return Ok((iterations, converged, 0));
         }
         let floor = self.s.options.smoothness;
