@@ -1272,6 +1272,13 @@ pub struct SfsArgs {
     /// its own result while that lowers the energy (faster, and on most shapes less accurate).
     #[arg(long)]
     pub no_restarts: bool,
+    /// Horn: refine this surface instead of solving from the convex or plane start: an EXR
+    /// whose channel Z holds heights towards the camera in pixels (a depth.exr of this command
+    /// or of an orthographic photometric-stereo run, or a sensor's depth converted so), covering
+    /// the mask. It is refined at the final smoothness only, so the result is the solution
+    /// nearest it.
+    #[arg(long, value_name = "DEPTH.exr")]
+    pub start: Option<PathBuf>,
     /// Perspective: return the swept viscosity solution without the variational refinement
     /// (a least-squares fit of the whole image from it).
     #[arg(long)]

@@ -9,7 +9,9 @@ use photostereo::io::output::{OutputDir, depth_preview, normal_planes, normal_pr
 use photostereo::nalgebra::Vector3;
 use photostereo::sfs::estimate::illumination;
 use photostereo::sfs::perspective::{PerspectiveOptions, PointLight, RefineOptions};
-use photostereo::sfs::{SfsOptions, SfsResult, object_mask, shape_from_shading_with_progress};
+use photostereo::sfs::{
+    SfsOptions, SfsResult, object_mask, shape_from_shading_from, shape_from_shading_with_progress,
+};
 use photostereo::synth::reflectance::{
     BlinnPhong, Diffuse, Material, Phong, Specular, TorranceSparrow, Ward,
 };
@@ -21,6 +23,7 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
     let inputs: Vec<&std::path::Path> = std::iter::once(a.image.as_path())
         .chain(a.mask.as_deref())
         .chain(a.camera.as_deref())
+        .chain(a.start.as_deref())
         .collect();
     photostereo::io::output::ensure_apart(&a.output, &inputs)?;
     let _lock = crate::lock_output(&a.output, a.force)?;
@@ -79,6 +82,15 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
     if a.no_restarts && method != SfsMethodArg::Horn {
         bail!("--no-restarts is for --method horn (the only method that repeats its continuation)");
     }
+    if a.start.is_some() && method != SfsMethodArg::Horn {
+        bail!("--start is for --method horn (the only method that refines a given surface)");
+    }
+    if a.start.is_some() && (a.single_resolution || a.no_restarts || a.no_outline_repair) {
+        bail!(
+            "--start refines the given surface at the final smoothness alone: there is no \
+             coarse-to-fine start, repeat or outline repair to turn off"
+        );
+    }
     if a.single_resolution && method != SfsMethodArg::Horn {
         bail!(
             "--single-resolution is for --method horn (the only method whose coarse-to-fine start can be turned off)"
@@ -128,7 +140,24 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         outline_repair: !a.no_outline_repair,
         restarts: !a.no_restarts,
     };
-    let r = shape_from_shading_with_progress(&image, &mask, &rmap, albedo, &options, progress)?;
+    let r = match &a.start {
+        Some(path) => {
+            let start = photostereo::io::decode::read_exr_channel(path, "Z")?;
+            if !start.same_size(&image) {
+                bail!(
+                    "{}: the start surface is {}x{}, the image {}x{}",
+                    path.display(),
+                    start.width(),
+                    start.height(),
+                    image.width(),
+                    image.height()
+                );
+            }
+            shape_from_shading_from(&image, &mask, &rmap, albedo, &options, &start, progress)
+                .with_context(|| format!("start surface {}", path.display()))?
+        }
+        None => shape_from_shading_with_progress(&image, &mask, &rmap, albedo, &options, progress)?,
+    };
     let (w, h) = (image.width(), image.height());
     let method = options.method.name();
     let depth_units = photostereo::run::pipeline::exr_units("depth.exr", None);
@@ -136,6 +165,7 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
     let report = serde_json::json!({
         "image": a.image,
         "mask": mask_source,
+        "start": a.start,
         "light_source": if estimate.is_some() { "estimated (Zheng–Chellappa, sphere-like normals assumed)" } else { "given" },
         "albedo_source": if a.albedo.is_some() { "given" } else { "estimated (sphere-like normals assumed)" },
         "brdf": brdf_name(a.brdf),
@@ -188,6 +218,12 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         rep.mean_abs_residual,
         rep.median_abs_curl
     );
+    if let Some(path) = &a.start {
+        say!(
+            "  refined from the start surface {} at the final smoothness",
+            path.display()
+        );
+    }
     if let Some(o) = &rep.outline {
         say!(
             "  outline: {:.0}% of {} pixels with normals more than {:.0}° from its outward \

@@ -467,6 +467,7 @@ def sfs(
     coarse_to_fine: bool = True,
     outline_repair: bool = True,
     restarts: bool = True,
+    start: Optional[np.ndarray] = None,
 ) -> Dict[str, Any]:
     """Shape from shading of one image, as the ``photostereo sfs`` command.
 
@@ -493,7 +494,12 @@ def sfs(
     continuation in the smoothness weight from its own result while that lowers the energy
     without contradicting the occluding boundary (the report's "restarts" counts the repeats
     kept; ``restarts=False``, the command's ``--no-restarts``, runs it once: faster, and on
-    most shapes less accurate).
+    most shapes less accurate); ``start``: an H x W height map (towards the camera, in pixels,
+    as ``"depth"`` below; finite over the mask) that ``"horn"`` refines at the final
+    smoothness instead of solving from its convex or plane start, with no continuation,
+    coarse-to-fine start, repeat or outline repair: the result is the solution nearest it (a
+    sensor's or a coarse reconstruction's depth whose detail the shading is to add; the
+    command's ``--start DEPTH.exr``).
 
     Pinhole camera and a point light with fall-off (``"perspective"``, Prados and Faugeras
     2005, the default when ``light_position`` is given): ``camera`` is the 3 x 3 intrinsics K,
@@ -544,6 +550,7 @@ def sfs(
         bool(coarse_to_fine),
         bool(outline_repair),
         bool(restarts),
+        None if start is None else _f64_2d(start, "start"),
     )
     r["report"] = json.loads(r["report"])
     if r["estimate"] is not None:

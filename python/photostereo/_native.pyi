@@ -90,6 +90,9 @@ def sfs(
     refine_smoothness: Optional[float],
     refine_iterations: int,
     coarse_to_fine: bool,
+    outline_repair: bool,
+    restarts: bool,
+    start: Optional[np.ndarray],
 ) -> Dict[str, Any]: ...
 def read_image(path: str) -> np.ndarray: ...
 def read_mask(path: str) -> np.ndarray: ...

@@ -610,6 +610,41 @@ fn convert<'py>(
     ))
 }
 
+/// A height map argument (`name`): a float32 or float64 numpy array of `h`×`w`, or None.
+fn height_map_arg(
+    obj: Option<&Bound<'_, PyAny>>,
+    w: usize,
+    h: usize,
+    name: &str,
+) -> PyRes<Option<ScalarMap>> {
+    let Some(obj) = obj.filter(|o| !o.is_none()) else {
+        return Ok(None);
+    };
+    let values: Vec<f32> = if let Ok(a) = obj.extract::<PyReadonlyArray2<'_, f64>>() {
+        if a.shape() != [h, w] {
+            return Err(PyValueError::new_err(format!(
+                "{name}: shape {:?} differs from the image's {h}×{w}",
+                a.shape()
+            )));
+        }
+        a.as_array().iter().map(|&v| v as f32).collect()
+    } else if let Ok(a) = obj.extract::<PyReadonlyArray2<'_, f32>>() {
+        if a.shape() != [h, w] {
+            return Err(PyValueError::new_err(format!(
+                "{name}: shape {:?} differs from the image's {h}×{w}",
+                a.shape()
+            )));
+        }
+        a.as_array().iter().copied().collect()
+    } else {
+        return Err(PyTypeError::new_err(format!(
+            "{name}: got {}; an H×W numpy array of float32 or float64 expected",
+            describe(obj)
+        )));
+    };
+    lib(Grid::from_vec(w, h, values)).map(Some)
+}
+
 /// The `mask` argument as a mask of `w`×`h` pixels, or a ValueError saying whose size it
 /// differs from (`of`, e.g. "the image's").
 fn sized_mask(obj: Option<&Bound<'_, PyAny>>, w: usize, h: usize, of: &str) -> PyRes<Option<Mask>> {
@@ -1064,7 +1099,7 @@ fn grey_image_arg(obj: &Bound<'_, PyAny>, transfer: Transfer) -> PyRes<ScalarMap
 /// `fast-marching`; the light and albedo estimated where not given) or a pinhole camera with a
 /// point light (`perspective`).
 #[pyfunction]
-#[pyo3(signature = (image, mask=None, light=None, albedo=None, method=None, material="lambert", material_params=None, transfer="auto", boundary="occluding", iterations=0, smoothness=None, shadow_level=None, camera=None, light_position=None, light_intensity=None, refine=true, refine_smoothness=None, refine_iterations=0, coarse_to_fine=true, outline_repair=true, restarts=true))]
+#[pyo3(signature = (image, mask=None, light=None, albedo=None, method=None, material="lambert", material_params=None, transfer="auto", boundary="occluding", iterations=0, smoothness=None, shadow_level=None, camera=None, light_position=None, light_intensity=None, refine=true, refine_smoothness=None, refine_iterations=0, coarse_to_fine=true, outline_repair=true, restarts=true, start=None))]
 #[allow(clippy::too_many_arguments)]
 fn sfs<'py>(
     py: Python<'py>,
@@ -1089,6 +1124,7 @@ fn sfs<'py>(
     coarse_to_fine: bool,
     outline_repair: bool,
     restarts: bool,
+    start: Option<&Bound<'py, PyAny>>,
 ) -> PyRes<Bound<'py, PyDict>> {
     use photostereo::sfs::perspective::{PerspectiveOptions, PointLight, RefineOptions, refine};
     use photostereo::sfs::{Boundary, SfsMethod, SfsOptions};
@@ -1140,6 +1176,19 @@ fn sfs<'py>(
             "restarts: for the horn method (the only method that repeats its continuation), not {}",
             method.name()
         )));
+    }
+    let start = height_map_arg(start, image.width(), image.height(), "start")?;
+    if start.is_some() && method != SfsMethod::Horn {
+        return Err(PyValueError::new_err(format!(
+            "start: for the horn method (the only method that refines a given surface), not {}",
+            method.name()
+        )));
+    }
+    if start.is_some() && !(coarse_to_fine && outline_repair && restarts) {
+        return Err(PyValueError::new_err(
+            "start: the given surface is refined at the final smoothness alone; there is no \
+             coarse-to-fine start, repeat or outline repair to turn off",
+        ));
     }
     let out = PyDict::new(py);
     let result = if method == SfsMethod::Perspective {
@@ -1273,8 +1322,21 @@ fn sfs<'py>(
                 albedo,
                 material,
             )?;
-            photostereo::sfs::shape_from_shading(&image, &mask, &rmap, lit.albedo, &options)
-                .map(|r| (r, lit))
+            match &start {
+                Some(z) => photostereo::sfs::shape_from_shading_from(
+                    &image,
+                    &mask,
+                    &rmap,
+                    lit.albedo,
+                    &options,
+                    z,
+                    &photostereo::progress::Silent,
+                ),
+                None => {
+                    photostereo::sfs::shape_from_shading(&image, &mask, &rmap, lit.albedo, &options)
+                }
+            }
+            .map(|r| (r, lit))
         }))?;
         out.set_item("light", lit.light)?;
         out.set_item("albedo", lit.albedo)?;

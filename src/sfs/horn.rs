@@ -669,6 +669,7 @@ fn from_half(problem: &Problem<'_>, z: &mut [f64]) -> Option<(usize, usize)> {
         rmap: s.rmap,
         options: s.options,
         progress: s.progress,
+        start: None,
     };
     let cproblem = Problem::new(&coarse).ok()?;
     let start: Vec<f64> = t.restrict(z).iter().map(|v| v / 2.0).collect();
@@ -709,7 +710,15 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
     let mut assumptions = Vec::new();
     let occluding_boundary = s.options.boundary != Boundary::Free;
     let mut z = vec![0.0; n];
-    if occluding_boundary && let Some(d) = distance_to_edge(u) {
+    if let Some(given) = &s.start {
+        z.copy_from_slice(given);
+        assumptions.push(
+            "the given start surface: the iteration refines it at the final smoothness (no \
+             continuation in λ, no coarse-to-fine start, no repeats), so the result is the \
+             solution nearest that surface"
+                .to_string(),
+        );
+    } else if occluding_boundary && let Some(d) = distance_to_edge(u) {
         let top = d.iter().cloned().fold(0.0, f64::max);
         for (zk, dk) in z.iter_mut().zip(&d) {
             *zk = (dk * (2.0 * top - dk)).max(0.0).sqrt();
@@ -727,7 +736,7 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
         );
     }
     let start = z.clone();
-    let coarse = if s.options.coarse_to_fine {
+    let coarse = if s.options.coarse_to_fine && s.start.is_none() {
         from_half(&problem, &mut z)
     } else {
         None
@@ -739,11 +748,11 @@ pub(crate) fn solve(s: &Shading) -> Result<Solved> {
                 .to_string(),
         );
     }
-    s.progress.begin(
-        "shape from shading (Horn)",
-        stage_total(s, coarse.is_none()),
-    );
-    let minimised = if coarse.is_none() {
+    // A given start is refined at the final λ, as a coarse level's result is.
+    let refine_only = coarse.is_some() || s.start.is_some();
+    s.progress
+        .begin("shape from shading (Horn)", stage_total(s, !refine_only));
+    let minimised = if !refine_only {
         problem.continued(&mut z, true, s.progress)
     } else {
         problem
@@ -861,6 +870,7 @@ mod tests {
             rmap: &rmap,
             options: &options,
             progress: &crate::progress::Silent,
+            start: None,
         };
         let problem = Problem::new(&s).unwrap();
         assert!(problem.cells.shadow.iter().any(|&b| b));

@@ -97,6 +97,7 @@ pub(crate) fn solve(s: &Shading) -> Result<(Solved, Option<OutlineRepair>)> {
     if before.misaligned_fraction <= super::OUTLINE_MISALIGNED_WARN
         || !s.options.outline_repair
         || first.coarse_iterations > 0
+        || s.start.is_some()
         || 4 * s.u.len() > MAX_UNKNOWNS
         || s.u.w < 2
         || s.u.h < 2
@@ -111,6 +112,7 @@ pub(crate) fn solve(s: &Shading) -> Result<(Solved, Option<OutlineRepair>)> {
         rmap: s.rmap,
         options: s.options,
         progress: s.progress,
+        start: None,
     };
     let Ok(second) = horn::solve(&shading) else {
         return Ok((
