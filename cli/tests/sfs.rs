@@ -1232,20 +1232,7 @@ impl SfsFiles {
     /// said, the mean normal error against the truth, and report.json.
     fn run(&self, name: &str, extra: &[&str]) -> (String, f64, serde_json::Value) {
         let out = self.dir.path().join(name);
-        let mut args = vec![
-            "sfs",
-            self.png.to_str().unwrap(),
-            "--light",
-            &self.light,
-            "--albedo",
-            "0.8",
-            "--mask",
-            self.mask.to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
-        ];
-        args.extend_from_slice(extra);
-        let o = cli(&args);
+        let o = self.command(&out, extra);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let said = format!(
             "{}{}",
@@ -1262,24 +1249,37 @@ impl SfsFiles {
         (said, e, report)
     }
 
-    /// `flag` with `--method tsai-shah` is refused as a Horn-only flag.
-    fn refused(&self, flag: &str) {
-        let o = cli(&[
+    /// Runs `sfs` with the light, albedo 0.8 and the mask, plus `extra`, into `out`.
+    fn command(&self, out: &std::path::Path, extra: &[&str]) -> std::process::Output {
+        let mut args = vec![
             "sfs",
             self.png.to_str().unwrap(),
             "--light",
             &self.light,
-            "--method",
-            "tsai-shah",
-            flag,
+            "--albedo",
+            "0.8",
+            "--mask",
+            self.mask.to_str().unwrap(),
             "-o",
-            self.dir.path().join("refused").to_str().unwrap(),
-        ]);
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        cli(&args)
+    }
+
+    /// `sfs` with `extra` fails, and its error says `says`.
+    fn fails(&self, extra: &[&str], says: &str) {
+        let o = self.command(&self.dir.path().join("refused"), extra);
         assert!(!o.status.success());
         let err = String::from_utf8_lossy(&o.stderr);
-        assert!(
-            err.contains(&format!("{flag} is for --method horn")),
-            "{err}"
+        assert!(err.contains(says), "{err}");
+    }
+
+    /// `flag` with `--method tsai-shah` is refused as a Horn-only flag.
+    fn refused(&self, flag: &str) {
+        self.fails(
+            &["--method", "tsai-shah", flag],
+            &format!("{flag} is for --method horn"),
         );
     }
 }
@@ -1481,33 +1481,15 @@ fn sfs_command_refines_a_start_surface() {
     assert_eq!(report["result"]["restarts"].as_u64(), Some(0));
     assert_eq!(report["result"]["coarse_iterations"].as_u64(), Some(0));
     assert!(e < 0.75 * e_start, "{e:.2}° from a start {e_start:.2}° off");
-    let refused = |extra: &[&str], says: &str| {
-        let out = files.dir.path().join("refused");
-        let mut args = vec![
-            "sfs",
-            files.png.to_str().unwrap(),
-            "--light",
-            &files.light,
-            "--mask",
-            files.mask.to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
-        ];
-        args.extend_from_slice(extra);
-        let o = cli(&args);
-        assert!(!o.status.success());
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert!(err.contains(says), "{err}");
-    };
-    refused(
+    files.fails(
         &["--start", p, "--method", "tsai-shah"],
         "--start is for --method horn",
     );
-    refused(&["--start", p, "--no-restarts"], "no coarse-to-fine start");
+    files.fails(&["--start", p, "--no-restarts"], "no coarse-to-fine start");
     let small = files.dir.path().join("small.exr");
     let cut = ScalarMap::new(w - 2, h, 0.0);
     photostereo::io::output::write_exr(&small, w - 2, h, &[("Z", cut.data())], &[]).unwrap();
-    refused(&["--start", small.to_str().unwrap()], "small.exr");
+    files.fails(&["--start", small.to_str().unwrap()], "small.exr");
     let mut holed = start.clone();
     let inside = (0..holed.len())
         .find(|&i| files.truth.mask.data()[i])
@@ -1515,7 +1497,7 @@ fn sfs_command_refines_a_start_surface() {
     holed.data_mut()[inside] = f32::NAN;
     let holed_path = files.dir.path().join("holed.exr");
     photostereo::io::output::write_exr(&holed_path, w, h, &[("Z", holed.data())], &[]).unwrap();
-    refused(
+    files.fails(
         &["--start", holed_path.to_str().unwrap()],
         "no finite height",
     );
