@@ -1275,8 +1275,8 @@ pub struct SfsArgs {
     /// Horn: refine this surface instead of solving from the convex or plane start: an EXR
     /// whose channel Z holds heights towards the camera in pixels (a depth.exr of this command
     /// or of an orthographic photometric-stereo run, or a sensor's depth converted so), covering
-    /// the mask. It is refined at the final smoothness only, so the result is the solution
-    /// nearest it.
+    /// the mask; a file whose photostereo:units say otherwise is refused. It is refined at the
+    /// final smoothness only, so the result is the solution nearest it.
     #[arg(long, value_name = "DEPTH.exr")]
     pub start: Option<PathBuf>,
     /// Perspective: return the swept viscosity solution without the variational refinement

@@ -140,8 +140,20 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         outline_repair: !a.no_outline_repair,
         restarts: !a.no_restarts,
     };
+    let depth_units = photostereo::run::pipeline::exr_units("depth.exr", None);
     let r = match &a.start {
         Some(path) => {
+            // A file that says what its values are is read as what it says: perspective depth
+            // (along the optical axis, up to scale) is not a height in pixels.
+            if let Some(units) = photostereo::io::decode::read_exr_text(path, "photostereo:units")?
+                && units != depth_units
+            {
+                bail!(
+                    "{}: holds \"{units}\"; --start takes heights towards the camera in pixels \
+                     (an orthographic depth.exr)",
+                    path.display()
+                );
+            }
             let start = photostereo::io::decode::read_exr_channel(path, "Z")?;
             if !start.same_size(&image) {
                 bail!(
@@ -160,7 +172,6 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
     };
     let (w, h) = (image.width(), image.height());
     let method = options.method.name();
-    let depth_units = photostereo::run::pipeline::exr_units("depth.exr", None);
     let svg = rmap.contour_svg(3.0, &CONTOUR_LEVELS, 241)?;
     let report = serde_json::json!({
         "image": a.image,

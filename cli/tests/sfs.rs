@@ -1501,4 +1501,20 @@ fn sfs_command_refines_a_start_surface() {
         &["--start", holed_path.to_str().unwrap()],
         "no finite height",
     );
+    // A depth.exr that says it holds perspective depth is not taken for heights in pixels;
+    // the command's own depth.exr is read back as a start.
+    let perspective = files.dir.path().join("perspective.exr");
+    let units = [(
+        "photostereo:units",
+        "Z: depth along the optical axis, up to scale".to_string(),
+    )];
+    photostereo::io::output::write_exr(&perspective, w, h, &[("Z", start.data())], &units).unwrap();
+    files.fails(
+        &["--start", perspective.to_str().unwrap()],
+        "--start takes heights towards the camera in pixels",
+    );
+    let again = files.dir.path().join("refined").join("depth.exr");
+    let (_, e_again, _) = files.run("again", &["--start", again.to_str().unwrap()]);
+    println!("refined again from its own depth.exr: {e_again:.2}°");
+    assert!(e_again < e + 0.2, "{e_again:.2}° against {e:.2}°");
 }
