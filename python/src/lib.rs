@@ -610,39 +610,26 @@ fn convert<'py>(
     ))
 }
 
-/// A height map argument (`name`): a float32 or float64 numpy array of `h`×`w`, or None.
+/// A height map argument (`name`, float64 as the package passes it): `h`×`w`, or None.
 fn height_map_arg(
-    obj: Option<&Bound<'_, PyAny>>,
+    map: Option<PyReadonlyArray2<'_, f64>>,
     w: usize,
     h: usize,
     name: &str,
 ) -> PyRes<Option<ScalarMap>> {
-    let Some(obj) = obj.filter(|o| !o.is_none()) else {
-        return Ok(None);
-    };
-    let values: Vec<f32> = if let Ok(a) = obj.extract::<PyReadonlyArray2<'_, f64>>() {
-        if a.shape() != [h, w] {
-            return Err(PyValueError::new_err(format!(
-                "{name}: shape {:?} differs from the image's {h}×{w}",
-                a.shape()
-            )));
-        }
-        a.as_array().iter().map(|&v| v as f32).collect()
-    } else if let Ok(a) = obj.extract::<PyReadonlyArray2<'_, f32>>() {
-        if a.shape() != [h, w] {
-            return Err(PyValueError::new_err(format!(
-                "{name}: shape {:?} differs from the image's {h}×{w}",
-                a.shape()
-            )));
-        }
-        a.as_array().iter().copied().collect()
-    } else {
-        return Err(PyTypeError::new_err(format!(
-            "{name}: got {}; an H×W numpy array of float32 or float64 expected",
-            describe(obj)
+    let Some(a) = map else { return Ok(None) };
+    if a.shape() != [h, w] {
+        return Err(PyValueError::new_err(format!(
+            "{name}: shape {:?} differs from the image's {h}×{w}",
+            a.shape()
         )));
-    };
-    lib(Grid::from_vec(w, h, values)).map(Some)
+    }
+    lib(Grid::from_vec(
+        w,
+        h,
+        a.as_array().iter().map(|&v| v as f32).collect(),
+    ))
+    .map(Some)
 }
 
 /// The `mask` argument as a mask of `w`×`h` pixels, or a ValueError saying whose size it
@@ -1124,7 +1111,7 @@ fn sfs<'py>(
     coarse_to_fine: bool,
     outline_repair: bool,
     restarts: bool,
-    start: Option<&Bound<'py, PyAny>>,
+    start: Option<PyReadonlyArray2<'py, f64>>,
 ) -> PyRes<Bound<'py, PyDict>> {
     use photostereo::sfs::perspective::{PerspectiveOptions, PointLight, RefineOptions, refine};
     use photostereo::sfs::{Boundary, SfsMethod, SfsOptions};
