@@ -155,16 +155,7 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
                 );
             }
             let start = photostereo::io::decode::read_exr_channel(path, "Z")?;
-            if !start.same_size(&image) {
-                bail!(
-                    "{}: the start surface is {}x{}, the image {}x{}",
-                    path.display(),
-                    start.width(),
-                    start.height(),
-                    image.width(),
-                    image.height()
-                );
-            }
+            // The library's errors (another size, a hole in the mask) are told with the file.
             shape_from_shading_from(&image, &mask, &rmap, albedo, &options, &start, progress)
                 .with_context(|| format!("start surface {}", path.display()))?
         }

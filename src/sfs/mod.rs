@@ -525,19 +525,29 @@ fn solve_image(
     if mask.count() == 0 {
         return Err(Error::param("mask", "is empty: no pixel to solve"));
     }
-    if let Some(i) = (0..mask.len()).find(|&i| mask.data()[i] && !image.data()[i].is_finite()) {
+    // The first pixel of the mask where `map` is not finite: (column, row, value).
+    let unfinite = |map: &ScalarMap| {
+        (0..mask.len())
+            .find(|&i| mask.data()[i] && !map.data()[i].is_finite())
+            .map(|i| (i % map.width(), i / map.width(), map.data()[i]))
+    };
+    if let Some((x, y, v)) = unfinite(image) {
         return Err(Error::param(
             "image",
-            format!(
-                "pixel ({}, {}) inside the mask is {}: mask it out or repair the image",
-                i % image.width(),
-                i / image.width(),
-                image.data()[i]
-            ),
+            format!("pixel ({x}, {y}) inside the mask is {v}: mask it out or repair the image"),
         ));
     }
     if let Some(z) = given_start {
         image.check_same_size(z, "start")?;
+        if let Some((x, y, v)) = unfinite(z) {
+            return Err(Error::param(
+                "start",
+                format!(
+                    "pixel ({x}, {y}) inside the mask has no finite height ({v}): the start \
+                     surface must cover the mask"
+                ),
+            ));
+        }
         if options.method != SfsMethod::Horn {
             return Err(Error::param(
                 "method",
@@ -549,29 +559,12 @@ fn solve_image(
         }
     }
     let u = Unknowns::new(mask);
-    let z0 = match given_start {
-        Some(z) => {
-            let heights: Vec<f64> = u
-                .pixel
-                .iter()
-                .map(|&pix| f64::from(z.data()[pix as usize]))
-                .collect();
-            if let Some((k, v)) = heights.iter().enumerate().find(|(_, v)| !v.is_finite()) {
-                let pix = u.pixel[k] as usize;
-                return Err(Error::param(
-                    "start",
-                    format!(
-                        "pixel ({}, {}) inside the mask has no finite height ({v}): the start \
-                         surface must cover the mask",
-                        pix % u.w,
-                        pix / u.w
-                    ),
-                ));
-            }
-            Some(heights)
-        }
-        None => None,
-    };
+    let z0 = given_start.map(|z| {
+        u.pixel
+            .iter()
+            .map(|&pix| f64::from(z.data()[pix as usize]))
+            .collect()
+    });
     let mut too_bright = 0usize;
     let e: Vec<f64> = u
         .pixel
