@@ -1274,9 +1274,11 @@ pub struct SfsArgs {
     pub no_restarts: bool,
     /// Horn: refine this surface instead of solving from the convex or plane start: an EXR
     /// whose channel Z holds heights towards the camera in pixels (a depth.exr of this command
-    /// or of an orthographic photometric-stereo run, or a sensor's depth converted so), covering
-    /// the mask; a file whose photostereo:units say otherwise is refused. It is refined at the
-    /// final smoothness only, so the result is the solution nearest it.
+    /// or of an orthographic photometric-stereo run, or a sensor's depth converted so, in the
+    /// file's own pixels), NaN where unknown; a file whose photostereo:units say otherwise is
+    /// refused. A file at another resolution (the same field of view) is resampled to the
+    /// image's, its heights scaled with it, and its holes in the mask are filled; it is then
+    /// refined at the final smoothness only, so the result is the solution nearest it.
     #[arg(long, value_name = "DEPTH.exr")]
     pub start: Option<PathBuf>,
     /// Perspective: return the swept viscosity solution without the variational refinement

@@ -141,6 +141,7 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         restarts: !a.no_restarts,
     };
     let depth_units = photostereo::run::pipeline::exr_units("depth.exr", None);
+    let mut prepared = None;
     let r = match &a.start {
         Some(path) => {
             // A file that says what its values are is read as what it says: perspective depth
@@ -155,9 +156,22 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
                 );
             }
             let start = photostereo::io::decode::read_exr_channel(path, "Z")?;
-            // The library's errors (another size, a hole in the mask) are told with the file.
-            shape_from_shading_from(&image, &mask, &rmap, albedo, &options, &start, progress)
-                .with_context(|| format!("start surface {}", path.display()))?
+            // Brought to the image's grid (another resolution, holes filled); the library's
+            // errors are told with the file.
+            let start = photostereo::sfs::start::prepare_start(&start, &mask)
+                .with_context(|| format!("start surface {}", path.display()))?;
+            let r = shape_from_shading_from(
+                &image,
+                &mask,
+                &rmap,
+                albedo,
+                &options,
+                &start.heights,
+                progress,
+            )
+            .with_context(|| format!("start surface {}", path.display()))?;
+            prepared = Some((start.scale, start.filled));
+            r
         }
         None => shape_from_shading_with_progress(&image, &mask, &rmap, albedo, &options, progress)?,
     };
@@ -168,6 +182,8 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         "image": a.image,
         "mask": mask_source,
         "start": a.start,
+        "start_scale": prepared.map(|(scale, _)| scale),
+        "start_filled": prepared.map(|(_, filled)| filled),
         "light_source": if estimate.is_some() { "estimated (Zheng–Chellappa, sphere-like normals assumed)" } else { "given" },
         "albedo_source": if a.albedo.is_some() { "given" } else { "estimated (sphere-like normals assumed)" },
         "brdf": brdf_name(a.brdf),
@@ -220,9 +236,23 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         rep.mean_abs_residual,
         rep.median_abs_curl
     );
-    if let Some(path) = &a.start {
+    if let (Some(path), Some((scale, filled))) = (&a.start, prepared) {
+        let mut how = Vec::new();
+        if scale != 1.0 {
+            how.push(format!("resampled ×{}", fmt_scale(scale)));
+        }
+        if filled > 0 {
+            how.push(format!(
+                "{filled} of its samples inside the mask without a height filled"
+            ));
+        }
+        let how = if how.is_empty() {
+            String::new()
+        } else {
+            format!(" ({})", how.join(", "))
+        };
         say!(
-            "  refined from the start surface {} at the final smoothness",
+            "  refined from the start surface {}{how} at the final smoothness",
             path.display()
         );
     }
@@ -505,4 +535,10 @@ fn tell(rep: &photostereo::sfs::SfsReport, output: &std::path::Path) {
         eprintln!("warning: {}", crate::printable(&s.to_string()));
     }
     say!("  wrote {}", output.display());
+}
+
+/// A resampling factor for the summary: "4" for 4, "2.5" for 2.5, "0.333" for a third.
+fn fmt_scale(scale: f64) -> String {
+    let s = format!("{scale:.3}");
+    s.trim_end_matches('0').trim_end_matches('.').to_string()
 }

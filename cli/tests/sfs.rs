@@ -1341,6 +1341,32 @@ fn normals_of(depth: &ScalarMap, mask: &Mask) -> NormalMap {
     })
 }
 
+/// The scenes of the start-surface tests: relief, bust, vase and peaks at 128² under `l`
+/// (Lambertian, albedo 0.8, cast shadows), each with its image and truth.
+fn refinement_scenes(l: Vector3<f64>) -> Vec<(SceneKind, ScalarMap, HeightField)> {
+    let lights = Lights::new(vec![Light::new(l)]).unwrap();
+    [
+        SceneKind::Relief,
+        SceneKind::Bust,
+        SceneKind::Vase,
+        SceneKind::Peaks,
+    ]
+    .into_iter()
+    .map(|kind| {
+        let scene = kind.build(128, Albedo::Constant(ALBEDO as f32), Material::lambertian());
+        let r = render(&scene, &lights, &RenderOptions::default()).unwrap();
+        (kind, r.images[0][0].clone(), r.truth)
+    })
+    .collect()
+}
+
+/// Mean angular error of `n` against the truth over its mask, degrees.
+fn mean_error(n: &NormalMap, truth: &HeightField) -> f64 {
+    angular_errors(n, &truth.normals, &truth.mask)
+        .unwrap()
+        .mean_deg
+}
+
 /// Horn refines a given start surface. Started from the true surface smoothed over 7×7 or
 /// 13×13 pixels (what a depth sensor or a coarse reconstruction gives), it returns the
 /// shading's detail: normals closer to the truth than its start's by a quarter at least, on
@@ -1350,24 +1376,11 @@ fn normals_of(depth: &ScalarMap, mask: &Mask) -> NormalMap {
 /// stays in the right one: the error of the default solve is the start's, not the energy's.
 #[test]
 fn horn_refines_a_given_start_surface() {
-    let oblique = light(30.0, 40.0);
+    let (oblique, options) = (light(30.0, 40.0), SfsOptions::default());
     let rmap = ReflectanceMap::lambertian(oblique).unwrap();
-    let options = SfsOptions::default();
-    let lights = Lights::new(vec![Light::new(oblique)]).unwrap();
-    for kind in [
-        SceneKind::Relief,
-        SceneKind::Bust,
-        SceneKind::Vase,
-        SceneKind::Peaks,
-    ] {
-        let scene = kind.build(128, Albedo::Constant(ALBEDO as f32), Material::lambertian());
-        let r = render(&scene, &lights, &RenderOptions::default()).unwrap();
-        let (image, truth) = (&r.images[0][0], &r.truth);
-        let err = |n: &NormalMap| {
-            angular_errors(n, &truth.normals, &truth.mask)
-                .unwrap()
-                .mean_deg
-        };
+    for (kind, image, truth) in refinement_scenes(oblique) {
+        let (image, truth) = (&image, &truth);
+        let err = |n: &NormalMap| mean_error(n, truth);
         let mut refined_3 = None;
         for radius in [3, 6] {
             let start = smoothed(&truth.depth, &truth.mask, radius);
@@ -1455,10 +1468,109 @@ fn horn_refines_a_given_start_surface() {
     );
 }
 
+/// `depth` (heights in pixels) as a sensor `f` times coarser would give it: the mean of each
+/// f×f block's mask pixels, in the coarse grid's pixels (divided by f), NaN where a block has
+/// no mask pixel; with `dropouts`, a sensor's missing readings too: one coarse pixel in ten,
+/// scattered, and a disc of radius 3 coarse pixels at the centre.
+fn coarse(depth: &ScalarMap, mask: &Mask, f: usize, dropouts: bool) -> ScalarMap {
+    let (w, h) = (depth.width() / f, depth.height() / f);
+    ScalarMap::from_fn(w, h, |i, j| {
+        let (cx, cy) = (i as f64 - w as f64 / 2.0, j as f64 - h as f64 / 2.0);
+        if dropouts && ((i * 7 + j * 13) % 10 == 0 || cx.hypot(cy) < 3.0) {
+            return f32::NAN;
+        }
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for y in j * f..(j + 1) * f {
+            for x in i * f..(i + 1) * f {
+                if mask.data()[y * depth.width() + x] {
+                    sum += f64::from(depth.data()[y * depth.width() + x]);
+                    n += 1;
+                }
+            }
+        }
+        if n == 0 {
+            f32::NAN
+        } else {
+            (sum / n as f64 / f as f64) as f32
+        }
+    })
+}
+
+/// Horn refines a start at a quarter of the image's resolution, with a sensor's dropouts:
+/// the start is brought to the image's grid (`sfs::start::prepare_start`: upsampled, heights
+/// scaled to the image's pixels, holes filled by biharmonic interpolation) and refined. On every
+/// shape the refined normals are closer to the truth than the start's by a quarter at least,
+/// and on the relief, whose default start leads Horn into another minimum, the refined
+/// normals and depth are each under a quarter of the default's error.
+#[test]
+fn horn_refines_a_coarse_start_with_holes() {
+    use photostereo::sfs::start::prepare_start;
+    let (oblique, options) = (light(30.0, 40.0), SfsOptions::default());
+    let rmap = ReflectanceMap::lambertian(oblique).unwrap();
+    for (kind, image, truth) in refinement_scenes(oblique) {
+        let (image, truth) = (&image, &truth);
+        let err = |n: &NormalMap| mean_error(n, truth);
+        let depth_err = |z: &ScalarMap| {
+            depth_errors(z, &truth.depth, &truth.mask)
+                .unwrap()
+                .rmse_over_range
+        };
+        for dropouts in [false, true] {
+            let start = prepare_start(&coarse(&truth.depth, &truth.mask, 4, dropouts), &truth.mask)
+                .unwrap();
+            assert_eq!(start.scale, 4.0);
+            let refined = shape_from_shading_from(
+                image,
+                &truth.mask,
+                &rmap,
+                ALBEDO,
+                &options,
+                &start.heights,
+                &photostereo::progress::Silent,
+            )
+            .unwrap();
+            let e_start = err(&normals_of(&start.heights, &truth.mask));
+            let e = err(&refined.normals);
+            let (d_start, d) = (depth_err(&start.heights), depth_err(&refined.depth));
+            let rep = &refined.report;
+            println!(
+                "{} 128², 30°, start at 32² ({} of {} pixels filled): {e_start:.2}° / {:.2}% → {e:.2}° / {:.2}% ({} iterations, {:.2} s)",
+                kind.name(),
+                start.filled,
+                truth.mask.count(),
+                100.0 * d_start,
+                100.0 * d,
+                rep.iterations,
+                rep.seconds
+            );
+            assert!(rep.converged, "{}", kind.name());
+            assert_eq!(start.filled > 0, dropouts, "{}", kind.name());
+            assert!(
+                e < 0.75 * e_start,
+                "{} (dropouts {dropouts}): {e:.2}° from a start {e_start:.2}° off",
+                kind.name()
+            );
+            if kind == SceneKind::Relief {
+                let default =
+                    shape_from_shading(image, &truth.mask, &rmap, ALBEDO, &options).unwrap();
+                let (e_default, d_default) = (err(&default.normals), depth_err(&default.depth));
+                println!(
+                    "relief, default start: {e_default:.2}°, depth {:.2}%",
+                    100.0 * d_default
+                );
+                assert!(e < e_default / 4.0, "{e:.2}° against {e_default:.2}°");
+                assert!(d < d_default / 4.0, "{d} against {d_default}");
+            }
+        }
+    }
+}
+
 /// `sfs --start` end to end: the relief's start surface, smoothed over 7×7 pixels, is read
-/// from an EXR's channel Z and refined; report.json names it and the summary says so; a start
-/// of another size or with a hole in the mask, or with another method or a flag of the
-/// default start, is refused naming the file or the flag.
+/// from an EXR's channel Z and refined; report.json names it and the summary says so. A start
+/// with a hole in the mask, and one at a quarter of the resolution with dropouts, are brought
+/// to the image's grid and refined, the summary and report.json saying how; a start of
+/// another aspect or without any height on the object, or with another method or a flag of
+/// the default start, is refused naming the file or the flag.
 #[test]
 fn sfs_command_refines_a_start_surface() {
     let files = SfsFiles::new(SceneKind::Relief, 128, light(30.0, 40.0));
@@ -1490,6 +1602,7 @@ fn sfs_command_refines_a_start_surface() {
     let cut = ScalarMap::new(w - 2, h, 0.0);
     photostereo::io::output::write_exr(&small, w - 2, h, &[("Z", cut.data())], &[]).unwrap();
     files.fails(&["--start", small.to_str().unwrap()], "small.exr");
+    // A hole in the mask is filled, and the summary says so.
     let mut holed = start.clone();
     let inside = (0..holed.len())
         .find(|&i| files.truth.mask.data()[i])
@@ -1497,9 +1610,50 @@ fn sfs_command_refines_a_start_surface() {
     holed.data_mut()[inside] = f32::NAN;
     let holed_path = files.dir.path().join("holed.exr");
     photostereo::io::output::write_exr(&holed_path, w, h, &[("Z", holed.data())], &[]).unwrap();
+    let (said, e_holed, report) = files.run("holed", &["--start", holed_path.to_str().unwrap()]);
+    assert!(
+        said.contains("(1 of its samples inside the mask without a height filled)"),
+        "{said}"
+    );
+    assert_eq!(report["start_filled"].as_u64(), Some(1));
+    assert!(e_holed < 0.75 * e_start, "{e_holed:.2}°");
+    // A sensor's depth at a quarter of the resolution, with dropouts, is resampled and filled.
+    let quarter = coarse(&files.truth.depth, &files.truth.mask, 4, true);
+    let quarter_path = files.dir.path().join("quarter.exr");
+    photostereo::io::output::write_exr(&quarter_path, w / 4, h / 4, &[("Z", quarter.data())], &[])
+        .unwrap();
+    let (said, e_quarter, report) =
+        files.run("quarter", &["--start", quarter_path.to_str().unwrap()]);
+    let prepared = photostereo::sfs::start::prepare_start(&quarter, &files.truth.mask).unwrap();
+    let e_prepared = angular_errors(
+        &normals_of(&prepared.heights, &files.truth.mask),
+        &files.truth.normals,
+        &files.truth.mask,
+    )
+    .unwrap()
+    .mean_deg;
+    println!(
+        "{said}
+quarter-resolution start {e_prepared:.2}°, refined {e_quarter:.2}°"
+    );
+    assert!(said.contains("(resampled ×4, "), "{said}");
+    assert_eq!(report["start_scale"].as_f64(), Some(4.0));
+    assert_eq!(
+        report["start_filled"].as_u64(),
+        Some(prepared.filled as u64)
+    );
+    assert!(prepared.filled > 0);
+    assert!(
+        e_quarter < 0.75 * e_prepared,
+        "{e_quarter:.2}° from {e_prepared:.2}°"
+    );
+    // A start with no height on the object is refused, naming the file.
+    let empty = files.dir.path().join("empty.exr");
+    let none = ScalarMap::new(w / 4, h / 4, f32::NAN);
+    photostereo::io::output::write_exr(&empty, w / 4, h / 4, &[("Z", none.data())], &[]).unwrap();
     files.fails(
-        &["--start", holed_path.to_str().unwrap()],
-        "no finite height",
+        &["--start", empty.to_str().unwrap()],
+        "nothing to fill it from",
     );
     // A depth.exr that says it holds perspective depth is not taken for heights in pixels;
     // the command's own depth.exr is read back as a start.

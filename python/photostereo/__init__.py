@@ -494,12 +494,16 @@ def sfs(
     continuation in the smoothness weight from its own result while that lowers the energy
     without contradicting the occluding boundary (the report's "restarts" counts the repeats
     kept; ``restarts=False``, the command's ``--no-restarts``, runs it once: faster, and on
-    most shapes less accurate); ``start``: an H x W height map (towards the camera, in pixels,
-    as ``"depth"`` below; finite over the mask) that ``"horn"`` refines at the final
-    smoothness instead of solving from its convex or plane start, with no continuation,
-    coarse-to-fine start, repeat or outline repair: the result is the solution nearest it (a
-    sensor's or a coarse reconstruction's depth whose detail the shading is to add; the
-    command's ``--start DEPTH.exr``).
+    most shapes less accurate); ``start``: a height map (towards the camera, in its own pixels,
+    as ``"depth"`` below; NaN where unknown) that ``"horn"`` refines at the final smoothness
+    instead of solving from its convex or plane start, with no continuation, coarse-to-fine
+    start, repeat or outline repair: the result is the solution nearest it (a sensor's or a
+    coarse reconstruction's depth whose detail the shading is to add; the command's
+    ``--start DEPTH.exr``). It may be H x W or the same field of view at another resolution
+    (h x w with H/h = W/w within a pixel): it is resampled to the image's, its heights scaled
+    with it, and its samples inside the mask without a height are filled by biharmonic
+    interpolation; ``"start_scale"`` (image pixels a start pixel) and ``"start_filled"``
+    (samples filled) in the result say what was done (None without a start).
 
     Pinhole camera and a point light with fall-off (``"perspective"``, Prados and Faugeras
     2005, the default when ``light_position`` is given): ``camera`` is the 3 x 3 intrinsics K,
@@ -523,8 +527,8 @@ def sfs(
     centre to the light), "albedo", "light_source" and "albedo_source" ("given", "estimated"
     or "assumed"), "estimate": dict or None, "report": dict (iterations, convergence,
     assumptions, warnings, the refinement, and for horn with an occluding boundary "outline":
-    how well the normals beside the mask's outline agree with it), "warnings": list}``; NaN
-    outside the mask.
+    how well the normals beside the mask's outline agree with it), "warnings": list,
+    "start_scale", "start_filled": with ``start``, as above}``; NaN outside the mask.
     Each warning is also issued as a :class:`PhotostereoWarning`.
     """
     image = _check_array(image, "image")

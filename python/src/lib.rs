@@ -610,28 +610,6 @@ fn convert<'py>(
     ))
 }
 
-/// A height map argument (`name`, float64 as the package passes it): `h`×`w`, or None.
-fn height_map_arg(
-    map: Option<PyReadonlyArray2<'_, f64>>,
-    w: usize,
-    h: usize,
-    name: &str,
-) -> PyRes<Option<ScalarMap>> {
-    let Some(a) = map else { return Ok(None) };
-    if a.shape() != [h, w] {
-        return Err(PyValueError::new_err(format!(
-            "{name}: shape {:?} differs from the image's {h}×{w}",
-            a.shape()
-        )));
-    }
-    lib(Grid::from_vec(
-        w,
-        h,
-        a.as_array().iter().map(|&v| v as f32).collect(),
-    ))
-    .map(Some)
-}
-
 /// The `mask` argument as a mask of `w`×`h` pixels, or a ValueError saying whose size it
 /// differs from (`of`, e.g. "the image's").
 fn sized_mask(obj: Option<&Bound<'_, PyAny>>, w: usize, h: usize, of: &str) -> PyRes<Option<Mask>> {
@@ -1164,7 +1142,18 @@ fn sfs<'py>(
             method.name()
         )));
     }
-    let start = height_map_arg(start, image.width(), image.height(), "start")?;
+    // Any size: the library brings it to the image's grid (resampled, holes filled).
+    let start = match start {
+        Some(a) => {
+            let (h, w) = (a.shape()[0], a.shape()[1]);
+            Some(lib(Grid::from_vec(
+                w,
+                h,
+                a.as_array().iter().map(|&v| v as f32).collect(),
+            ))?)
+        }
+        None => None,
+    };
     if start.is_some() && method != SfsMethod::Horn {
         return Err(PyValueError::new_err(format!(
             "start: for the horn method (the only method that refines a given surface), not {}",
@@ -1301,7 +1290,7 @@ fn sfs<'py>(
             outline_repair,
             restarts,
         };
-        let (r, lit) = lib(py.detach(|| {
+        let (r, lit, prepared) = lib(py.detach(|| {
             let (rmap, lit) = photostereo::sfs::estimate::illumination(
                 &image,
                 &mask,
@@ -1310,21 +1299,27 @@ fn sfs<'py>(
                 material,
             )?;
             match &start {
-                Some(z) => photostereo::sfs::shape_from_shading_from(
-                    &image,
-                    &mask,
-                    &rmap,
-                    lit.albedo,
-                    &options,
-                    z,
-                    &photostereo::progress::Silent,
-                ),
+                Some(z) => {
+                    let z = photostereo::sfs::start::prepare_start(z, &mask)?;
+                    photostereo::sfs::shape_from_shading_from(
+                        &image,
+                        &mask,
+                        &rmap,
+                        lit.albedo,
+                        &options,
+                        &z.heights,
+                        &photostereo::progress::Silent,
+                    )
+                    .map(|r| (r, lit, Some((z.scale, z.filled))))
+                }
                 None => {
                     photostereo::sfs::shape_from_shading(&image, &mask, &rmap, lit.albedo, &options)
+                        .map(|r| (r, lit, None))
                 }
             }
-            .map(|r| (r, lit))
         }))?;
+        out.set_item("start_scale", prepared.map(|(scale, _)| scale))?;
+        out.set_item("start_filled", prepared.map(|(_, filled)| filled))?;
         out.set_item("light", lit.light)?;
         out.set_item("albedo", lit.albedo)?;
         out.set_item(

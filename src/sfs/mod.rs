@@ -39,6 +39,7 @@ pub mod outline_repair;
 pub mod perspective;
 pub(crate) mod pyramid;
 pub mod reflectance_map;
+pub mod start;
 mod tsai_shah;
 
 use crate::error::{Error, Result};
@@ -448,6 +449,9 @@ pub fn shape_from_shading_with_progress(
 /// start does not always lead to the right one (a frame-filling bas-relief at 30°: 11° off),
 /// while the iteration started near the true surface stays near it: what the start is worth
 /// decides what the result is worth.
+///
+/// A start at another resolution or with holes (a depth sensor's) is brought to the image's
+/// grid first by [`start::prepare_start`].
 ///
 /// # Errors
 /// As [`shape_from_shading`]; [`Error::DimensionMismatch`] when `start` is not of the image's
