@@ -122,6 +122,31 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
             brdf_name(a.brdf)
         );
     }
+    let depth_units = photostereo::run::pipeline::exr_units("depth.exr", None);
+    // The start surface, read and brought to the image's grid (another resolution, holes
+    // filled) before anything is estimated, so that a start that cannot be used is refused
+    // first; the library's errors are told with the file.
+    let start = match &a.start {
+        Some(path) => {
+            // A file that says what its values are is read as what it says: perspective depth
+            // (along the optical axis, up to scale) is not a height in pixels.
+            if let Some(units) = photostereo::io::decode::read_exr_text(path, "photostereo:units")?
+                && units != depth_units
+            {
+                bail!(
+                    "{}: holds \"{units}\"; --start takes heights towards the camera in pixels \
+                     (an orthographic depth.exr)",
+                    path.display()
+                );
+            }
+            let z = photostereo::io::decode::read_exr_channel(path, "Z")?;
+            let z = photostereo::sfs::start::prepare_start(&z, &mask)
+                .with_context(|| format!("start surface {}", path.display()))?;
+            Some((path, z))
+        }
+        None => None,
+    };
+    let prepared = start.as_ref().map(|(_, z)| (z.scale, z.filled));
     let (rmap, lit) = illumination(
         &image,
         &mask,
@@ -140,39 +165,17 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         outline_repair: !a.no_outline_repair,
         restarts: !a.no_restarts,
     };
-    let depth_units = photostereo::run::pipeline::exr_units("depth.exr", None);
-    let mut prepared = None;
-    let r = match &a.start {
-        Some(path) => {
-            // A file that says what its values are is read as what it says: perspective depth
-            // (along the optical axis, up to scale) is not a height in pixels.
-            if let Some(units) = photostereo::io::decode::read_exr_text(path, "photostereo:units")?
-                && units != depth_units
-            {
-                bail!(
-                    "{}: holds \"{units}\"; --start takes heights towards the camera in pixels \
-                     (an orthographic depth.exr)",
-                    path.display()
-                );
-            }
-            let start = photostereo::io::decode::read_exr_channel(path, "Z")?;
-            // Brought to the image's grid (another resolution, holes filled); the library's
-            // errors are told with the file.
-            let start = photostereo::sfs::start::prepare_start(&start, &mask)
-                .with_context(|| format!("start surface {}", path.display()))?;
-            let r = shape_from_shading_from(
-                &image,
-                &mask,
-                &rmap,
-                albedo,
-                &options,
-                &start.heights,
-                progress,
-            )
-            .with_context(|| format!("start surface {}", path.display()))?;
-            prepared = Some((start.scale, start.filled));
-            r
-        }
+    let r = match &start {
+        Some((path, start)) => shape_from_shading_from(
+            &image,
+            &mask,
+            &rmap,
+            albedo,
+            &options,
+            &start.heights,
+            progress,
+        )
+        .with_context(|| format!("start surface {}", path.display()))?,
         None => shape_from_shading_with_progress(&image, &mask, &rmap, albedo, &options, progress)?,
     };
     let (w, h) = (image.width(), image.height());
@@ -537,8 +540,12 @@ fn tell(rep: &photostereo::sfs::SfsReport, output: &std::path::Path) {
     say!("  wrote {}", output.display());
 }
 
-/// A resampling factor for the summary: "4" for 4, "2.5" for 2.5, "0.333" for a third.
+/// A resampling factor for the summary: "4" for 4, "2.5" for 2.5, "0.333" for a third; to
+/// four digits where three would round it to 1.
 fn fmt_scale(scale: f64) -> String {
-    let s = format!("{scale:.3}");
-    s.trim_end_matches('0').trim_end_matches('.').to_string()
+    let trim = |s: String| s.trim_end_matches('0').trim_end_matches('.').to_string();
+    match trim(format!("{scale:.3}")) {
+        one if one == "1" => format!("{scale:.4}"),
+        s => s,
+    }
 }

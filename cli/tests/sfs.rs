@@ -1653,7 +1653,7 @@ quarter-resolution start {e_prepared:.2}°, refined {e_quarter:.2}°"
     photostereo::io::output::write_exr(&empty, w / 4, h / 4, &[("Z", none.data())], &[]).unwrap();
     files.fails(
         &["--start", empty.to_str().unwrap()],
-        "nothing to fill it from",
+        "nothing to fill them from",
     );
     // A depth.exr that says it holds perspective depth is not taken for heights in pixels;
     // the command's own depth.exr is read back as a start.

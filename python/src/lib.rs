@@ -1167,6 +1167,9 @@ fn sfs<'py>(
         ));
     }
     let out = PyDict::new(py);
+    // Set with a start (Horn) below.
+    out.set_item("start_scale", py.None())?;
+    out.set_item("start_filled", py.None())?;
     let result = if method == SfsMethod::Perspective {
         let Some(position) = light_position else {
             return Err(PyValueError::new_err(
@@ -1291,6 +1294,11 @@ fn sfs<'py>(
             restarts,
         };
         let (r, lit, prepared) = lib(py.detach(|| {
+            // The start first: one that cannot be used is refused before any estimate.
+            let start = match &start {
+                Some(z) => Some(photostereo::sfs::start::prepare_start(z, &mask)?),
+                None => None,
+            };
             let (rmap, lit) = photostereo::sfs::estimate::illumination(
                 &image,
                 &mask,
@@ -1298,20 +1306,17 @@ fn sfs<'py>(
                 albedo,
                 material,
             )?;
-            match &start {
-                Some(z) => {
-                    let z = photostereo::sfs::start::prepare_start(z, &mask)?;
-                    photostereo::sfs::shape_from_shading_from(
-                        &image,
-                        &mask,
-                        &rmap,
-                        lit.albedo,
-                        &options,
-                        &z.heights,
-                        &photostereo::progress::Silent,
-                    )
-                    .map(|r| (r, lit, Some((z.scale, z.filled))))
-                }
+            match start {
+                Some(z) => photostereo::sfs::shape_from_shading_from(
+                    &image,
+                    &mask,
+                    &rmap,
+                    lit.albedo,
+                    &options,
+                    &z.heights,
+                    &photostereo::progress::Silent,
+                )
+                .map(|r| (r, lit, Some((z.scale, z.filled)))),
                 None => {
                     photostereo::sfs::shape_from_shading(&image, &mask, &rmap, lit.albedo, &options)
                         .map(|r| (r, lit, None))

@@ -201,7 +201,7 @@ def test_horn_refines_a_given_start_surface():
         ps.sfs(sc["images"][0], m, light=LIGHT, albedo=ALBEDO, start=start[:-8])
     with pytest.raises(ValueError, match="start"):
         ps.sfs(sc["images"][0], m, light=LIGHT, albedo=ALBEDO, start=start, method="tsai-shah")
-    with pytest.raises(ValueError, match="nothing to fill it from"):
+    with pytest.raises(ValueError, match="nothing to fill them from"):
         ps.sfs(sc["images"][0], m, light=LIGHT, albedo=ALBEDO, start=np.full((32, 32), np.nan))
 
 
@@ -211,6 +211,7 @@ def test_horn_refines_a_coarse_start_with_holes():
     # image's grid, filled and refined, ending far nearer the truth than Horn's default.
     sc = ps.render("relief", 128, LIGHT[None, :], albedo=ALBEDO)
     m = sc["mask"]
+    assert m.all()  # frame-filling: every sensor reading is on the object
     blocks = sc["depth"].reshape(32, 4, 32, 4).mean(axis=(1, 3)) / 4
     i, j = np.mgrid[0:32, 0:32]
     coarse = np.where((i * 13 + j * 7) % 10 == 0, np.nan, blocks)
@@ -244,6 +245,7 @@ def test_a_plane_through_a_pinhole_under_a_light_at_its_centre():
         albedo=1.0,
     )
     assert out["method"] == "perspective" and out["warnings"] == []
+    assert out["start_scale"] is None and out["start_filled"] is None
     depth_err = np.abs(out["depth"] - z0).max() / z0
     tilt = np.degrees(np.arccos(np.clip(out["normals"][..., 2], -1.0, 1.0))).max()
     print(f"plane: depth within {depth_err:.1e} of Z0, normals within {tilt:.3f}°")
