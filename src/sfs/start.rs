@@ -73,6 +73,22 @@ pub struct StartSurface {
 /// field of view or aspect), or when the samples a part of the mask reads have no height and
 /// none beside them (nothing to fill them from); (`solver`) when the fill's sparse
 /// factorisation fails.
+///
+/// # Example
+/// ```
+/// use photostereo::sfs::start::prepare_start;
+/// use photostereo::{Mask, ScalarMap};
+///
+/// // A sensor's 16×12 height map (in its own pixels) of a 64×48 image's view, a plane 2
+/// // pixels up, one reading missing.
+/// let mut sensor = ScalarMap::new(16, 12, 2.0);
+/// sensor.data_mut()[5 * 16 + 7] = f32::NAN;
+/// let start = prepare_start(&sensor, &Mask::new(64, 48, true))?;
+/// assert_eq!((start.scale, start.filled), (4.0, 1));
+/// // On the image's grid, in its pixels: 8 pixels up everywhere, the hole included.
+/// assert!(start.heights.data().iter().all(|&z| (z - 8.0).abs() < 1e-4));
+/// # Ok::<(), photostereo::Error>(())
+/// ```
 pub fn prepare_start(start: &ScalarMap, mask: &Mask) -> Result<StartSurface> {
     let (w, h) = (mask.width(), mask.height());
     let (sw, sh) = (start.width(), start.height());
