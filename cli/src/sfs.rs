@@ -245,8 +245,14 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
             how.push(format!("resampled ×{}", fmt_scale(scale)));
         }
         if filled > 0 {
+            // A start finer than the image was averaged to its pixels first.
+            let what = if scale < 1.0 {
+                "pixels of its average"
+            } else {
+                "of its samples"
+            };
             how.push(format!(
-                "{filled} of its samples inside the mask without a height filled"
+                "{filled} {what} inside the mask without a height filled"
             ));
         }
         let how = if how.is_empty() {

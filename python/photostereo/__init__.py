@@ -500,9 +500,10 @@ def sfs(
     start, repeat or outline repair: the result is the solution nearest it (a sensor's or a
     coarse reconstruction's depth whose detail the shading is to add; the command's
     ``--start DEPTH.exr``). It may be H x W or the same field of view at another resolution
-    (h x w with H/h = W/w within a pixel): it is resampled to the image's, its heights scaled
-    with it, and its samples inside the mask without a height are filled by biharmonic
-    interpolation; ``"start_scale"`` (image pixels a start pixel) and ``"start_filled"``
+    (h x w such that one factor rounds the one size to the other; a row or column short is a
+    crop, and refused): it is resampled to the image's (a finer one averaged first), its
+    heights scaled with it, and its samples inside the mask without a height are filled by
+    biharmonic interpolation; ``"start_scale"`` (image pixels a start pixel) and ``"start_filled"``
     (samples filled) in the result say what was done (None without a start).
 
     Pinhole camera and a point light with fall-off (``"perspective"``, Prados and Faugeras

@@ -34,8 +34,9 @@
 //!
 //! Fails where: the samples a part of the mask reads have no height and no neighbour with one
 //! (nothing to fill them from): it is refused, naming a pixel of that part. A part of the
-//! mask narrower than a start sample whose samples' centres all fall outside the mask is
-//! filled from its neighbourhood's heights. Large holes are filled, not refused;
+//! mask narrower than a start sample, whose samples' centres all fall outside the mask, is
+//! filled from the heights beside it where its samples border one that has a height (a line
+//! joining two regions), and refused otherwise. Large holes are filled, not refused;
 //! [`StartSurface::filled`] says how many samples had no height of their own, and a
 //! refinement from a start that is mostly filled is only as good as a refinement from a
 //! smooth guess. The fill's factorisation grows as the samples it fills; a start finer than
@@ -98,7 +99,11 @@ pub fn prepare_start(start: &ScalarMap, mask: &Mask) -> Result<StartSurface> {
     if w == 0 || h == 0 {
         return Err(Error::param("start", "the image and its mask are empty"));
     }
-    if !same_view(w, h, sw, sh) {
+    // Within a pixel of the image's size in both directions but not equal to it, a start is a
+    // crop or a padding of the image's view, not another resolution of it (rounding allows a
+    // factor of 1 ± 1/size there too).
+    let off_by_one = (sw, sh) != (w, h) && sw.abs_diff(w) <= 1 && sh.abs_diff(h) <= 1;
+    if off_by_one || !same_view(w, h, sw, sh) {
         return Err(Error::param(
             "start",
             format!(
@@ -517,12 +522,15 @@ mod tests {
         // An empty image is refused, not indexed.
         assert!(prepare_start(&ScalarMap::new(4, 4, 0.0), &Mask::new(0, 0, true)).is_err());
         assert!(prepare_start(&ScalarMap::new(1, 4, 0.0), &Mask::new(0, 4, true)).is_err());
-        // One row short is no rounding of one factor: refused at s = 1 and at s = 4.
+        // A row short or long is refused: at s = 1 (either way round; 128 and 129 both round
+        // from one factor near 1.004, but that is a crop, not a resampling) and at s = 4.
         let square = Mask::new(128, 128, true);
         assert!(prepare_start(&ScalarMap::new(128, 127, 0.0), &square).is_err());
+        assert!(prepare_start(&ScalarMap::new(128, 129, 0.0), &square).is_err());
+        assert!(prepare_start(&ScalarMap::new(128, 128, 0.0), &Mask::new(128, 129, true)).is_err());
         assert!(prepare_start(&ScalarMap::new(32, 31, 0.0), &square).is_err());
-        // Sizes rounded from one factor are accepted either way round: a 1280×720 image's
-        // view at 320×181 (720/4 = 180 from 722 rows), and a finer start whose size rounds
+        // Sizes rounded from one factor are accepted either way round: a 1280×722 image's
+        // view at 320×181 (722/4 = 180.5 rounds to 181), and a finer start whose size rounds
         // to the image's (250×188 from 1001×750 at s ≈ 0.2499).
         assert!(prepare_start(&ScalarMap::new(320, 181, 0.0), &Mask::new(1280, 722, true)).is_ok());
         let fine =
@@ -544,6 +552,54 @@ mod tests {
             matches!(&err, Error::InvalidParameter { name: "start", reason } if reason.contains("(11, 0)") && reason.contains("nothing to fill them from")),
             "{err}"
         );
+    }
+
+    #[test]
+    fn a_thin_part_between_samples_is_filled_and_a_lone_one_is_named() {
+        // At s = 4: two discs joined by a line one pixel wide that holds no sample's centre
+        // (the centres are at 4i + 2); the line is filled from the discs' heights.
+        let mut mask = Mask::new(64, 32, false);
+        for y in 0..32 {
+            for x in 0..64 {
+                let disc = |cx: f64| (x as f64 - cx).hypot(y as f64 - 15.5) < 9.0;
+                mask.data_mut()[y * 64 + x] = disc(12.0) || disc(52.0) || (y == 16 && x < 50);
+            }
+        }
+        let start = plane_start(16, 8, (0.25, 0.0, 1.0));
+        let s = prepare_start(&start, &mask).unwrap();
+        for p in 0..64 * 32 {
+            assert_eq!(s.heights.data()[p].is_finite(), mask.data()[p], "{p}");
+        }
+        // Along the line the fill bridges the discs: rising with x as the plane does, and
+        // within 1% of the plane's range across the image (15 px). Not exactly the plane: the
+        // line's samples are reached by few Laplacians, and the filled ring around the discs
+        // ends in free boundaries.
+        let mut last = f64::NEG_INFINITY;
+        for x in 22..43 {
+            let v = f64::from(s.heights.data()[16 * 64 + x]);
+            let truth = plane_on_image(x, 16, 4.0, (0.25, 0.0, 1.0));
+            assert!((v - truth).abs() < 0.15, "({x}, 16): {v} against {truth}");
+            assert!(v > last, "({x}, 16): {v} after {last}");
+            last = v;
+        }
+        // A blob far from every height: refused, naming one of its pixels.
+        let mut lone = Mask::new(64, 32, false);
+        for y in 0..32 {
+            for x in 0..64 {
+                let disc = (x as f64 - 12.0).hypot(y as f64 - 15.5) < 9.0;
+                lone.data_mut()[y * 64 + x] =
+                    disc || ((56..60).contains(&x) && (4..8).contains(&y));
+            }
+        }
+        let mut holed = plane_start(16, 8, (0.25, 0.0, 1.0));
+        for j in 0..3 {
+            for i in 12..16 {
+                holed.data_mut()[j * 16 + i] = f32::NAN;
+            }
+        }
+        let err = prepare_start(&holed, &lone).unwrap_err();
+        let named = |x: usize, y: usize| err.to_string().contains(&format!("pixel ({x}, {y})"));
+        assert!((56..60).any(|x| (4..8).any(|y| named(x, y))), "{err}");
     }
 
     #[test]
