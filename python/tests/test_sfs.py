@@ -197,7 +197,7 @@ def test_horn_refines_a_given_start_surface():
     assert refined["start_scale"] == 1.0 and refined["start_filled"] == 0
     assert default["start_scale"] is None
     # One row short is not the image's view at another resolution.
-    with pytest.raises(ValueError, match="field of view"):
+    with pytest.raises(ValueError, match="a crop or a padding"):
         ps.sfs(sc["images"][0], m, light=LIGHT, albedo=ALBEDO, start=start[:-1])
     with pytest.raises(ValueError, match="start"):
         ps.sfs(sc["images"][0], m, light=LIGHT, albedo=ALBEDO, start=start, method="tsai-shah")

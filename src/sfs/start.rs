@@ -102,8 +102,16 @@ pub fn prepare_start(start: &ScalarMap, mask: &Mask) -> Result<StartSurface> {
     // Within a pixel of the image's size in both directions but not equal to it, a start is a
     // crop or a padding of the image's view, not another resolution of it (rounding allows a
     // factor of 1 ± 1/size there too).
-    let off_by_one = (sw, sh) != (w, h) && sw.abs_diff(w) <= 1 && sh.abs_diff(h) <= 1;
-    if off_by_one || !same_view(w, h, sw, sh) {
+    if (sw, sh) != (w, h) && sw.abs_diff(w) <= 1 && sh.abs_diff(h) <= 1 {
+        return Err(Error::param(
+            "start",
+            format!(
+                "size {sw}×{sh} is a pixel off the image's {w}×{h}: a crop or a padding of its \
+                 view, not another resolution of it"
+            ),
+        ));
+    }
+    if !same_view(w, h, sw, sh) {
         return Err(Error::param(
             "start",
             format!(
@@ -525,7 +533,8 @@ mod tests {
         // A row short or long is refused: at s = 1 (either way round; 128 and 129 both round
         // from one factor near 1.004, but that is a crop, not a resampling) and at s = 4.
         let square = Mask::new(128, 128, true);
-        assert!(prepare_start(&ScalarMap::new(128, 127, 0.0), &square).is_err());
+        let err = prepare_start(&ScalarMap::new(128, 127, 0.0), &square).unwrap_err();
+        assert!(err.to_string().contains("a crop or a padding"), "{err}");
         assert!(prepare_start(&ScalarMap::new(128, 129, 0.0), &square).is_err());
         assert!(prepare_start(&ScalarMap::new(128, 128, 0.0), &Mask::new(128, 129, true)).is_err());
         assert!(prepare_start(&ScalarMap::new(32, 31, 0.0), &square).is_err());
