@@ -7,12 +7,15 @@
 # (docs/integration.md quotes medians of 3).
 #
 # Usage, from the project root after `cargo build --release`:
-#   benches/bini_side_by_side.sh BINI_DIR PYTHON [REPEATS]
+#   benches/bini_side_by_side.sh BINI_DIR PYTHON [REPEATS [DATA_DIR]]
 # BINI_DIR: a checkout of BiNI; PYTHON: an interpreter with numba, scipy, opencv and tqdm.
+# DATA_DIR: folders of normal_map.png, mask.png and K.txt, by default the shared objects;
+# BiNI's own data/Fig7_diligent holds all nine DiLiGenT objects (for timings: five of them are
+# held out of development). PHOTOSTEREO: the binary to time (another build, side by side).
 set -eu
 BINI=${1:?BiNI checkout}; PY=${2:?python with numba}; R=${3:-3}
-BIN=target/release/photostereo
-D=$(cd "$(dirname "$0")/../../shared/data/integration" && pwd)
+BIN=${PHOTOSTEREO:-target/release/photostereo}
+D=$(cd "${4:-$(dirname "$0")/../../shared/data/integration}" && pwd)
 T=$(mktemp -d); trap 'rm -rf "$T"' EXIT
 secs() { python3 -c "import sys; print(round(float(sys.argv[2]) - float(sys.argv[1]), 3))" "$@"; }
 for d in "$D"/*/; do

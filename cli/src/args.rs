@@ -819,7 +819,8 @@ pub enum SolverArg {
     /// Preconditioned conjugate gradients (DCT for masked-ls, Jacobi for bilateral).
     Cg,
     /// Conjugate gradients preconditioned with multigrid (linear time and memory): on the pixel
-    /// grid for masked-ls, aggregation multigrid for bilateral.
+    /// grid for masked-ls and bilateral's reweighting steps, aggregation multigrid for
+    /// bilateral's re-integration.
     Multigrid,
 }
 

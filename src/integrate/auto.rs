@@ -35,7 +35,7 @@
 //! parallel to the ground) closes every loop — the normals carry no trace of it, and no
 //! integrator recovers its height; a jump that the bilateral integrator only partly cuts can
 //! leave its depth worse than the smooth one (the demo scene's hemisphere; DiLiGenT goblet,
-//! 8.68 mm against 7.84 even with its cut closed; `docs/integration.md`); on exact (noise-free) normals a crease, where the
+//! 8.72 mm against 7.84 even with its cut closed; `docs/integration.md`); on exact (noise-free) normals a crease, where the
 //! gradients themselves jump (the rendered pyramid's edges), is taken for a depth jump, since
 //! the bound of step 3 assumes gradients smooth along each line.
 //!

@@ -45,6 +45,7 @@ pub use auto::AutoDecision;
 pub use bilateral::{BilateralParams, ClosedOff};
 pub use masked::SolveInfo;
 pub use multigrid::grid::BYTES_PER_CELL as GRID_BYTES_PER_CELL;
+pub use multigrid::grid::PRECONDITIONER_BYTES_PER_CELL as GRID_PRECONDITIONER_BYTES_PER_CELL;
 pub use sparse::{Convergence, LinearSolver, SolveMethod};
 
 use crate::camera::Intrinsics;

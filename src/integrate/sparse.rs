@@ -31,8 +31,9 @@ pub enum LinearSolver {
     /// Direct up to 100 000 unknowns, iterative beyond: masked least squares by
     /// conjugate gradients preconditioned with multigrid on the pixel grid (bounded memory); the
     /// bilateral integrator's reweighting steps always by conjugate gradients preconditioned with
-    /// multigrid (Jacobi, as published, for its soft-weighted variant without re-integration),
-    /// its final re-integration with multigrid beyond the direct limit.
+    /// multigrid on the pixel grid (Jacobi, as published, for its soft-weighted variant without
+    /// re-integration), its final re-integration with aggregation multigrid beyond the direct
+    /// limit.
     #[default]
     Auto,
     /// Sparse Cholesky factorisation (exact; memory grows like n log n).
@@ -41,8 +42,9 @@ pub enum LinearSolver {
     /// for masked least squares, Jacobi (as published) for the bilateral integrator.
     ConjugateGradient,
     /// Conjugate gradients preconditioned with multigrid (`integrate/multigrid/`): time and
-    /// memory linear in n; for masked least squares on the pixel grid, for the bilateral
-    /// integrator aggregation multigrid, which follows its weights.
+    /// memory linear in n; for masked least squares and the bilateral integrator's reweighting
+    /// steps on the pixel grid, for its re-integration aggregation multigrid, whose aggregates
+    /// never join the two sides of a cut.
     Multigrid,
 }
 
@@ -74,7 +76,8 @@ pub enum SolveMethod {
     /// Conjugate gradients, multigrid preconditioner.
     MultigridCg,
     /// Conjugate gradients preconditioned with multigrid on the pixel grid (2×2 blocks,
-    /// `integrate/multigrid/grid.rs`): uniform-weight systems in bounded memory.
+    /// `integrate/multigrid/grid.rs`): masked least squares in bounded memory, and the
+    /// bilateral integrator's reweighting steps.
     GridMultigridCg,
 }
 
@@ -758,8 +761,9 @@ pub(crate) fn solve(
             dct = NeumannSolver::new(u.w, u.h);
             Preconditioner::Dct(&dct)
         }
-        // The grid hierarchy takes its own system (`masked.rs`); on a stencil it is the
-        // algebraic one.
+        // The grid solve of masked least squares takes its own system (`masked.rs`), and the
+        // bilateral steps build their grid preconditioner themselves; here, on a stencil, the
+        // hierarchy is the algebraic one.
         SolveMethod::MultigridCg | SolveMethod::GridMultigridCg => {
             multigrid = super::multigrid::Multigrid::new(u, a);
             Preconditioner::Multigrid(&multigrid)
@@ -776,6 +780,9 @@ pub(crate) enum Preconditioner<'a> {
     Dct(&'a NeumannSolver),
     /// One V-cycle of aggregation multigrid (`integrate/multigrid/mod.rs`).
     Multigrid(&'a super::multigrid::Multigrid),
+    /// One cycle of the grid multigrid on the unknowns' bounding box
+    /// (`integrate/multigrid/grid.rs`).
+    Grid(&'a super::multigrid::grid::GridPreconditioner),
 }
 
 /// Elements summed per chunk of [`dot`] (and of other sums that must not depend on the thread
@@ -985,11 +992,17 @@ pub(crate) fn pcg(
     }
     let mut grid = match pre {
         Preconditioner::Dct(_) => vec![0f64; u.w * u.h],
-        Preconditioner::Jacobi | Preconditioner::Multigrid(_) => Vec::new(),
+        Preconditioner::Jacobi | Preconditioner::Multigrid(_) | Preconditioner::Grid(_) => {
+            Vec::new()
+        }
     };
     let mut cycle_work = match pre {
         Preconditioner::Multigrid(m) => m.work(),
-        Preconditioner::Jacobi | Preconditioner::Dct(_) => Vec::new(),
+        _ => Vec::new(),
+    };
+    let mut grid_scratch = match pre {
+        Preconditioner::Grid(g) => Some(g.scratch()),
+        _ => None,
     };
     let mut precondition = |r: &[f64], z: &mut [f64]| match pre {
         Preconditioner::Jacobi => {
@@ -1008,8 +1021,13 @@ pub(crate) fn pcg(
             }
         }
         Preconditioner::Multigrid(m) => m.apply(r, z, &mut cycle_work),
+        Preconditioner::Grid(g) => {
+            if let Some(s) = grid_scratch.as_mut() {
+                g.apply(r, z, s);
+            }
+        }
     };
-    let flexible = matches!(pre, Preconditioner::Multigrid(_));
+    let flexible = matches!(pre, Preconditioner::Multigrid(_) | Preconditioner::Grid(_));
     let mut r_prev = if flexible { vec![0f64; n] } else { Vec::new() };
     let mut z = vec![0f64; n];
     precondition(&r, &mut z);
@@ -1054,6 +1072,46 @@ pub(crate) fn pcg(
     (max_iter, Convergence::IterationLimit)
 }
 
+/// A system with a known solution, for tests: a solution that varies from unknown to unknown
+/// (zero-mean in each connected part, as the singular systems' solutions are returned) and
+/// the right-hand side A·solution.
+#[cfg(test)]
+pub(crate) fn known_solution(u: &Unknowns, a: &Stencil) -> (Vec<f64>, Vec<f64>) {
+    let mut truth: Vec<f64> = (0..u.len())
+        .map(|k| ((k * 7919) % 101) as f64 / 10.0)
+        .collect();
+    u.zero_mean_parts(&mut truth);
+    let mut b = vec![0.0; u.len()];
+    a.apply(u, &truth, &mut b);
+    (truth, b)
+}
+
+/// Solves the system of [`known_solution`] by [`pcg`] with `pre` to a relative residual of
+/// 10⁻¹⁰, for tests: the iterations, why the solve stopped, and the largest error.
+#[cfg(test)]
+pub(crate) fn solve_known(
+    u: &Unknowns,
+    a: &Stencil,
+    pre: &Preconditioner,
+    max_iter: usize,
+) -> (usize, Convergence, f64) {
+    let (truth, b) = known_solution(u, a);
+    let mut x = vec![0.0; u.len()];
+    let stop = Stop {
+        tol: 1e-10,
+        max_iter,
+        data: None,
+    };
+    let (its, convergence) = pcg(u, a, &b, &mut x, pre, stop);
+    u.zero_mean_parts(&mut x);
+    let err = x
+        .iter()
+        .zip(&truth)
+        .map(|(p, q)| (p - q).abs())
+        .fold(0.0, f64::max);
+    (its, convergence, err)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1080,12 +1138,7 @@ mod tests {
                 }
             }
         }
-        let mut truth: Vec<f64> = (0..u.len())
-            .map(|k| ((k * 7919) % 101) as f64 / 10.0)
-            .collect();
-        u.zero_mean_parts(&mut truth);
-        let mut b = vec![0.0; u.len()];
-        a.apply(&u, &truth, &mut b);
+        let (truth, b) = known_solution(&u, &a);
         let mut x = Direct::new(&u).unwrap().solve(&a, &b).unwrap();
         u.zero_mean_parts(&mut x);
         for (p, q) in x.iter().zip(&truth) {

@@ -1300,7 +1300,9 @@ impl Integrator {
             // The bilateral integrator (and `auto`, which may run it) holds per unknown its
             // neighbours, equation coefficients, weights and depth (80 B), a reweighting step's
             // system and its conjugate gradients' vectors (64 B) and one multigrid hierarchy at
-            // a time, the re-integration the same with its own. Measured, the growth of the
+            // a time: during the steps the grid hierarchy over the unknowns' bounding box
+            // (`GRID_PRECONDITIONER_BYTES_PER_CELL` a cell and 4 B an unknown), during the
+            // re-integration an aggregation hierarchy over the unknowns. Measured, the growth of the
             // `integrate` process's peak over the integration on spheres of 1024² and 2048²
             // (0.53 and 2.1 M unknowns) and a 1024² ball floating above a ground (1.05 M
             // unknowns, cut all around the ball) less 48 B a pixel: 222, 216 and 289 B an
@@ -1309,14 +1311,22 @@ impl Integrator {
             // 369, 1366 and 643 MiB against 185, 705 and 359 MiB now; planned at 640 B). Where
             // a step or the re-integration is solved directly (up to 100 000 unknowns by
             // default), a sparse factor besides, counted as masked least squares' (DiLiGenT
-            // cat: 522 B an unknown in all, measured).
+            // cat: 522 B an unknown in all, measured). During the steps the grid hierarchy is
+            // counted beside the arrays an unknown then holds, counted: the 80 B above, the
+            // step's system and right-hand side (32 B), the conjugate gradients' seven vectors
+            // (56 B) and the unknown's window cell (4 B); the larger of the two phases, which
+            // is the steps where the bounding box holds many cells besides the unknowns (a
+            // thin diagonal object). On the spheres and the ball above the re-integration's
+            // peak is the larger (the measured peaks fell by 0–8% when the steps moved to the
+            // grid).
             Integrator::Bilateral | Integrator::Auto => {
                 let factor = if solver.direct_for(masked) {
                     900 * m
                 } else {
                     0
                 };
-                48 * n + 320 * m + factor
+                let steps = 172 * m + crate::integrate::GRID_PRECONDITIONER_BYTES_PER_CELL * cells;
+                48 * n + (320 * m).max(steps) + factor
             }
             Integrator::MaskedLs => {
                 if solver.direct_for(masked) {
