@@ -79,7 +79,7 @@ use super::{
 };
 use crate::camera::Intrinsics;
 use crate::error::Result;
-use crate::grid::{Mask, NormalMap, ScalarMap};
+use crate::grid::{Mask, NormalMap, ScalarMap, Window};
 use faer::linalg::solvers::Solve;
 use rayon::prelude::*;
 use serde::Serialize;
@@ -340,6 +340,9 @@ pub fn integrate_bilateral(
     } else {
         None
     };
+    // The window the steps' grid preconditioner works on, the same for every step (an empty
+    // domain has no unknowns, and a window of one cell then serves).
+    let window = domain.bounding_box().unwrap_or(Window::full(1, 1));
     let mut iterations = 0;
     let mut cg_iterations = 0;
     let mut step_convergence = Convergence::Exact;
@@ -354,7 +357,7 @@ pub fn integrate_bilateral(
             // hierarchy was) needs more cycles as the weights move away from it.
             let grid;
             let pre = if inner == SolveMethod::GridMultigridCg {
-                grid = GridPreconditioner::new(&u, &a);
+                grid = GridPreconditioner::new(&u, &a, window);
                 Preconditioner::Grid(&grid)
             } else {
                 Preconditioner::Jacobi

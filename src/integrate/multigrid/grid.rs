@@ -55,6 +55,7 @@ use super::{
     COARSEST, Coarsest, Csr, KCYCLE_MIN_RATIO, KCYCLE_T, KVectors, STALLED_SWEEPS, Work,
     dense_factor, second_step,
 };
+use crate::grid::Window;
 use crate::integrate::sparse::{Convergence, Misfit, NONE, Stencil, Stop, Unknowns, dot};
 use faer::MatMut;
 use faer::linalg::solvers::Solve;
@@ -902,26 +903,17 @@ pub(crate) struct GridScratch {
 }
 
 impl GridPreconditioner {
-    /// The hierarchy of `a` (off-diagonals −weight, as [`Stencil::add_edge`] writes them).
-    pub fn new(u: &Unknowns, a: &Stencil) -> Self {
-        let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
-        for &p in &u.pixel {
-            let (x, y) = (p as usize % u.w, p as usize / u.w);
-            x0 = x0.min(x);
-            y0 = y0.min(y);
-            x1 = x1.max(x);
-            y1 = y1.max(y);
-        }
-        if u.pixel.is_empty() {
-            (x0, y0, x1, y1) = (0, 0, 0, 0);
-        }
-        let (w, h) = (x1 + 1 - x0, y1 + 1 - y0);
+    /// The hierarchy of `a` (off-diagonals −weight, as [`Stencil::add_edge`] writes them) on
+    /// `window`, which holds every unknown of `u` (the domain's bounding box).
+    pub fn new(u: &Unknowns, a: &Stencil, window: Window) -> Self {
+        let (w, h) = (window.width(), window.height());
         let cell: Vec<u32> = u
             .pixel
             .iter()
             .map(|&p| {
-                let (x, y) = (p as usize % u.w, p as usize / u.w);
-                ((y - y0) * w + (x - x0)) as u32
+                let c = window.local(u.w, p as usize);
+                debug_assert!(c.is_some(), "unknown at pixel {p} outside {window}");
+                c.unwrap_or(0) as u32
             })
             .collect();
         let mut right = vec![0f32; w * h];
@@ -1545,7 +1537,8 @@ mod tests {
                 }
             }
         }
-        let grid = GridPreconditioner::new(&u, &a);
+        let window = mask.bounding_box().expect("a mask with pixels");
+        let grid = GridPreconditioner::new(&u, &a, window);
         let solve = |pre: &Preconditioner| solve_known(&u, &a, pre, 5000);
         let (its, convergence, err) = solve(&Preconditioner::Grid(&grid));
         let (jacobi, _, _) = solve(&Preconditioner::Jacobi);
