@@ -244,6 +244,18 @@ impl Grid<bool> {
     }
 }
 
+/// The 4-neighbours of pixel `p` (row-major) of a `w`×`h` grid, in the order left, right,
+/// above, below; `None` where a neighbour would lie outside the grid.
+pub(crate) fn four_neighbours(p: usize, w: usize, h: usize) -> [Option<usize>; 4] {
+    let (x, y) = (p % w, p / w);
+    [
+        (x > 0).then(|| p - 1),
+        (x + 1 < w).then(|| p + 1),
+        (y > 0).then(|| p - w),
+        (y + 1 < h).then(|| p + w),
+    ]
+}
+
 /// An axis-aligned rectangle of pixels: columns `x0..x1`, rows `y0..y1` (ends excluded).
 ///
 /// An [`crate::capture::stack::ImageStack`] stores only the window its mask spans; pixel indices stay

@@ -36,6 +36,7 @@
 //! `filled` channel of `residual.exr`), counted in the report and warned about;
 //! [`crate::ps::solve::SolveOptions::fill`] = false leaves them unsolved (NaN).
 
+use crate::grid::four_neighbours;
 use crate::ps::solve::{PixelStatus, Solution};
 use crate::stats::median_by;
 use nalgebra::{Matrix3, Vector3};
@@ -153,16 +154,10 @@ pub(crate) fn fill(sol: &mut Solution, data: &[PixelData]) -> FillSummary {
         samples[i] = d.samples;
     }
     let neighbours = |p: usize| {
-        let (x, y) = (p % w, p / w);
-        [
-            (x > 0).then(|| p - 1),
-            (x + 1 < w).then(|| p + 1),
-            (y > 0).then(|| p - w),
-            (y + 1 < h).then(|| p + w),
-        ]
-        .into_iter()
-        .flatten()
-        .filter(|&q| status[q] != PixelStatus::Outside)
+        four_neighbours(p, w, h)
+            .into_iter()
+            .flatten()
+            .filter(|&q| status[q] != PixelStatus::Outside)
     };
 
     // Σ g_j over the neighbours of p that have a value (solved, or set unknowns), and their count.

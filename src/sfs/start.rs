@@ -43,7 +43,7 @@
 //! the image is averaged first, so it never exceeds the image's own size.
 
 use crate::error::{Error, Result};
-use crate::grid::{Mask, ScalarMap};
+use crate::grid::{Mask, ScalarMap, four_neighbours};
 use crate::integrate::sparse::{
     CholeskyWork, NONE, Unknowns, nested_dissection, symbolic_cholesky,
 };
@@ -297,15 +297,6 @@ fn fill(heights: &mut ScalarMap, missing: &Mask) -> Result<std::result::Result<(
     }
     let has_height = |q: usize| heights.data()[q].is_finite();
     let available = |q: usize| has_height(q) || missing.data()[q];
-    let around = |p: usize| {
-        let (x, y) = (p % w, p / w);
-        [
-            (x > 0).then(|| p - 1),
-            (x + 1 < w).then(|| p + 1),
-            (y > 0).then(|| p - w),
-            (y + 1 < h).then(|| p + w),
-        ]
-    };
     // The normal equations' entries of each column (lower triangle: rows ≥ the column), as
     // products to be sorted and summed.
     let mut columns: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n];
@@ -340,7 +331,7 @@ fn fill(heights: &mut ScalarMap, missing: &Mask) -> Result<std::result::Result<(
         if !available(p) {
             continue;
         }
-        let nb = around(p);
+        let nb = four_neighbours(p, w, h);
         if nb.iter().all(|q| q.is_some_and(available)) {
             let mut terms = vec![(p, 4.0)];
             terms.extend(nb.iter().flatten().map(|&q| (q, -1.0)));
