@@ -41,6 +41,7 @@ pub mod grid;
 pub mod integrate;
 pub mod io;
 mod linalg;
+mod pool;
 pub mod progress;
 pub mod ps;
 pub mod run;

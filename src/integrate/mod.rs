@@ -207,6 +207,19 @@ pub fn integrate_censored_gradients(
     method: Integrator,
     solver: LinearSolver,
 ) -> Result<(ScalarMap, Option<SolveInfo>)> {
+    // Inside the thread pool, so that the solvers' many short parallel loops do not each hand
+    // the calling thread off to it (`crate::pool`).
+    crate::pool::in_pool(|| censored_gradients(p, q, censoring, mask, method, solver))
+}
+
+fn censored_gradients(
+    p: &ScalarMap,
+    q: &ScalarMap,
+    censoring: &Censoring,
+    mask: &Mask,
+    method: Integrator,
+    solver: LinearSolver,
+) -> Result<(ScalarMap, Option<SolveInfo>)> {
     p.check_same_size(q, "q vs p")?;
     p.check_same_size(mask, "mask vs gradients")?;
     match censoring {
@@ -310,6 +323,17 @@ pub fn normal_domain(normals: &NormalMap) -> NormalDomain {
 /// [`Error::DimensionMismatch`] when sizes differ; [`Error::Mask`] when no masked pixel has a
 /// finite normal; [`Error::InvalidParameter`] when a sparse factorisation fails.
 pub fn integrate_normals(
+    normals: &NormalMap,
+    mask: &Mask,
+    options: &IntegrationOptions,
+    progress: &dyn Progress,
+) -> Result<Integration> {
+    // Inside the thread pool, so that the solvers' many short parallel loops do not each hand
+    // the calling thread off to it (`crate::pool`): DiLiGenT harvest 2.3 → 1.6 s.
+    crate::pool::in_pool(|| normals_integrated(normals, mask, options, progress))
+}
+
+fn normals_integrated(
     normals: &NormalMap,
     mask: &Mask,
     options: &IntegrationOptions,
