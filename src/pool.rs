@@ -12,8 +12,10 @@
 //! Started from a pool thread, the same loop only pushes its second half onto that thread's own
 //! queue, where an idle pool thread steals it if it is awake and the owner takes it back if not;
 //! nobody sleeps on it. [`in_pool`] runs a whole computation on a pool thread, so that every
-//! loop inside it starts there: the caller is handed off once. Results do not change: every sum
-//! in the library is taken over fixed chunks, whatever thread runs them.
+//! loop inside it starts there: the caller is handed off once. The computation's
+//! [`crate::progress::Progress`] calls then come from that thread. The iterative solvers' sums
+//! are taken over fixed chunks whatever thread runs them, so their results do not change (the
+//! nine DiLiGenT depth maps of `docs/integration.md` are the same value for value).
 
 /// Runs `work` on a thread of rayon's current pool (the global one, or the one installed by the
 /// caller) and returns its result; the calling thread waits. Inside a pool thread already it
@@ -44,8 +46,9 @@ mod tests {
         assert!(nested.is_some());
     }
 
-    /// In a pool of one thread (`--threads 1`) the work, and the loops inside it, still run:
-    /// the only pool thread runs them itself.
+    /// A smoke test of a pool of one thread (`--threads 1` builds the global pool so): called
+    /// on its only thread, the work and the loops inside it run there. (The global pool cannot
+    /// be rebuilt in a test, so the call from outside such a pool is not exercised here.)
     #[test]
     fn a_pool_of_one_thread_runs_it() {
         let pool = rayon::ThreadPoolBuilder::new()

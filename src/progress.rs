@@ -4,7 +4,8 @@
 ///
 /// The library calls [`Progress::begin`] once per stage, [`Progress::advance`] as work
 /// completes (possibly from several threads), and [`Progress::end`] when the stage is done.
-/// All methods default to doing nothing.
+/// Any of them may come from a thread other than the caller's (integration runs on a thread of
+/// rayon's pool). All methods default to doing nothing.
 pub trait Progress: Sync {
     /// A stage named `stage` starts with `total` units of work.
     fn begin(&self, _stage: &str, _total: u64) {}

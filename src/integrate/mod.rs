@@ -329,7 +329,7 @@ pub fn integrate_normals(
     progress: &dyn Progress,
 ) -> Result<Integration> {
     // Inside the thread pool, so that the solvers' many short parallel loops do not each hand
-    // the calling thread off to it (`crate::pool`): DiLiGenT harvest 2.3 → 1.6 s.
+    // the calling thread off to it (`crate::pool`): DiLiGenT harvest 2.4 → 1.6 s.
     crate::pool::in_pool(|| normals_integrated(normals, mask, options, progress))
 }
 
@@ -799,6 +799,50 @@ pub(crate) fn finish_depth(z: Vec<f64>, domain: &Mask) -> ScalarMap {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The integration runs on a thread of rayon's pool whatever thread calls it (so that the
+    /// solvers' parallel loops do not each hand the caller off to the pool: `crate::pool`); the
+    /// progress it reports comes from there.
+    #[test]
+    fn integration_runs_on_a_pool_thread() {
+        struct Where(std::sync::Mutex<Vec<Option<usize>>>);
+        impl Progress for Where {
+            fn begin(&self, _stage: &str, _total: u64) {
+                if let Ok(mut seen) = self.0.lock() {
+                    seen.push(rayon::current_thread_index());
+                }
+            }
+        }
+        assert_eq!(rayon::current_thread_index(), None);
+        let (w, h, r) = (24usize, 20usize, 8.0f32);
+        let map = Grid::from_fn(w, h, |x, y| {
+            let (x, y) = (x as f32 - 12.0, y as f32 - 10.0);
+            let d2 = (x * x + y * y).min(0.8 * r * r);
+            nalgebra::Vector3::new(x / r, -y / r, (1.0 - d2 / (r * r)).sqrt()).normalize()
+        });
+        let mask = Grid::from_fn(w, h, |x, y| {
+            let (x, y) = (x as f32 - 12.0, y as f32 - 10.0);
+            x * x + y * y < 0.8 * r * r
+        });
+        for method in [
+            Integrator::MaskedLs,
+            Integrator::Bilateral,
+            Integrator::Poisson,
+        ] {
+            let progress = Where(std::sync::Mutex::new(Vec::new()));
+            let options = IntegrationOptions {
+                method,
+                ..IntegrationOptions::default()
+            };
+            integrate_normals(&map, &mask, &options, &progress).expect("a hemisphere integrates");
+            let seen = progress.0.into_inner().expect("not poisoned");
+            assert!(!seen.is_empty(), "{method:?} reported no stage");
+            assert!(
+                seen.iter().all(Option::is_some),
+                "{method:?} began a stage off the pool: {seen:?}"
+            );
+        }
+    }
 
     /// A hemisphere on a uniform white background (as an exported 16-bit normal map has it):
     /// the background is found from the border and left out, and the object alone remains; on
