@@ -749,11 +749,11 @@ fn reintegrate(
     } else if solver == LinearSolver::ConjugateGradient {
         SolveMethod::JacobiCg
     } else {
-        SolveMethod::MultigridCg
+        SolveMethod::BlockMultigridCg
     };
     // Solved by multigrid-preconditioned conjugate gradients, the system stops at the data's
     // noise, with the offsets of the regions the cuts separate deflated (`RegionOffsets`).
-    let mut offsets = (method == SolveMethod::MultigridCg)
+    let mut offsets = (method == SolveMethod::BlockMultigridCg)
         .then(|| RegionOffsets::new(u, &label))
         .flatten();
     drop(label);

@@ -10,7 +10,7 @@
 
 use super::poisson::NeumannSolver;
 use crate::error::{Error, Result};
-use crate::grid::{Grid, Mask, ScalarMap};
+use crate::grid::{Grid, Mask, ScalarMap, Window};
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::sparse::linalg::cholesky::{
     SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
@@ -32,8 +32,9 @@ pub enum LinearSolver {
     /// conjugate gradients preconditioned with multigrid on the pixel grid (bounded memory); the
     /// bilateral integrator's reweighting steps always by conjugate gradients preconditioned with
     /// multigrid on the pixel grid (Jacobi, as published, for its soft-weighted variant without
-    /// re-integration), its final re-integration with aggregation multigrid beyond the direct
-    /// limit.
+    /// re-integration), its final re-integration beyond the direct limit with multigrid that
+    /// smooths on the pixel grid and corrects on aggregates that never join the two sides of a
+    /// cut (`integrate/multigrid/blocks.rs`).
     #[default]
     Auto,
     /// Sparse Cholesky factorisation (exact; memory grows like n log n).
@@ -43,8 +44,8 @@ pub enum LinearSolver {
     ConjugateGradient,
     /// Conjugate gradients preconditioned with multigrid (`integrate/multigrid/`): time and
     /// memory linear in n; for masked least squares and the bilateral integrator's reweighting
-    /// steps on the pixel grid, for its re-integration aggregation multigrid, whose aggregates
-    /// never join the two sides of a cut.
+    /// steps on the pixel grid, for its re-integration the grid's smoothing with a coarse
+    /// correction on aggregates that never join the two sides of a cut.
     Multigrid,
 }
 
@@ -79,6 +80,10 @@ pub enum SolveMethod {
     /// `integrate/multigrid/grid.rs`): masked least squares in bounded memory, and the
     /// bilateral integrator's reweighting steps.
     GridMultigridCg,
+    /// Conjugate gradients preconditioned with smoothing on the pixel grid and a coarse
+    /// correction on aggregates that never join the two sides of a weak edge
+    /// (`integrate/multigrid/blocks.rs`): the bilateral integrator's re-integration.
+    BlockMultigridCg,
 }
 
 impl SolveMethod {
@@ -90,6 +95,7 @@ impl SolveMethod {
             SolveMethod::DctCg => "dct-cg",
             SolveMethod::MultigridCg => "multigrid-cg",
             SolveMethod::GridMultigridCg => "grid-multigrid-cg",
+            SolveMethod::BlockMultigridCg => "block-multigrid-cg",
         }
     }
 }
@@ -170,6 +176,23 @@ impl Unknowns {
             up,
             part,
             parts: parts as usize,
+        }
+    }
+
+    /// The unknowns' bounding box (a window of one cell when there are none).
+    pub fn window(&self) -> Window {
+        let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
+        for &p in &self.pixel {
+            let (x, y) = (p as usize % self.w, p as usize / self.w);
+            x0 = x0.min(x);
+            y0 = y0.min(y);
+            x1 = x1.max(x + 1);
+            y1 = y1.max(y + 1);
+        }
+        if self.pixel.is_empty() {
+            Window::full(1, 1)
+        } else {
+            Window { x0, y0, x1, y1 }
         }
     }
 
@@ -750,7 +773,7 @@ pub(crate) fn solve(
     method: SolveMethod,
     stop: Stop,
 ) -> Result<(usize, Convergence)> {
-    let (dct, multigrid);
+    let (dct, multigrid, blocks);
     let pre = match method {
         SolveMethod::Direct => {
             *x = Direct::new(u)?.solve(a, b)?;
@@ -760,6 +783,10 @@ pub(crate) fn solve(
         SolveMethod::DctCg => {
             dct = NeumannSolver::new(u.w, u.h);
             Preconditioner::Dct(&dct)
+        }
+        SolveMethod::BlockMultigridCg => {
+            blocks = super::multigrid::blocks::BlockPreconditioner::new(u, a, u.window());
+            Preconditioner::Blocks(&blocks)
         }
         // The grid solve of masked least squares takes its own system (`masked.rs`), and the
         // bilateral steps build their grid preconditioner themselves; here, on a stencil, the
@@ -783,6 +810,9 @@ pub(crate) enum Preconditioner<'a> {
     /// One cycle of the grid multigrid on the unknowns' bounding box
     /// (`integrate/multigrid/grid.rs`).
     Grid(&'a super::multigrid::grid::GridPreconditioner),
+    /// One cycle of grid smoothing on the unknowns' bounding box with a coarse correction on
+    /// aggregates that follow the weights (`integrate/multigrid/blocks.rs`).
+    Blocks(&'a super::multigrid::blocks::BlockPreconditioner),
 }
 
 /// Elements summed per chunk of [`dot`] (and of other sums that must not depend on the thread
@@ -992,9 +1022,10 @@ pub(crate) fn pcg(
     }
     let mut grid = match pre {
         Preconditioner::Dct(_) => vec![0f64; u.w * u.h],
-        Preconditioner::Jacobi | Preconditioner::Multigrid(_) | Preconditioner::Grid(_) => {
-            Vec::new()
-        }
+        Preconditioner::Jacobi
+        | Preconditioner::Multigrid(_)
+        | Preconditioner::Grid(_)
+        | Preconditioner::Blocks(_) => Vec::new(),
     };
     let mut cycle_work = match pre {
         Preconditioner::Multigrid(m) => m.work(),
@@ -1002,6 +1033,10 @@ pub(crate) fn pcg(
     };
     let mut grid_scratch = match pre {
         Preconditioner::Grid(g) => Some(g.scratch()),
+        _ => None,
+    };
+    let mut block_scratch = match pre {
+        Preconditioner::Blocks(g) => Some(g.scratch()),
         _ => None,
     };
     let mut precondition = |r: &[f64], z: &mut [f64]| match pre {
@@ -1026,8 +1061,16 @@ pub(crate) fn pcg(
                 g.apply(r, z, s);
             }
         }
+        Preconditioner::Blocks(g) => {
+            if let Some(s) = block_scratch.as_mut() {
+                g.apply(r, z, s);
+            }
+        }
     };
-    let flexible = matches!(pre, Preconditioner::Multigrid(_) | Preconditioner::Grid(_));
+    let flexible = matches!(
+        pre,
+        Preconditioner::Multigrid(_) | Preconditioner::Grid(_) | Preconditioner::Blocks(_)
+    );
     let mut r_prev = if flexible { vec![0f64; n] } else { Vec::new() };
     let mut z = vec![0f64; n];
     precondition(&r, &mut z);

@@ -100,7 +100,7 @@ impl Rhs for f64 {
 const CELLS_PER_TASK: usize = 1 << 15;
 
 /// Rows of a `w`-wide grid a parallel task takes at least.
-fn rows_per_task(w: usize) -> usize {
+pub(super) fn rows_per_task(w: usize) -> usize {
     (CELLS_PER_TASK / w.max(1)).max(1)
 }
 
@@ -150,6 +150,11 @@ impl GridLaplacian {
             down,
             diag,
         }
+    }
+
+    /// Width of the grid.
+    pub(super) fn width(&self) -> usize {
+        self.w
     }
 
     /// Cells.
@@ -232,8 +237,7 @@ impl GridLaplacian {
     }
 
     /// y = A x.
-    #[cfg(test)]
-    pub fn multiply(&self, x: &[f32], y: &mut [f32]) {
+    pub(super) fn multiply(&self, x: &[f32], y: &mut [f32]) {
         self.multiply_dots(x, y, []);
     }
 
@@ -529,7 +533,7 @@ impl GridLaplacian {
     /// its rows and the second on its inner rows, reading copies of the rows around it (their
     /// second colour, unchanged until then), and then the second colour on its first and last
     /// rows, from fresh copies.
-    fn sweep<B: Rhs>(&self, b: &[B], x: &mut [f32], forward: bool) {
+    pub(super) fn sweep<B: Rhs>(&self, b: &[B], x: &mut [f32], forward: bool) {
         let (first, second) = if forward { (0, 1) } else { (1, 0) };
         let w = self.w;
         let rows = rows_per_task(w);

@@ -32,6 +32,7 @@ use super::sparse::{NONE, Stencil, Unknowns};
 use faer::linalg::solvers::{Llt, Solve};
 use faer::{Mat, MatMut, Side};
 
+pub(crate) mod blocks;
 pub(crate) mod grid;
 
 /// A coupling is strong when its weight is at least this fraction of the node's strongest
@@ -298,7 +299,12 @@ pub(crate) struct Multigrid {
 impl Multigrid {
     /// The hierarchy of the stencil `a` on the unknowns `u`.
     pub fn new(u: &Unknowns, a: &Stencil) -> Self {
-        let mut levels = vec![Csr::from_stencil(u, a)];
+        Self::from_finest(Csr::from_stencil(u, a))
+    }
+
+    /// The hierarchy whose finest level is `finest`.
+    fn from_finest(finest: Csr) -> Self {
+        let mut levels = vec![finest];
         let mut aggregates = Vec::new();
         loop {
             let fine = levels.last().expect("at least the finest level");
