@@ -350,36 +350,8 @@ mod tests {
     /// 71 when written), and far fewer than with the diagonal (Jacobi: over a thousand).
     #[test]
     fn preconditions_uneven_weights_on_masked_unknowns() {
-        use crate::grid::Grid;
         use crate::integrate::sparse::{Preconditioner, solve_known};
-        let (n, pad) = (128, 24);
-        let c = n as f64 * 0.35;
-        let mask = Grid::from_fn(n + 2 * pad, n + pad, |x, y| {
-            let (Some(x), Some(y)) = (x.checked_sub(pad), y.checked_sub(pad)) else {
-                return false;
-            };
-            let (dx, dy) = (x as f64 - c, y as f64 - c);
-            let r2 = dx * dx + dy * dy;
-            x < n && ((r2 < (0.3 * n as f64).powi(2) && r2 > 4.0) || (x > 3 * n / 4 && y > n / 8))
-        });
-        let u = Unknowns::new(&mask);
-        assert_eq!(u.parts, 2);
-        let mut a = Stencil::zeros(u.len());
-        let mut unused = vec![0.0; u.len()];
-        for i in 0..u.len() {
-            let pix = u.pixel[i] as usize;
-            let (x, y) = (pix % u.w, pix / u.w);
-            for (nb, along) in [(u.right[i], true), (u.down[i], false)] {
-                if nb != NONE {
-                    let weight = if along && x == pad + n / 3 && y % 9 != 0 {
-                        1e-6
-                    } else {
-                        10f64.powi((((x * 31 + y * 17) % 4) as i32) - 3)
-                    };
-                    a.add_edge(&mut unused, (i, nb as usize), along, weight, 0.0);
-                }
-            }
-        }
+        let (mask, u, a) = super::super::grid::tests::uneven_weights(0, 1e-6, false);
         let window = mask.bounding_box().expect("a mask with pixels");
         let blocks = BlockPreconditioner::new(&u, &a, window);
         let grid = crate::integrate::multigrid::grid::GridPreconditioner::new(&u, &a, window);

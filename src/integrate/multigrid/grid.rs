@@ -119,14 +119,26 @@ pub(crate) struct GridLaplacian {
 impl GridLaplacian {
     /// The Laplacian with the given edge weights (row-major, `w`×`h` each); the weights of
     /// edges that leave the grid are ignored.
-    pub fn new(w: usize, h: usize, mut right: Vec<f32>, mut down: Vec<f32>) -> Self {
+    pub fn new(w: usize, h: usize, right: Vec<f32>, down: Vec<f32>) -> Self {
+        Self::with_diagonal_storage(w, h, right, down, Vec::new())
+    }
+
+    /// [`Self::new`], its diagonal written into the storage of `diag` (any length).
+    fn with_diagonal_storage(
+        w: usize,
+        h: usize,
+        mut right: Vec<f32>,
+        mut down: Vec<f32>,
+        mut diag: Vec<f32>,
+    ) -> Self {
         for y in 0..h {
             right[y * w + w - 1] = 0.0;
         }
         if h > 0 {
             down[(h - 1) * w..].iter_mut().for_each(|v| *v = 0.0);
         }
-        let mut diag = vec![0f32; w * h];
+        diag.clear();
+        diag.resize(w * h, 0.0);
         diag.par_chunks_mut(w.max(1))
             .enumerate()
             .with_min_len(rows_per_task(w))
@@ -722,6 +734,26 @@ impl GridMultigrid {
         &self.levels[0]
     }
 
+    /// The finest level, the hierarchy's other levels dropped.
+    fn into_finest(self) -> GridLaplacian {
+        let mut levels = self.levels;
+        levels.truncate(1);
+        levels.pop().expect("at least the finest level")
+    }
+
+    /// [`Self::work`] in the storage of `work` (from an earlier hierarchy, any sizes): the same
+    /// zeros, without fresh allocations where the sizes are those already held.
+    fn reset_work(&self, work: &mut Vec<Work<f32>>) {
+        let coarse = &self.levels[1..];
+        work.truncate(coarse.len());
+        for (w, level) in work.iter_mut().zip(coarse) {
+            w.reset(level.len());
+        }
+        for level in &coarse[work.len()..] {
+            work.push(Work::zeros(level.len()));
+        }
+    }
+
     /// The scratch vectors of the cycle, kept between cycles (see [`Work`]).
     pub fn work(&self) -> Vec<Work<f32>> {
         self.levels[1..]
@@ -910,7 +942,6 @@ impl GridPreconditioner {
     /// The hierarchy of `a` (off-diagonals −weight, as [`Stencil::add_edge`] writes them) on
     /// `window`, which holds every unknown of `u` (the domain's bounding box).
     pub fn new(u: &Unknowns, a: &Stencil, window: Window) -> Self {
-        let (w, h) = (window.width(), window.height());
         let cell: Vec<u32> = u
             .pixel
             .iter()
@@ -920,8 +951,41 @@ impl GridPreconditioner {
                 c.unwrap_or(0) as u32
             })
             .collect();
-        let mut right = vec![0f32; w * h];
-        let mut down = vec![0f32; w * h];
+        let (w, h) = (window.width(), window.height());
+        let cells = || vec![0f32; w * h];
+        Self::build(u, a, (w, h), cell, (cells(), cells(), Vec::new()))
+    }
+
+    /// The hierarchy of `a`, new weights on the unknowns and window of `self`, built in the
+    /// storage of `self`'s finest level and window cells: the bilateral integrator's
+    /// reweighting steps rebuild it for every step, and on large windows fresh storage costs
+    /// page faults (the kernel clearing each new page) as much as the build itself. The same
+    /// hierarchy, value for value, as [`Self::new`] builds.
+    pub fn rebuild(self, u: &Unknowns, a: &Stencil) -> Self {
+        let GridPreconditioner { mg, cell } = self;
+        let finest = mg.into_finest();
+        let (w, h) = (finest.w, finest.h);
+        let GridLaplacian {
+            mut right,
+            mut down,
+            diag,
+            ..
+        } = finest;
+        right.fill(0.0);
+        down.fill(0.0);
+        Self::build(u, a, (w, h), cell, (right, down, diag))
+    }
+
+    /// The hierarchy of `a` on a `w`×`h` window whose cell of each unknown is `cell`, its finest
+    /// level's edge weights and diagonal written into `storage` (right and down zero, of the
+    /// window's size; the diagonal of any size).
+    fn build(
+        u: &Unknowns,
+        a: &Stencil,
+        (w, h): (usize, usize),
+        cell: Vec<u32>,
+        (mut right, mut down, diag): (Vec<f32>, Vec<f32>, Vec<f32>),
+    ) -> Self {
         for (k, &c) in cell.iter().enumerate() {
             if u.right[k] != NONE {
                 right[c as usize] = (-a.right[k]).max(0.0) as f32;
@@ -931,7 +995,9 @@ impl GridPreconditioner {
             }
         }
         GridPreconditioner {
-            mg: GridMultigrid::new(GridLaplacian::new(w, h, right, down)),
+            mg: GridMultigrid::new(GridLaplacian::with_diagonal_storage(
+                w, h, right, down, diag,
+            )),
             cell,
         }
     }
@@ -944,6 +1010,23 @@ impl GridPreconditioner {
             z: vec![0.0; n],
             work: self.mg.work(),
         }
+    }
+
+    /// [`Self::scratch`] in the storage of `old` (another hierarchy's scratch, of any sizes):
+    /// the same zeros, without fresh allocations where the sizes are those already held.
+    pub fn scratch_in(&self, old: GridScratch) -> GridScratch {
+        let n = self.mg.finest().len();
+        let GridScratch {
+            mut r,
+            mut z,
+            mut work,
+        } = old;
+        r.clear();
+        r.resize(n, 0.0);
+        z.clear();
+        z.resize(n, 0.0);
+        self.mg.reset_work(&mut work);
+        GridScratch { r, z, work }
     }
 
     /// z = M⁻¹ r.
@@ -1106,7 +1189,7 @@ pub(crate) fn solve(
 }
 
 #[cfg(test)]
-mod tests {
+pub(in crate::integrate::multigrid) mod tests {
     use super::*;
 
     /// A disk with a hole and a separate bar (two parts) on an n×n grid, as unit-weight edges.
@@ -1502,17 +1585,16 @@ mod tests {
         assert!(nearest_below * 10 > rows, "{nearest_below} of {rows}");
     }
 
-    /// Masked unknowns (a disc with a hole and a bar, inside a wider image, so that their
-    /// bounding box is a window of it) whose edge weights span three orders of magnitude, with
-    /// a line of near-zero (cut) weights, as the bilateral integrator's reweighting steps make
-    /// them (the aggregation hierarchy's test of the same weights, which it solves in 44
-    /// iterations on its own mask): the
-    /// grid preconditioner on the bounding box solves them in 71, where the diagonal (Jacobi)
-    /// takes over a thousand.
-    #[test]
-    fn preconditions_uneven_weights_on_masked_unknowns() {
+    /// The masked unknowns and weights of the test below: a disc with a hole and a bar inside
+    /// a wider image, weights spanning three orders of magnitude in a pattern moved by `shift`,
+    /// and the edges to the right of the pixels on a line (column `pad + n/3`, but every ninth
+    /// row) weighing `cut` — every edge of those pixels when `isolate`.
+    pub(in crate::integrate::multigrid) fn uneven_weights(
+        shift: usize,
+        cut: f64,
+        isolate: bool,
+    ) -> (crate::grid::Mask, Unknowns, Stencil) {
         use crate::grid::Grid;
-        use crate::integrate::sparse::{Preconditioner, solve_known};
         let (n, pad) = (128, 24);
         let c = n as f64 * 0.35;
         let mask = Grid::from_fn(n + 2 * pad, n + pad, |x, y| {
@@ -1524,23 +1606,111 @@ mod tests {
             x < n && ((r2 < (0.3 * n as f64).powi(2) && r2 > 4.0) || (x > 3 * n / 4 && y > n / 8))
         });
         let u = Unknowns::new(&mask);
-        assert_eq!(u.parts, 2);
         let mut a = Stencil::zeros(u.len());
         let mut unused = vec![0.0; u.len()];
+        let on_line = |x: usize, y: usize| x == pad + n / 3 && !y.is_multiple_of(9);
         for i in 0..u.len() {
             let pix = u.pixel[i] as usize;
             let (x, y) = (pix % u.w, pix / u.w);
             for (nb, along) in [(u.right[i], true), (u.down[i], false)] {
                 if nb != NONE {
-                    let weight = if along && x == pad + n / 3 && y % 9 != 0 {
-                        1e-6
+                    let (x2, y2) = if along { (x + 1, y) } else { (x, y + 1) };
+                    let cut_here = if isolate {
+                        on_line(x, y) || on_line(x2, y2)
                     } else {
-                        10f64.powi((((x * 31 + y * 17) % 4) as i32) - 3)
+                        along && on_line(x, y)
+                    };
+                    let weight = if cut_here {
+                        cut
+                    } else {
+                        10f64.powi((((x * 31 + y * 17 + shift) % 4) as i32) - 3)
                     };
                     a.add_edge(&mut unused, (i, nb as usize), along, weight, 0.0);
                 }
             }
         }
+        (mask, u, a)
+    }
+
+    /// The bilateral steps rebuild the hierarchy in the last step's storage and reuse the
+    /// solve's vectors (`GridPreconditioner::rebuild`, `pcg_in`): that must solve as a hierarchy
+    /// and vectors made afresh, value for value, also where the new weights change which cells
+    /// are active (a line of pixels whose edges `f32` rounds to zero) and after the storage
+    /// served another system.
+    #[test]
+    fn rebuilt_in_place_solves_as_built_afresh() {
+        use crate::integrate::sparse::{PcgWork, Preconditioner, known_solution, pcg, pcg_in};
+        let (mask, u, first) = uneven_weights(0, 1e-6, false);
+        let (_, _, second) = uneven_weights(1, 1e-50, true);
+        let window = mask.bounding_box().expect("a mask with pixels");
+        let stop = Stop {
+            tol: 1e-10,
+            max_iter: 500,
+            data: None,
+        };
+        let mut work = PcgWork::default();
+        let old = GridPreconditioner::new(&u, &first, window);
+        let (_, b) = known_solution(&u, &first);
+        let mut x = vec![0.0; u.len()];
+        pcg_in(
+            &u,
+            &first,
+            &b,
+            &mut x,
+            &Preconditioner::Grid(&old),
+            stop,
+            &mut work,
+        );
+        let active = |g: &GridPreconditioner| g.mg.finest().active();
+        let active_before = active(&old);
+        let rebuilt = old.rebuild(&u, &second);
+        let fresh = GridPreconditioner::new(&u, &second, window);
+        assert!(
+            active(&rebuilt) < active_before,
+            "the active set did not change"
+        );
+        let (_, b) = known_solution(&u, &second);
+        let (mut in_place, mut afresh) = (vec![0.0; u.len()], vec![0.0; u.len()]);
+        let reused = pcg_in(
+            &u,
+            &second,
+            &b,
+            &mut in_place,
+            &Preconditioner::Grid(&rebuilt),
+            stop,
+            &mut work,
+        );
+        let made = pcg(
+            &u,
+            &second,
+            &b,
+            &mut afresh,
+            &Preconditioner::Grid(&fresh),
+            stop,
+        );
+        assert_eq!(reused, made);
+        assert_eq!(made.1, Convergence::Residual, "{made:?}");
+        assert!(
+            in_place
+                .iter()
+                .zip(&afresh)
+                .all(|(p, q)| p.to_bits() == q.to_bits()),
+            "the iterates differ"
+        );
+    }
+
+    /// Masked unknowns (a disc with a hole and a bar, inside a wider image, so that their
+    /// bounding box is a window of it) whose edge weights span three orders of magnitude, with
+    /// a line of near-zero (cut) weights, as the bilateral integrator's reweighting steps make
+    /// them (the aggregation hierarchy's test of the same weights, which it solves in 44
+    /// iterations on its own mask): the
+    /// grid preconditioner on the bounding box solves them in 71, where the diagonal (Jacobi)
+    /// takes over a thousand.
+    #[test]
+    fn preconditions_uneven_weights_on_masked_unknowns() {
+        use crate::integrate::sparse::{Preconditioner, solve_known};
+        let (mask, u, a) = uneven_weights(0, 1e-6, false);
+        assert_eq!(u.parts, 2);
         let window = mask.bounding_box().expect("a mask with pixels");
         let grid = GridPreconditioner::new(&u, &a, window);
         let solve = |pre: &Preconditioner| solve_known(&u, &a, pre, 5000);

@@ -500,6 +500,17 @@ impl<T: Copy + Default> Work<T> {
             },
         }
     }
+
+    /// The same as [`Self::zeros`] in the storage already held: every vector resized to `n`
+    /// and set to zero (no fresh pages for the kernel to fault in and clear).
+    fn reset(&mut self, n: usize) {
+        let Work { rc, xc, k } = self;
+        let KVectors { c1, v1, r2, c2, v2 } = k;
+        for v in [rc, xc, c1, v1, r2, c2, v2] {
+            v.clear();
+            v.resize(n, T::default());
+        }
+    }
 }
 
 /// Largest coarsest level factorised densely (a stalled hierarchy may end above [`COARSEST`]).
