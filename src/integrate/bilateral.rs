@@ -105,6 +105,12 @@ pub const CUT_FLOOR: f64 = 1e-6;
 const REINTEGRATE_CG_TOL: f64 = 1e-8;
 /// Iteration limit of that solve.
 const REINTEGRATE_CG_MAX_ITER: usize = 20_000;
+/// Iterations the re-integration gives the block preconditioner (`multigrid/blocks.rs`) before
+/// it solves again from the same start with the aggregation hierarchy: the block preconditioner
+/// took 6–10 on every scene measured (the aggregation hierarchy 8–19), but on a mask of 512
+/// one-pixel-wide columns (as many connected parts) it stalled, where the aggregation hierarchy
+/// converges (docs/integration.md). Four times the most it took where it works.
+const BLOCK_MAX_ITER: usize = 40;
 /// Most regions whose offsets [`RegionOffsets`] deflates (a dense matrix of that order, 2 MiB
 /// at most); with more, the re-integration keeps the relative residual alone.
 const MAX_DEFLATED_REGIONS: usize = 512;
@@ -763,7 +769,7 @@ fn reintegrate(
     };
     drop(a2s);
     let scale = if median > 0.0 { 1.0 / median } else { 1.0 };
-    let method = if solver.direct_for(n) {
+    let mut method = if solver.direct_for(n) {
         SolveMethod::Direct
     } else if solver == LinearSolver::ConjugateGradient {
         SolveMethod::JacobiCg
@@ -798,18 +804,29 @@ fn reintegrate(
         norm2,
         redundancy: (edges + u.parts).saturating_sub(n),
     });
-    let (iterations, convergence) = solve(
-        u,
-        &a,
-        &rhs,
-        z,
-        method,
-        Stop {
-            tol: REINTEGRATE_CG_TOL,
-            max_iter: REINTEGRATE_CG_MAX_ITER,
-            data,
-        },
-    )?;
+    let stop = |max_iter| Stop {
+        tol: REINTEGRATE_CG_TOL,
+        max_iter,
+        data,
+    };
+    // The block preconditioner gets a bounded number of iterations; where it stalls, the
+    // aggregation hierarchy solves the system from the same start.
+    let start = (method == SolveMethod::BlockMultigridCg).then(|| z.clone());
+    let first_limit = if start.is_some() {
+        BLOCK_MAX_ITER
+    } else {
+        REINTEGRATE_CG_MAX_ITER
+    };
+    let (mut iterations, mut convergence) = solve(u, &a, &rhs, z, method, stop(first_limit))?;
+    if let Some(start) = start
+        && !convergence.converged()
+    {
+        *z = start;
+        method = SolveMethod::MultigridCg;
+        let (more, how) = solve(u, &a, &rhs, z, method, stop(REINTEGRATE_CG_MAX_ITER))?;
+        iterations += more;
+        convergence = how;
+    }
     if convergence == Convergence::DataNoise
         && let Some(o) = offsets
         && o.regions > u.parts
@@ -908,13 +925,65 @@ mod tests {
         assert_eq!(closed_off(&u, &cut), ClosedOff::default());
     }
 
+    /// A domain of many parts (one-pixel-wide columns, every other column of the image, with
+    /// noisy normals that the steps cut in places), solved iteratively: the re-integration
+    /// should converge, with the block preconditioner or, where that stalls, with the
+    /// aggregation hierarchy from the same start, to the direct re-integration's depth.
+    ///
+    /// Known failure, kept as the scene that reproduces it: the block preconditioner stalls
+    /// (40 iterations without converging; at 1024² too), and the aggregation hierarchy then
+    /// breaks down after 4 (pᵀAp ≤ 0), as it did before the block preconditioner existed.
+    /// Removing each part's mean from the preconditioned residual (the preconditioner
+    /// projected off A's null space) made the aggregation hierarchy converge in 28, not the
+    /// block preconditioner; not yet done, because it changes every multi-part solve.
+    /// Beyond the direct limit only (100 000 unknowns by default).
+    #[test]
+    #[ignore = "known failure: many thin parts, see the doc comment and docs/integration.md"]
+    fn reintegration_of_many_thin_parts_converges() {
+        let (w, h) = (96usize, 160usize);
+        let domain = Grid::from_fn(w, h, |x, _| x % 2 == 0);
+        let normals = Grid::from_fn(w, h, |x, y| {
+            let t = ((x * 7919 + y * 104_729) % 1000) as f64 / 1000.0 - 0.5;
+            let slope = 0.3 * (y as f64 / 9.0).sin() + 0.8 * t;
+            nalgebra::Vector3::new(0.0, slope, 1.0)
+                .normalize()
+                .cast::<f32>()
+        });
+        let solve = |solver| {
+            integrate_bilateral(&normals, &domain, None, &BilateralParams::default(), solver)
+                .unwrap()
+        };
+        let iterative = solve(LinearSolver::Multigrid);
+        let exact = solve(LinearSolver::Direct);
+        println!("{:?}", iterative.solve);
+        assert!(
+            iterative.solve.convergence.converged(),
+            "{:?}",
+            iterative.solve
+        );
+        assert!(matches!(
+            iterative.solve.method,
+            SolveMethod::BlockMultigridCg | SolveMethod::MultigridCg
+        ));
+        let worst = iterative
+            .z
+            .data()
+            .iter()
+            .zip(exact.z.data())
+            .filter(|(a, _)| a.is_finite())
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(worst < 1e-3, "{worst}");
+    }
+
     /// The re-integration beyond the direct solve stops at the data's noise with the offsets
     /// of the regions the cuts close off deflated: on a ball floating over a curved ground, its
     /// rim cut all around, the depth matches the exact (direct) re-integration over the same
-    /// cuts, from a start at zero (the largest difference 6.1e-5 px over a range of 84 px, in 15
-    /// iterations; 3.8e-4 px with the offsets' correction disabled: the hierarchy, whose
-    /// aggregates never join across a cut, already solves most of the offset). The bound
-    /// catches a stop far too early.
+    /// cuts, from a start at zero (the largest difference 3.8e-5 px over a range of 84 px, in 10
+    /// iterations of the block preconditioner, `multigrid/blocks.rs`; with the aggregation
+    /// hierarchy before it 6.1e-5 px in 15, and 3.8e-4 px with the offsets' correction
+    /// disabled: a hierarchy whose aggregates never join across a cut already solves most of
+    /// the offset). The bound catches a stop far too early.
     #[test]
     fn deflated_reintegration_keeps_a_closed_off_region_in_place() {
         let (n, r) = (200usize, 70.0f64);
@@ -958,6 +1027,7 @@ mod tests {
         let (exact, _, _) = solved(LinearSolver::Direct);
         assert_eq!(closed.regions, 1, "{closed:?}");
         assert_eq!(info.convergence, Convergence::DataNoise, "{info:?}");
+        assert_eq!(info.method, SolveMethod::BlockMultigridCg, "{info:?}");
         let worst = z
             .iter()
             .zip(&exact)

@@ -17,8 +17,9 @@
 //!
 //! So this one takes the finest level from the first and everything below from the second.
 //! The finest level is the grid's (on the unknowns' bounding box, weights rounded to `f32`, each
-//! diagonal upwards so that it stays positive semidefinite: `grid::round_up`), smoothed by one
-//! symmetric red–black Gauss–Seidel sweep before and after the coarse correction. Its
+//! diagonal upwards so that it stays positive semidefinite: `grid::round_up`), smoothed by a
+//! red–black Gauss–Seidel sweep before the coarse correction (red, then black) and one after
+//! it (black, then red): together one symmetric sweep. Its
 //! aggregates are the **strongly coupled components of each 2×2 block**: two cells of a block
 //! are joined when the edge between them weighs at least [`STRONG`] of the strongest coupling of
 //! *each* of them (Notay's test, "An aggregation-based algebraic multigrid method", ETNA 37,
@@ -40,7 +41,9 @@
 //!
 //! Memory: the finest level's weights and diagonal (12 B a cell of the window), its aggregate
 //! (4), the scattered residual (`f64`, 8), the smoothed correction and its product with the
-//! level (`f32`, 4 each); the coarse hierarchy holds at most half as many nodes as unknowns.
+//! level (`f32`, 4 each); the coarse hierarchy holds about a quarter as many nodes as unknowns
+//! where the blocks are smooth and inside the mask, up to one a node where cuts split every block
+//! or the mask is one pixel thin (each such pixel its own aggregate).
 //! Measured, the re-integration's peak is below the aggregation hierarchy's, which the
 //! streamed plans count (`run/stream.rs`: 2048² sphere 745 → 654 MB, a 1024² torus on a ground
 //! 350 → 314 MB for the whole `integrate` process).

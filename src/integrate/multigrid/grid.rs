@@ -1699,6 +1699,57 @@ pub(in crate::integrate::multigrid) mod tests {
         );
     }
 
+    /// A scratch kept from another hierarchy (of another size and depth, and dirtied by a
+    /// cycle) and reset for this one is the scratch made afresh: the same sizes, all zeros,
+    /// and the same cycle bit for bit — both ways, from a deeper and from a shallower one.
+    #[test]
+    fn scratch_reset_from_another_hierarchy_is_made_afresh() {
+        use crate::grid::Grid;
+        let build = |n: usize| {
+            let mask = Grid::from_fn(n, n, |x, y| !(x + y).is_multiple_of(7) || x == y);
+            let u = Unknowns::new(&mask);
+            let mut a = Stencil::zeros(u.len());
+            let mut unused = vec![0.0; u.len()];
+            for i in 0..u.len() {
+                for (nb, along) in [(u.right[i], true), (u.down[i], false)] {
+                    if nb != NONE {
+                        let weight = 1.0 + (i % 5) as f64;
+                        a.add_edge(&mut unused, (i, nb as usize), along, weight, 0.0);
+                    }
+                }
+            }
+            let window = mask.bounding_box().expect("a mask with pixels");
+            let g = GridPreconditioner::new(&u, &a, window);
+            let r: Vec<f64> = (0..u.len()).map(|k| ((k * 37) % 11) as f64 - 5.0).collect();
+            (g, r)
+        };
+        let (small, r_small) = build(40);
+        let (large, r_large) = build(300);
+        assert!(large.mg.levels.len() > small.mg.levels.len());
+        for ((from, r_from), (to, r_to)) in [
+            ((&large, &r_large), (&small, &r_small)),
+            ((&small, &r_small), (&large, &r_large)),
+        ] {
+            let mut dirty = from.scratch();
+            let mut z = vec![0.0; r_from.len()];
+            from.apply(r_from, &mut z, &mut dirty);
+            let reset = to.scratch_in(dirty);
+            let fresh = to.scratch();
+            assert_eq!(reset.work.len(), fresh.work.len());
+            assert!(reset.r.iter().chain(&fresh.r).all(|&v| v == 0.0));
+            assert!(reset.z.iter().all(|&v| v == 0.0));
+            assert_eq!(
+                (reset.r.len(), reset.z.len()),
+                (fresh.r.len(), fresh.z.len())
+            );
+            let (mut reused, mut afresh) = (reset, fresh);
+            let (mut z1, mut z2) = (vec![0.0; r_to.len()], vec![0.0; r_to.len()]);
+            to.apply(r_to, &mut z1, &mut reused);
+            to.apply(r_to, &mut z2, &mut afresh);
+            assert!(z1.iter().zip(&z2).all(|(p, q)| p.to_bits() == q.to_bits()));
+        }
+    }
+
     /// Masked unknowns (a disc with a hole and a bar, inside a wider image, so that their
     /// bounding box is a window of it) whose edge weights span three orders of magnitude, with
     /// a line of near-zero (cut) weights, as the bilateral integrator's reweighting steps make
