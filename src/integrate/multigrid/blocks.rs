@@ -51,7 +51,7 @@
 //! Fails where: the finest level's cost is set by the bounding box, not by the mask (as the grid
 //! hierarchy's); the aggregation levels below are sequential.
 
-use super::grid::{GridLaplacian, rows_per_task};
+use super::grid::{GridLaplacian, rows_per_task, scatter_weights, window_cells};
 use super::{Csr, Multigrid, STRONG, Work};
 use crate::grid::Window;
 use crate::integrate::sparse::{NONE, Stencil, Unknowns};
@@ -88,25 +88,10 @@ impl BlockPreconditioner {
     /// bounding box).
     pub fn new(u: &Unknowns, a: &Stencil, window: Window) -> Self {
         let (w, h) = (window.width(), window.height());
-        let cell: Vec<u32> = u
-            .pixel
-            .iter()
-            .map(|&p| {
-                let c = window.local(u.w, p as usize);
-                debug_assert!(c.is_some(), "unknown at pixel {p} outside {window}");
-                c.unwrap_or(0) as u32
-            })
-            .collect();
+        let cell = window_cells(u, window);
         let mut right = vec![0f32; w * h];
         let mut down = vec![0f32; w * h];
-        for (k, &c) in cell.iter().enumerate() {
-            if u.right[k] != NONE {
-                right[c as usize] = (-a.right[k]).max(0.0) as f32;
-            }
-            if u.down[k] != NONE {
-                down[c as usize] = (-a.down[k]).max(0.0) as f32;
-            }
-        }
+        scatter_weights(u, a, &cell, &mut right, &mut down);
         let finest = GridLaplacian::new(w, h, right, down);
         let (of_unknown, m) = block_aggregates(u, a, &cell, w);
         let mut aggregate = vec![NONE; w * h];

@@ -938,19 +938,43 @@ pub(crate) struct GridScratch {
     work: Vec<Work<f32>>,
 }
 
+/// The cell of each unknown of `u` in `window`, which holds them all.
+pub(super) fn window_cells(u: &Unknowns, window: Window) -> Vec<u32> {
+    u.pixel
+        .iter()
+        .map(|&p| {
+            let c = window.local(u.w, p as usize);
+            debug_assert!(c.is_some(), "unknown at pixel {p} outside {window}");
+            c.unwrap_or(0) as u32
+        })
+        .collect()
+}
+
+/// Writes the edge weights of `a` (off-diagonals −weight) into the window's grids `right` and
+/// `down` at each unknown's cell, rounded to `f32`; cells without an unknown or an edge are
+/// left as they are (zero).
+pub(super) fn scatter_weights(
+    u: &Unknowns,
+    a: &Stencil,
+    cell: &[u32],
+    right: &mut [f32],
+    down: &mut [f32],
+) {
+    for (k, &c) in cell.iter().enumerate() {
+        if u.right[k] != NONE {
+            right[c as usize] = (-a.right[k]).max(0.0) as f32;
+        }
+        if u.down[k] != NONE {
+            down[c as usize] = (-a.down[k]).max(0.0) as f32;
+        }
+    }
+}
+
 impl GridPreconditioner {
     /// The hierarchy of `a` (off-diagonals −weight, as [`Stencil::add_edge`] writes them) on
     /// `window`, which holds every unknown of `u` (the domain's bounding box).
     pub fn new(u: &Unknowns, a: &Stencil, window: Window) -> Self {
-        let cell: Vec<u32> = u
-            .pixel
-            .iter()
-            .map(|&p| {
-                let c = window.local(u.w, p as usize);
-                debug_assert!(c.is_some(), "unknown at pixel {p} outside {window}");
-                c.unwrap_or(0) as u32
-            })
-            .collect();
+        let cell = window_cells(u, window);
         let (w, h) = (window.width(), window.height());
         let cells = || vec![0f32; w * h];
         Self::build(u, a, (w, h), cell, (cells(), cells(), Vec::new()))
@@ -986,14 +1010,7 @@ impl GridPreconditioner {
         cell: Vec<u32>,
         (mut right, mut down, diag): (Vec<f32>, Vec<f32>, Vec<f32>),
     ) -> Self {
-        for (k, &c) in cell.iter().enumerate() {
-            if u.right[k] != NONE {
-                right[c as usize] = (-a.right[k]).max(0.0) as f32;
-            }
-            if u.down[k] != NONE {
-                down[c as usize] = (-a.down[k]).max(0.0) as f32;
-            }
-        }
+        scatter_weights(u, a, &cell, &mut right, &mut down);
         GridPreconditioner {
             mg: GridMultigrid::new(GridLaplacian::with_diagonal_storage(
                 w, h, right, down, diag,
