@@ -819,8 +819,8 @@ pub enum SolverArg {
     /// Preconditioned conjugate gradients (DCT for masked-ls, Jacobi for bilateral).
     Cg,
     /// Conjugate gradients preconditioned with multigrid (linear time and memory): on the pixel
-    /// grid for masked-ls and bilateral's reweighting steps, aggregation multigrid for
-    /// bilateral's re-integration.
+    /// grid for masked-ls and bilateral's reweighting steps; for bilateral's re-integration the
+    /// grid's smoothing with a coarse level of aggregates that never join the two sides of a cut.
     Multigrid,
 }
 
