@@ -52,7 +52,7 @@
 //! hierarchy's); the aggregation levels below are sequential.
 
 use super::grid::{GridLaplacian, rows_per_task, scatter_weights, window_cells};
-use super::{Csr, Multigrid, STRONG, Work};
+use super::{CoarseRows, Csr, Multigrid, STRONG, Work, aggregate_members};
 use crate::grid::Window;
 use crate::integrate::sparse::{NONE, Stencil, Unknowns};
 use rayon::prelude::*;
@@ -259,29 +259,10 @@ fn block_aggregates(u: &Unknowns, a: &Stencil, cell: &[u32], w: usize) -> (Vec<u
 /// weight between two aggregates is the sum of the weights between their members, and each
 /// diagonal the sum of its aggregate's edges to the others.
 fn galerkin(u: &Unknowns, a: &Stencil, agg: &[u32], m: usize) -> Csr {
-    let n = u.len();
-    let mut first = vec![0usize; m + 1];
-    for &g in agg {
-        first[g as usize + 1] += 1;
-    }
-    for k in 0..m {
-        first[k + 1] += first[k];
-    }
-    let mut fill = first.clone();
-    let mut members = vec![0u32; n];
-    for (i, &g) in agg.iter().enumerate() {
-        members[fill[g as usize]] = i as u32;
-        fill[g as usize] += 1;
-    }
-    drop(fill);
+    let (first, members) = aggregate_members(agg, m);
     let mut diag = vec![0f64; m];
-    let mut start = Vec::with_capacity(m + 1);
-    let mut col = Vec::with_capacity(4 * m);
-    let mut val = Vec::with_capacity(4 * m);
-    let mut slot = vec![usize::MAX; m];
-    start.push(0);
+    let mut rows = CoarseRows::new(m, 4 * m);
     for (g, d) in diag.iter_mut().enumerate() {
-        let row_start = col.len();
         for &i in &members[first[g]..first[g + 1]] {
             let i = i as usize;
             let left = u.left[i];
@@ -308,21 +289,12 @@ fn galerkin(u: &Unknowns, a: &Stencil, agg: &[u32], m: usize) -> Csr {
                     continue;
                 }
                 *d -= v;
-                if slot[c] == usize::MAX {
-                    slot[c] = col.len();
-                    col.push(c as u32);
-                    val.push(v);
-                } else {
-                    val[slot[c]] += v;
-                }
+                rows.add(c, v);
             }
         }
-        for &c in &col[row_start..] {
-            slot[c as usize] = usize::MAX;
-        }
-        start.push(col.len());
+        rows.end_row();
     }
-    Csr::new(diag, start, col, val)
+    rows.finish(diag)
 }
 
 #[cfg(test)]

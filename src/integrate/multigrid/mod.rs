@@ -35,6 +35,81 @@ use faer::{Mat, MatMut, Side};
 pub(crate) mod blocks;
 pub(crate) mod grid;
 
+/// The members of each of `m` aggregates (`agg`: each node's aggregate) by a counting sort, in
+/// node order: those of aggregate k are `members[first[k]..first[k + 1]]`. Returns (`first`,
+/// `members`); the Galerkin products build their coarse rows one aggregate at a time from it.
+pub(super) fn aggregate_members(agg: &[u32], m: usize) -> (Vec<usize>, Vec<u32>) {
+    let mut first = vec![0usize; m + 1];
+    for &a in agg {
+        first[a as usize + 1] += 1;
+    }
+    for k in 0..m {
+        first[k + 1] += first[k];
+    }
+    let mut fill = first.clone();
+    let mut members = vec![0u32; agg.len()];
+    for (i, &a) in agg.iter().enumerate() {
+        members[fill[a as usize]] = i as u32;
+        fill[a as usize] += 1;
+    }
+    (first, members)
+}
+
+/// The off-diagonal part of a Galerkin matrix in compressed rows, built one coarse row at a
+/// time: the contributions to a column of the row being built are summed in the order they
+/// come, the columns kept in the order first met.
+pub(super) struct CoarseRows {
+    start: Vec<usize>,
+    col: Vec<u32>,
+    val: Vec<f64>,
+    /// Position of each coarse column in the row being built (`usize::MAX`: not in it).
+    slot: Vec<usize>,
+    /// Where the row being built starts in `col`.
+    row_start: usize,
+}
+
+impl CoarseRows {
+    /// Rows of a matrix of order `m`, with room for `capacity` entries.
+    pub(super) fn new(m: usize, capacity: usize) -> Self {
+        CoarseRows {
+            start: {
+                let mut s = Vec::with_capacity(m + 1);
+                s.push(0);
+                s
+            },
+            col: Vec::with_capacity(capacity),
+            val: Vec::with_capacity(capacity),
+            slot: vec![usize::MAX; m],
+            row_start: 0,
+        }
+    }
+
+    /// Adds `v` to column `c` of the row being built.
+    pub(super) fn add(&mut self, c: usize, v: f64) {
+        if self.slot[c] == usize::MAX {
+            self.slot[c] = self.col.len();
+            self.col.push(c as u32);
+            self.val.push(v);
+        } else {
+            self.val[self.slot[c]] += v;
+        }
+    }
+
+    /// Closes the row being built; the next `add` starts the next row.
+    pub(super) fn end_row(&mut self) {
+        for &c in &self.col[self.row_start..] {
+            self.slot[c as usize] = usize::MAX;
+        }
+        self.row_start = self.col.len();
+        self.start.push(self.col.len());
+    }
+
+    /// The matrix with diagonal `diag`.
+    pub(super) fn finish(self, diag: Vec<f64>) -> Csr {
+        Csr::new(diag, self.start, self.col, self.val)
+    }
+}
+
 /// A coupling is strong when its weight is at least this fraction of the node's strongest
 /// coupling (Notay 2010 uses 0.25 for the same test).
 pub(crate) const STRONG: f64 = 0.25;
@@ -177,29 +252,10 @@ impl Csr {
 
     /// The Galerkin matrix PᵀAP for the piecewise-constant prolongation of `agg` (`m` aggregates).
     fn galerkin(&self, agg: &[u32], m: usize) -> Csr {
-        // Members of each aggregate, to build the coarse rows one at a time.
-        let mut first = vec![0usize; m + 1];
-        for &a in agg {
-            first[a as usize + 1] += 1;
-        }
-        for k in 0..m {
-            first[k + 1] += first[k];
-        }
-        let mut fill = first.clone();
-        let mut members = vec![0u32; agg.len()];
-        for (i, &a) in agg.iter().enumerate() {
-            members[fill[a as usize]] = i as u32;
-            fill[a as usize] += 1;
-        }
+        let (first, members) = aggregate_members(agg, m);
         let mut diag = vec![0f64; m];
-        let mut start = Vec::with_capacity(m + 1);
-        let mut col = Vec::with_capacity(self.col.len() / 2);
-        let mut val = Vec::with_capacity(self.col.len() / 2);
-        // Position of each coarse column in the row being built.
-        let mut slot = vec![usize::MAX; m];
-        start.push(0);
+        let mut rows = CoarseRows::new(m, self.col.len() / 2);
         for (big, d) in diag.iter_mut().enumerate() {
-            let row_start = col.len();
             for &i in &members[first[big]..first[big + 1]] {
                 let i = i as usize;
                 *d += self.diag[i];
@@ -207,21 +263,14 @@ impl Csr {
                     let c = agg[j] as usize;
                     if c == big {
                         *d += v;
-                    } else if slot[c] == usize::MAX {
-                        slot[c] = col.len();
-                        col.push(c as u32);
-                        val.push(v);
                     } else {
-                        val[slot[c]] += v;
+                        rows.add(c, v);
                     }
                 }
             }
-            for &c in &col[row_start..] {
-                slot[c as usize] = usize::MAX;
-            }
-            start.push(col.len());
+            rows.end_row();
         }
-        Csr::new(diag, start, col, val)
+        rows.finish(diag)
     }
 
     /// One Gauss–Seidel sweep on A x = b, forward or backward.
