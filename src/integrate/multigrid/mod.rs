@@ -606,7 +606,7 @@ pub(super) fn dense_factor(a: &Csr) -> Coarsest {
 mod tests {
     use super::*;
     use crate::grid::Grid;
-    use crate::integrate::sparse::{Preconditioner, solve_known};
+    use crate::integrate::sparse::{Convergence, Preconditioner, solve_known};
 
     /// A disk with a hole, and a separate bar: two parts.
     fn mask(n: usize) -> crate::grid::Mask {
@@ -691,5 +691,25 @@ mod tests {
         let (its, err) = solve(&u, &a);
         assert!(err < 1e-5, "error {err}");
         assert!(its <= 60, "{its} iterations");
+    }
+
+    /// A comb of 48 one-pixel-wide columns (every other column of 96 × 160, as many parts),
+    /// weights over three orders of magnitude: the coarsest level pins one node per part, and
+    /// the constants its solve leaves in each part used to take over the directions of the
+    /// outer conjugate gradients (breakdown, pᵀAp ≤ 0, before convergence). With the
+    /// preconditioned residual projected onto A's range (`sparse::pcg_in`), exact.
+    #[test]
+    fn many_thin_parts_converge() {
+        let (w, h) = (96, 160);
+        let u = Unknowns::new(&Grid::from_fn(w, h, |x, _| x % 2 == 0));
+        assert_eq!(u.parts, w / 2);
+        let a = laplacian(&u, |i, _, _| {
+            let pix = u.pixel[i] as usize;
+            10f64.powi((((pix * 7919) % 4) as i32) - 3)
+        });
+        let m = Multigrid::new(&u, &a);
+        let (its, convergence, err) = solve_known(&u, &a, &Preconditioner::Multigrid(&m), 500);
+        assert_eq!(convergence, Convergence::Residual, "after {its} iterations");
+        assert!(err < 1e-6, "error {err}");
     }
 }
