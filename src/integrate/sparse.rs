@@ -988,9 +988,8 @@ impl Misfit {
 }
 
 /// Preconditioned conjugate gradients for the consistent, positive semidefinite system
-/// A x = b (b is made zero-mean per part first, and with several parts so is each
-/// preconditioned residual: see [`pcg_in`]), from the initial `x`, until `stop`. Returns the
-/// iterations used.
+/// A x = b (b is made zero-mean per part first), from the initial `x`, until `stop`. Returns
+/// the iterations used.
 pub(crate) fn pcg(
     u: &Unknowns,
     a: &Stencil,
@@ -1117,16 +1116,6 @@ pub(crate) fn pcg_in(
             }
         }
     };
-    // With several connected parts A is singular, a constant per part, and the iterates live
-    // in its range (zero-mean per part). A preconditioner need not keep to it: the aggregation
-    // hierarchy's coarsest level pins one node per part, and its output then carries each
-    // part's constant, which A p cannot see; on many thin parts those constants came to
-    // dominate p and pᵀAp fell to zero (breakdown after 4 iterations on 80 one-pixel-wide
-    // columns; on 512 at 1024², after 3, leaving the depth 5% of its range off). So the
-    // preconditioned residual is projected back onto A's range: each part's mean is removed.
-    // One part is left as it was (its constant is removed at the end, and no breakdown from it
-    // has been seen), so single-part solves keep their iterates bit for bit.
-    let project = u.parts > 1;
     let flexible = matches!(
         pre,
         Preconditioner::Multigrid(_) | Preconditioner::Grid(_) | Preconditioner::Blocks(_)
@@ -1138,9 +1127,6 @@ pub(crate) fn pcg_in(
     }
     zeroed(z, n);
     precondition(r, z);
-    if project {
-        u.zero_mean_parts(z);
-    }
     p.clear();
     p.extend_from_slice(z);
     let mut rz = dot(r, z);
@@ -1168,9 +1154,6 @@ pub(crate) fn pcg_in(
             return (it, Convergence::DataNoise);
         }
         precondition(r, z);
-        if project {
-            u.zero_mean_parts(z);
-        }
         let rz_new = dot(r, z);
         // Flexible (Polak–Ribière) β, for preconditioners that are not a fixed linear map (the
         // K-cycle of multigrid): zᵀ(r − r_prev)/ρ_prev. With a fixed preconditioner it equals

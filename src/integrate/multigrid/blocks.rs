@@ -72,10 +72,6 @@ pub(crate) struct BlockPreconditioner {
     cell: Vec<u32>,
     /// The aggregation hierarchy on the aggregates.
     coarse: Multigrid,
-    /// With several connected parts: the part of each aggregate (aggregates never span two),
-    /// and how many aggregates each part has; empty with one part.
-    aggregate_part: Vec<u32>,
-    aggregates_in_part: Vec<f64>,
 }
 
 /// The scratch of [`BlockPreconditioner::apply`], kept between applications.
@@ -126,25 +122,12 @@ impl BlockPreconditioner {
             .collect();
         spans.push((h, m));
         let coarse = Multigrid::from_finest(galerkin(u, a, &of_unknown, m));
-        let (mut aggregate_part, mut aggregates_in_part) = (Vec::new(), Vec::new());
-        if u.parts > 1 {
-            aggregate_part = vec![0u32; m];
-            aggregates_in_part = vec![0f64; u.parts];
-            for (k, &g) in of_unknown.iter().enumerate() {
-                aggregate_part[g as usize] = u.part[k];
-            }
-            for &p in &aggregate_part {
-                aggregates_in_part[p as usize] += 1.0;
-            }
-        }
         BlockPreconditioner {
             finest,
             aggregate,
             spans,
             cell,
             coarse,
-            aggregate_part,
-            aggregates_in_part,
         }
     }
 
@@ -170,7 +153,6 @@ impl BlockPreconditioner {
         self.finest.sweep(&s.r, &mut s.z, true);
         self.finest.multiply(&s.z, &mut s.az);
         self.restrict(&s.r, &s.az, &mut s.top.rc);
-        self.make_consistent(&mut s.top.rc);
         // The coarse correction: the K-cycle's up to two Krylov steps on the coarse level.
         let Work { rc, xc, k } = &mut s.top;
         self.coarse.krylov(0, rc, xc, k, &mut s.deeper);
@@ -189,28 +171,6 @@ impl BlockPreconditioner {
         self.finest.sweep(&s.r, &mut s.z, false);
         for (&c, z) in self.cell.iter().zip(z.iter_mut()) {
             *z = f64::from(s.z[c as usize]);
-        }
-    }
-
-    /// Removes from the restricted residual `rc` each connected part's mean over its
-    /// aggregates. The coarse matrix PᵀAP is singular, one null vector (a constant) per part,
-    /// and its system is consistent only when `rc` sums to zero over each part. The fine
-    /// residual does (b is zero-mean per part, and so is every column of A), but A z is taken in
-    /// `f32` here, and its rounding leaves each part's sum at about 10⁻⁷ of the residual. With
-    /// one part the coarsest level's pinned node absorbs that; with many thin parts the K-cycle's
-    /// step lengths, which weigh the correction against that inconsistent residual, went wrong
-    /// at every level: on 80 one-pixel-wide columns (96 × 160) the outer conjugate gradients
-    /// stalled at 40 iterations, and converge in 21 with this projection.
-    fn make_consistent(&self, rc: &mut [f64]) {
-        if self.aggregate_part.is_empty() {
-            return;
-        }
-        let mut sum = vec![0f64; self.aggregates_in_part.len()];
-        for (&p, &v) in self.aggregate_part.iter().zip(rc.iter()) {
-            sum[p as usize] += v;
-        }
-        for (&p, v) in self.aggregate_part.iter().zip(rc.iter_mut()) {
-            *v -= sum[p as usize] / self.aggregates_in_part[p as usize];
         }
     }
 
@@ -374,10 +334,10 @@ mod tests {
     }
 
     /// A comb of 48 one-pixel-wide columns (every other column of 96 × 160, as many parts),
-    /// weights over three orders of magnitude: each part's coarse system is singular, and the
-    /// restricted residual, from A z in `f32`, must be made consistent on each
-    /// (`make_consistent`); without that the conjugate gradients stalled (no convergence in
-    /// 500 iterations), with it they converge as on one part.
+    /// weights over three orders of magnitude: a few levels down each column is one node with
+    /// no coupling left, whose diagonal must be 0, not the rounding residue of its members'
+    /// diagonals less their inner edges (`Csr::galerkin`); with the residue the conjugate
+    /// gradients did not converge in 500 iterations.
     #[test]
     fn preconditions_many_thin_parts() {
         use crate::grid::Grid;
