@@ -930,7 +930,8 @@ mod tests {
     /// preconditioner, within its limit, to the direct re-integration's depth. It did not (it
     /// was a known failure): a few levels down each column is one coarse node with no coupling
     /// left, whose diagonal was a rounding residue that the smoothing divided by and the
-    /// coarsest level pinned at (`multigrid::RESIDUE`). The block preconditioner stalled at its
+    /// coarsest level pinned at (now summed from its couplings: `Csr::galerkin`). The block
+    /// preconditioner stalled at its
     /// 40 iterations, and the aggregation hierarchy it then fell back to broke down after 4
     /// (pᵀAp ≤ 0). Now 11 iterations. Beyond the direct limit only (100 000 unknowns by
     /// default); the same mask at 1024² is in docs/integration.md.

@@ -124,10 +124,6 @@ pub(super) const KCYCLE_T: f64 = 0.25;
 /// than the next (a second visit doubles the work below; with four-node aggregates the ratio is
 /// near 4, and where coarsening slows down the cycle falls back to one step).
 pub(super) const KCYCLE_MIN_RATIO: f64 = 2.5;
-/// Relative size below which the diagonal of an aggregate with no coupling outside it (a whole
-/// connected part) is rounding, and is set to 0 (its exact value for a graph Laplacian; a
-/// system with a term of its own on the diagonal keeps it, being far above this).
-const RESIDUE: f64 = 1e-9;
 /// Symmetric Gauss–Seidel sweeps on a stalled coarsest level too large for a dense solve.
 pub(super) const STALLED_SWEEPS: usize = 8;
 
@@ -255,36 +251,30 @@ impl Csr {
     }
 
     /// The Galerkin matrix PᵀAP for the piecewise-constant prolongation of `agg` (`m` aggregates).
+    /// A is a graph Laplacian (every row sums to 0), and so is PᵀAP: each diagonal is the sum of
+    /// the aggregate's couplings to the others, summed from them rather than as the members'
+    /// diagonals less their inner edges. The two are equal in exact arithmetic, but the
+    /// difference leaves a rounding residue of either sign where the aggregate is nearly or
+    /// wholly cut off from the rest (a whole connected part, as each one-pixel column of a comb
+    /// becomes a few levels down; a region joined to its part by cut edges only): the smoothing
+    /// divided by that residue and the coarsest level pinned at it, the part's correction became
+    /// a constant far larger than the residual, and the conjugate gradients stalled or broke
+    /// down. Summed from the couplings, a wholly cut-off aggregate's diagonal is exactly 0
+    /// (inactive in the smoothing, pinned on the coarsest level) and a nearly cut-off one's is
+    /// its few weak couplings, as it should be.
     fn galerkin(&self, agg: &[u32], m: usize) -> Csr {
         let (first, members) = aggregate_members(agg, m);
         let mut diag = vec![0f64; m];
         let mut rows = CoarseRows::new(m, self.col.len() / 2);
         for (big, d) in diag.iter_mut().enumerate() {
-            let (mut scale, mut coupled) = (0.0, false);
             for &i in &members[first[big]..first[big + 1]] {
-                let i = i as usize;
-                *d += self.diag[i];
-                scale += self.diag[i];
-                for (j, v) in self.row(i) {
+                for (j, v) in self.row(i as usize) {
                     let c = agg[j] as usize;
-                    if c == big {
-                        *d += v;
-                    } else {
+                    if c != big {
+                        *d -= v;
                         rows.add(c, v);
-                        coupled = true;
                     }
                 }
-            }
-            // An aggregate that is a whole connected part has no coupling left, and its
-            // diagonal (the members' diagonals less their inner edges) is 0 but for rounding.
-            // Left at that residue (of the order of the members' diagonals times the machine
-            // epsilon, of either sign), the smoothing divided by it and the coarsest level's
-            // pin doubled it: the part's correction became a constant far larger than the
-            // residual, and on many thin parts (each a node a few levels down) the outer solve
-            // broke down. Such a node gets exactly 0: it is inactive (`inv_diag` 0), and on the
-            // coarsest level pinned at the scale of the matrix's diagonal (`dense_factor`).
-            if !coupled && d.abs() <= RESIDUE * scale.abs() {
-                *d = 0.0;
             }
             rows.end_row();
         }
@@ -716,7 +706,7 @@ mod tests {
     /// with no coupling left. Its diagonal was the rounding residue of its members' diagonals
     /// less their inner edges (either sign), which the smoothing divided by and the coarsest
     /// level pinned at: each part's correction became a huge constant, and the conjugate
-    /// gradients did not converge in 500 iterations. Now exactly 0 (`RESIDUE`): exact.
+    /// gradients did not converge in 500 iterations. Now summed from the couplings: exactly 0.
     #[test]
     fn many_thin_parts_converge() {
         let (w, h) = (96, 160);
