@@ -336,8 +336,16 @@ fn lock_file(_: &Path, _: &Path) -> Result<Option<File>> {
 
 /// Whether `name` is one of the hidden names this tool gives its staging folders, lock files
 /// and temporaries (`.NAME.photostereo-` then `lock`, 16 hexadecimal digits, or those and
-/// `.tmp`).
-fn is_leftover(name: &str) -> bool {
+/// `.tmp`): what a killed run can leave beside an output (see the module documentation), and
+/// the next run into that output removes.
+///
+/// ```
+/// use photostereo::io::output::is_leftover;
+/// assert!(is_leftover(".scene.photostereo-lock"));
+/// assert!(is_leftover(".out.photostereo-0123456789abcdef"));
+/// assert!(!is_leftover("depth.exr"));
+/// ```
+pub fn is_leftover(name: &str) -> bool {
     let Some(at) = name.find(".photostereo-") else {
         return false;
     };
