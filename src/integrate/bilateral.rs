@@ -931,10 +931,9 @@ mod tests {
     /// was a known failure): a few levels down each column is one coarse node with no coupling
     /// left, whose diagonal was a rounding residue that the smoothing divided by and the
     /// coarsest level pinned at (now summed from its couplings: `Csr::galerkin`). The block
-    /// preconditioner stalled at its
-    /// 40 iterations, and the aggregation hierarchy it then fell back to broke down after 4
-    /// (pᵀAp ≤ 0). Now 11 iterations. Beyond the direct limit only (100 000 unknowns by
-    /// default); the same mask at 1024² is in docs/integration.md.
+    /// preconditioner stalled at its 40 iterations, and the aggregation hierarchy it then fell
+    /// back to broke down after 4 (pᵀAp ≤ 0). Now 11 iterations. Beyond the direct limit only
+    /// (100 000 unknowns by default); the same mask at 1024² is in docs/integration.md.
     #[test]
     fn reintegration_of_many_thin_parts_converges() {
         let (w, h) = (96usize, 160usize);

@@ -260,9 +260,8 @@ fn block_aggregates(u: &Unknowns, a: &Stencil, cell: &[u32], w: usize) -> (Vec<u
 /// diagonal the sum of its aggregate's edges to the others.
 fn galerkin(u: &Unknowns, a: &Stencil, agg: &[u32], m: usize) -> Csr {
     let (first, members) = aggregate_members(agg, m);
-    let mut diag = vec![0f64; m];
     let mut rows = CoarseRows::new(m, 4 * m);
-    for (g, d) in diag.iter_mut().enumerate() {
+    for g in 0..m {
         for &i in &members[first[g]..first[g + 1]] {
             let i = i as usize;
             let left = u.left[i];
@@ -288,13 +287,12 @@ fn galerkin(u: &Unknowns, a: &Stencil, agg: &[u32], m: usize) -> Csr {
                 if c == g {
                     continue;
                 }
-                *d -= v;
                 rows.add(c, v);
             }
         }
         rows.end_row();
     }
-    rows.finish(diag)
+    rows.finish()
 }
 
 #[cfg(test)]

@@ -55,10 +55,15 @@ pub(super) fn aggregate_members(agg: &[u32], m: usize) -> (Vec<usize>, Vec<u32>)
     (first, members)
 }
 
-/// The off-diagonal part of a Galerkin matrix in compressed rows, built one coarse row at a
-/// time: the contributions to a column of the row being built are summed in the order they
-/// come, the columns kept in the order first met.
+/// A Galerkin matrix of a graph Laplacian in compressed rows, built one coarse row at a time:
+/// the contributions to a column of the row being built are summed in the order they come, the
+/// columns kept in the order first met, and each diagonal is minus the sum of its row's
+/// contributions, in the same order (see [`Csr::galerkin`] for why it is not taken from the
+/// members' diagonals).
 pub(super) struct CoarseRows {
+    diag: Vec<f64>,
+    /// The diagonal of the row being built.
+    row_diag: f64,
     start: Vec<usize>,
     col: Vec<u32>,
     val: Vec<f64>,
@@ -72,6 +77,8 @@ impl CoarseRows {
     /// Rows of a matrix of order `m`, with room for `capacity` entries.
     pub(super) fn new(m: usize, capacity: usize) -> Self {
         CoarseRows {
+            diag: Vec::with_capacity(m),
+            row_diag: 0.0,
             start: {
                 let mut s = Vec::with_capacity(m + 1);
                 s.push(0);
@@ -84,8 +91,9 @@ impl CoarseRows {
         }
     }
 
-    /// Adds `v` to column `c` of the row being built.
+    /// Adds `v` (a coupling to another aggregate, −weight) to column `c` of the row being built.
     pub(super) fn add(&mut self, c: usize, v: f64) {
+        self.row_diag -= v;
         if self.slot[c] == usize::MAX {
             self.slot[c] = self.col.len();
             self.col.push(c as u32);
@@ -102,11 +110,12 @@ impl CoarseRows {
         }
         self.row_start = self.col.len();
         self.start.push(self.col.len());
+        self.diag.push(std::mem::take(&mut self.row_diag));
     }
 
-    /// The matrix with diagonal `diag`.
-    pub(super) fn finish(self, diag: Vec<f64>) -> Csr {
-        Csr::new(diag, self.start, self.col, self.val)
+    /// The matrix.
+    pub(super) fn finish(self) -> Csr {
+        Csr::new(self.diag, self.start, self.col, self.val)
     }
 }
 
@@ -264,21 +273,19 @@ impl Csr {
     /// its few weak couplings, as it should be.
     fn galerkin(&self, agg: &[u32], m: usize) -> Csr {
         let (first, members) = aggregate_members(agg, m);
-        let mut diag = vec![0f64; m];
         let mut rows = CoarseRows::new(m, self.col.len() / 2);
-        for (big, d) in diag.iter_mut().enumerate() {
+        for big in 0..m {
             for &i in &members[first[big]..first[big + 1]] {
                 for (j, v) in self.row(i as usize) {
                     let c = agg[j] as usize;
                     if c != big {
-                        *d -= v;
                         rows.add(c, v);
                     }
                 }
             }
             rows.end_row();
         }
-        rows.finish(diag)
+        rows.finish()
     }
 
     /// One Gauss–Seidel sweep on A x = b, forward or backward.
