@@ -877,3 +877,65 @@ fn bilateral_closes_a_jump_off_and_says_its_offset_is_a_guess() {
         );
     }
 }
+
+/// A normal map with one normal exactly at a right angle to the view inside a sphere (n_z = 0:
+/// an occluding rim seen edge-on, or a clamped estimate) and the usual zero vectors outside it,
+/// integrated by the default command with no mask: `auto` found the loops that normal breaks
+/// and chose `bilateral`, whose re-integration then failed ("parameter `solver`: sparse
+/// factorisation failed: NonPositivePivot"), naming a parameter the user never set. Now the
+/// depth is written, finite over the sphere, and the sphere's height is that of the truth.
+#[test]
+fn the_default_integration_takes_a_normal_at_a_right_angle_to_the_view() {
+    let (w, h, r) = (96usize, 96usize, 40.0f64);
+    let sphere = |x: f64, y: f64| {
+        let s = (r * r - x * x - y * y).max(0.0).sqrt();
+        (s, -x / s.max(1e-3), -y / s.max(1e-3))
+    };
+    let (_, _, _, normals) = field(w, h, sphere);
+    let inside = |c: usize, rw: usize| {
+        let (x, y) = (c as f64 - 47.5, 47.5 - rw as f64);
+        x * x + y * y < (r - 1.0) * (r - 1.0)
+    };
+    let channel = |k: usize| -> Vec<f32> {
+        (0..w * h)
+            .map(|i| {
+                let (c, rw) = (i % w, i / w);
+                if (c, rw) == (60, 40) {
+                    [1.0, 0.0, 0.0][k]
+                } else if inside(c, rw) {
+                    normals.data()[i][k]
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("normals.exr");
+    let (x, y, z) = (channel(0), channel(1), channel(2));
+    photostereo::io::output::write_exr(&path, w, h, &[("R", &x), ("G", &y), ("B", &z)], &[])
+        .unwrap();
+    let depth = tmp.path().join("depth.exr");
+    let o = Command::new(common::bin())
+        .args(["integrate", "--normals"])
+        .arg(&path)
+        .arg("-o")
+        .arg(&depth)
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&o.stdout) + String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{said}");
+    assert!(said.contains("auto (bilateral)"), "{said}");
+    let d = read_image(&depth).unwrap();
+    let at = |c: usize, rw: usize| f64::from(d.data[(rw * d.width + c) * d.channels]);
+    for rw in 0..h {
+        for c in 0..w {
+            assert_eq!(at(c, rw).is_finite(), inside(c, rw), "({c}, {rw})");
+        }
+    }
+    // The sphere's height from a pixel near its rim (10.8 px up) to its top (40 px up),
+    // against the truth.
+    let rise = at(48, 48) - at(48, 9);
+    let truth = sphere(0.5, -0.5).0 - sphere(0.5, 38.5).0;
+    assert!((rise - truth).abs() < 1.0, "{rise} against {truth}");
+}

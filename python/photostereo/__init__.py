@@ -320,7 +320,8 @@ def integrate(
 
     Args:
         normals: unit normals, camera frame.
-        mask: H x W bool domain (default: the pixels with finite normals).
+        mask: H x W bool domain (default: the pixels with a normal: finite and not the zero
+            vector, so that NaN and zeros, the usual "no normal", are left out).
         method: one of :data:`INTEGRATORS`; ``"auto"`` chooses masked least squares, or the
             bilateral integrator when the normals show depth jumps (reported as ``method``).
         K: 3 x 3 pinhole intrinsics (pixels) for perspective integration; None: orthographic.

@@ -657,7 +657,11 @@ fn integrate<'py>(
     let map = lib(normals_from_array(normals.as_array()))?;
     let mask = match sized_mask(mask, map.width(), map.height(), "the normals'")? {
         Some(m) => m,
-        None => map.map(|n| n.iter().all(|v| v.is_finite())),
+        // The pixels with a normal: finite, and not the zero vectors that many maps hold
+        // outside the object (integrated, they joined the object to a flat sheet, and stopped
+        // `bilateral`'s solve before it cut them off). Vectors of any other length are kept:
+        // the gradients do not depend on it.
+        None => map.map(|n| n.iter().all(|v| v.is_finite()) && n.iter().any(|&v| v != 0.0)),
     };
     let camera = intrinsics_arg(k.as_ref(), "K")?;
     let options = IntegrationOptions {

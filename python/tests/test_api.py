@@ -152,6 +152,35 @@ def test_integrate_reports_what_bilateral_closes_off():
     assert ps.integrate(normals, method="masked-ls")["closed_off"] is None
 
 
+def test_integrate_leaves_zero_vectors_out_and_takes_a_grazing_normal():
+    # A sphere's normals with zero vectors around it (as many maps store "no normal") and one
+    # normal at a right angle to the view inside it. Without a mask, the default integrator
+    # used to take the zeros as pixels, find depth jumps and stop ("sparse factorisation
+    # failed"); now the zeros are left out and the grazing normal is cut off.
+    n, r = 64, 25.6
+    y, x = np.mgrid[0:n, 0:n] + 0.5
+    dx, dy = x - n / 2, y - n / 2
+    inside = dx**2 + dy**2 < r * r
+    normals = np.zeros((n, n, 3), np.float32)
+    nz = np.sqrt(np.maximum(r * r - dx**2 - dy**2, 0.0))
+    normals[..., 0], normals[..., 1], normals[..., 2] = dx / r, -dy / r, nz / r
+    normals[~inside] = 0.0
+    normals[32, 20] = [1.0, 0.0, 0.0]
+    out = ps.integrate(normals)
+    d = out["depth"]
+    assert out["method"] == "bilateral"
+    assert (np.isfinite(d) == inside).all()
+    # Height from a pixel near the rim to the top, against the sphere's (about 15 px).
+    want = nz[32, 32] - nz[32, 55]
+    assert abs((d[32, 32] - d[32, 55]) - want) < 1.0, (d[32, 32] - d[32, 55], want)
+    assert out["closed_off"]["pixels"] >= 1
+    # The same map with z into the scene and y down (OpenCV's camera frame) is refused, with
+    # the conversion, instead of integrated into spikes.
+    flipped = normals * np.array([1.0, -1.0, -1.0], np.float32)
+    with pytest.raises(ps.Error, match=r"face away from the camera.*\(n_x, −n_y, −n_z\)"):
+        ps.integrate(flipped)
+
+
 def test_reflectance_map_closed_form():
     light = np.array([0.3, -0.2, 1.0])
     r = ps.reflectance_map(light, size=257, extent=2.0)
