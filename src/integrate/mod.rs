@@ -290,13 +290,12 @@ pub struct NormalDomain {
 /// integrated with the object, joining them by a smooth sheet.
 pub fn normal_domain(normals: &NormalMap) -> NormalDomain {
     let (w, h) = (normals.width(), normals.height());
-    let usable = usable_normal;
     let mut border: Vec<[u32; 3]> = Vec::new();
     for y in 0..h {
         for x in 0..w {
             if y == 0 || x == 0 || y + 1 == h || x + 1 == w {
                 let n = *normals.at(x, y);
-                if usable(&n) {
+                if usable_normal(&n) {
                     border.push([n.x.to_bits(), n.y.to_bits(), n.z.to_bits()]);
                 }
             }
@@ -315,7 +314,7 @@ pub fn normal_domain(normals: &NormalMap) -> NormalDomain {
         .map(|(b, _)| b.map(f32::from_bits));
     let mut background_pixels = 0;
     let mask = normals.map(|n| {
-        if !usable(n) {
+        if !usable_normal(n) {
             return false;
         }
         if background.is_some_and(|b| [n.x, n.y, n.z] == b) {
@@ -454,6 +453,21 @@ pub(crate) fn perspective_factor(
     n.z - n.x * (col - k.cx) / k.fx + n.y * (row - k.cy) / k.fy
 }
 
+/// The factor of the normal `n` of pixel `i` of a `w`-wide map, signed: n_z orthographic,
+/// [`perspective_factor`] under a pinhole `camera`; positive where the normal faces the camera.
+fn view_factor(
+    n: &crate::nalgebra::Vector3<f32>,
+    i: usize,
+    w: usize,
+    camera: Option<&Intrinsics>,
+) -> f64 {
+    let n = n.cast::<f64>();
+    match camera {
+        None => n.z,
+        Some(k) => perspective_factor(&n, i % w, i / w, k),
+    }
+}
+
 /// Per pixel, the factor a that multiplies a gradient into the normal's components (n_z
 /// orthographic, m = n_z − n_x(u − c_x)/f_x + n_y(v − c_y)/f_y perspective): a gradient's noise
 /// grows like 1/a, so a² is the inverse-variance weight of its equations. 0 outside `domain`.
@@ -469,15 +483,11 @@ pub(crate) fn normal_factor(
         .zip(domain.data())
         .enumerate()
         .map(|(i, (n, m))| {
-            if !*m {
-                return 0.0;
+            if *m {
+                view_factor(n, i, w, camera).abs()
+            } else {
+                0.0
             }
-            let n = n.cast::<f64>();
-            match camera {
-                None => n.z,
-                Some(k) => perspective_factor(&n, i % w, i / w, k),
-            }
-            .abs()
         })
         .collect()
 }
@@ -504,13 +514,8 @@ fn facing_the_camera(
         if !m || !usable_normal(n) {
             continue;
         }
-        let n = n.cast::<f64>();
-        let factor = match camera {
-            None => n.z,
-            Some(k) => perspective_factor(&n, i % w, i / w, k),
-        };
         total += 1;
-        if factor < 0.0 {
+        if view_factor(n, i, w, camera) < 0.0 {
             away += 1;
         }
     }
