@@ -878,44 +878,48 @@ fn bilateral_closes_a_jump_off_and_says_its_offset_is_a_guess() {
     }
 }
 
-/// A normal map with one normal exactly at a right angle to the view inside a sphere (n_z = 0:
-/// an occluding rim seen edge-on, or a clamped estimate) and the usual zero vectors outside it,
-/// integrated by the default command with no mask: `auto` found the loops that normal breaks
-/// and chose `bilateral`, whose re-integration then failed ("parameter `solver`: sparse
-/// factorisation failed: NonPositivePivot"), naming a parameter the user never set. Now the
-/// depth is written, finite over the sphere, and the sphere's height is that of the truth.
-#[test]
-fn the_default_integration_takes_a_normal_at_a_right_angle_to_the_view() {
-    let (w, h, r) = (96usize, 96usize, 40.0f64);
-    let sphere = |x: f64, y: f64| {
-        let s = (r * r - x * x - y * y).max(0.0).sqrt();
-        (s, -x / s.max(1e-3), -y / s.max(1e-3))
-    };
-    let (_, _, _, normals) = field(w, h, sphere);
-    let inside = |c: usize, rw: usize| {
-        let (x, y) = (c as f64 - 47.5, 47.5 - rw as f64);
-        x * x + y * y < (r - 1.0) * (r - 1.0)
-    };
+/// The side and radius of the sphere the next two tests write.
+const SPHERE: (usize, f64) = (96, 40.0);
+
+/// The sphere's height and gradients at (x, y) from its centre (x right, y up).
+fn sphere(x: f64, y: f64) -> (f64, f64, f64) {
+    let r = SPHERE.1;
+    let s = (r * r - x * x - y * y).max(0.0).sqrt();
+    (s, -x / s.max(1e-3), -y / s.max(1e-3))
+}
+
+/// Whether pixel (column, row) is more than a pixel inside the sphere's rim.
+fn inside_sphere(c: usize, rw: usize) -> bool {
+    let centre = (SPHERE.0 as f64 - 1.0) / 2.0;
+    let (x, y) = (c as f64 - centre, centre - rw as f64);
+    x * x + y * y < (SPHERE.1 - 1.0) * (SPHERE.1 - 1.0)
+}
+
+/// Writes `normal(pixel index)` inside the sphere and zero vectors around it as an EXR normal
+/// map, integrates it with the default command and no mask, and returns the depth and what the
+/// command said.
+fn integrate_sphere_map(
+    dir: &std::path::Path,
+    name: &str,
+    normal: &dyn Fn(usize) -> [f32; 3],
+) -> (Vec<f32>, String) {
+    let w = SPHERE.0;
     let channel = |k: usize| -> Vec<f32> {
-        (0..w * h)
+        (0..w * w)
             .map(|i| {
-                let (c, rw) = (i % w, i / w);
-                if (c, rw) == (60, 40) {
-                    [1.0, 0.0, 0.0][k]
-                } else if inside(c, rw) {
-                    normals.data()[i][k]
+                if inside_sphere(i % w, i / w) {
+                    normal(i)[k]
                 } else {
                     0.0
                 }
             })
             .collect()
     };
-    let tmp = tempfile::tempdir().unwrap();
-    let path = tmp.path().join("normals.exr");
+    let path = dir.join(format!("{name}.exr"));
     let (x, y, z) = (channel(0), channel(1), channel(2));
-    photostereo::io::output::write_exr(&path, w, h, &[("R", &x), ("G", &y), ("B", &z)], &[])
+    photostereo::io::output::write_exr(&path, w, w, &[("R", &x), ("G", &y), ("B", &z)], &[])
         .unwrap();
-    let depth = tmp.path().join("depth.exr");
+    let depth = dir.join(format!("{name}-depth.exr"));
     let o = Command::new(common::bin())
         .args(["integrate", "--normals"])
         .arg(&path)
@@ -925,12 +929,34 @@ fn the_default_integration_takes_a_normal_at_a_right_angle_to_the_view() {
         .unwrap();
     let said = String::from_utf8_lossy(&o.stdout) + String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{said}");
-    assert!(said.contains("auto (bilateral)"), "{said}");
     let d = read_image(&depth).unwrap();
-    let at = |c: usize, rw: usize| f64::from(d.data[(rw * d.width + c) * d.channels]);
-    for rw in 0..h {
+    let depth = (0..w * w).map(|i| d.data[i * d.channels]).collect();
+    (depth, said.into_owned())
+}
+
+/// A normal map with one normal exactly at a right angle to the view inside a sphere (n_z = 0:
+/// an occluding rim seen edge-on, or a clamped estimate) and the usual zero vectors outside it,
+/// integrated by the default command with no mask: `auto` found the loops that normal breaks
+/// and chose `bilateral`, whose re-integration then failed ("parameter `solver`: sparse
+/// factorisation failed: NonPositivePivot"), naming a parameter the user never set. Now the
+/// depth is written, finite over the sphere, and the sphere's height is that of the truth.
+#[test]
+fn the_default_integration_takes_a_normal_at_a_right_angle_to_the_view() {
+    let w = SPHERE.0;
+    let (_, _, _, normals) = field(w, w, sphere);
+    let tmp = tempfile::tempdir().unwrap();
+    let (d, said) = integrate_sphere_map(tmp.path(), "normals", &|i| {
+        if i == 40 * w + 60 {
+            [1.0, 0.0, 0.0]
+        } else {
+            normals.data()[i].into()
+        }
+    });
+    assert!(said.contains("auto (bilateral)"), "{said}");
+    let at = |c: usize, rw: usize| f64::from(d[rw * w + c]);
+    for rw in 0..w {
         for c in 0..w {
-            assert_eq!(at(c, rw).is_finite(), inside(c, rw), "({c}, {rw})");
+            assert_eq!(at(c, rw).is_finite(), inside_sphere(c, rw), "({c}, {rw})");
         }
     }
     // The sphere's height from a pixel near its rim (10.8 px up) to its top (40 px up),
@@ -938,4 +964,37 @@ fn the_default_integration_takes_a_normal_at_a_right_angle_to_the_view() {
     let rise = at(48, 48) - at(48, 9);
     let truth = sphere(0.5, -0.5).0 - sphere(0.5, 38.5).0;
     assert!((rise - truth).abs() < 1.0, "{rise} against {truth}");
+}
+
+/// A normal map of vectors scaled by an albedo (0.05 to 1, pixel to pixel; what a
+/// least-squares fit gives before it divides by the length), zeros around the object, through
+/// the default command with no mask: every pixel of the sphere is integrated (before, vectors
+/// shorter than 0.5 were left out of the domain as if they were no normal), and the depth is
+/// that of the unit normals (before, the clamp of n_z and the equations' weights read the
+/// lengths).
+#[test]
+fn the_command_reads_the_direction_of_a_scaled_normal_map() {
+    let w = SPHERE.0;
+    let (_, _, _, normals) = field(w, w, sphere);
+    let albedo = |i: usize| 0.05 + 0.95 * ((i * 7919) % 1000) as f32 / 1000.0;
+    let tmp = tempfile::tempdir().unwrap();
+    let (unit, _) = integrate_sphere_map(tmp.path(), "unit", &|i| normals.data()[i].into());
+    let (scaled, _) = integrate_sphere_map(tmp.path(), "scaled", &|i| {
+        (normals.data()[i] * albedo(i)).into()
+    });
+    let (mut lo, mut hi, mut worst) = (f32::INFINITY, f32::NEG_INFINITY, 0.0f32);
+    for i in 0..w * w {
+        let inside = inside_sphere(i % w, i / w);
+        assert_eq!(scaled[i].is_finite(), inside, "pixel {i}");
+        if inside {
+            lo = lo.min(unit[i]);
+            hi = hi.max(unit[i]);
+            worst = worst.max((unit[i] - scaled[i]).abs());
+        }
+    }
+    assert!(
+        worst <= 1e-4 * (hi - lo),
+        "depth moved by {worst} of a range of {}",
+        hi - lo
+    );
 }

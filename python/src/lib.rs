@@ -18,7 +18,7 @@ use photostereo::capture::arrays::{Sample, normals_from_array, normals_to_array}
 use photostereo::capture::stack::{ColorMode, GREY_WEIGHTS, LoadOptions, Transfer};
 use photostereo::capture::{Capture, CaptureFiles, ImageStack, Lights};
 use photostereo::grid::{Grid, Mask, ScalarMap};
-use photostereo::integrate::{IntegrationOptions, Integrator, integrate_normals};
+use photostereo::integrate::{IntegrationOptions, Integrator, integrate_normals, usable_normal};
 use photostereo::io::decode::{ImageArray, MAX_IMAGE_SAMPLES, read_array, read_exr_channels};
 use photostereo::io::output::{Overwrite, write_exr_file};
 use photostereo::progress::Silent;
@@ -660,8 +660,8 @@ fn integrate<'py>(
         // The pixels with a normal: finite, and not the zero vectors that many maps hold
         // outside the object (integrated, they joined the object to a flat sheet, and stopped
         // `bilateral`'s solve before it cut them off). Vectors of any other length are kept:
-        // the gradients do not depend on it.
-        None => map.map(|n| n.iter().all(|v| v.is_finite()) && n.iter().any(|&v| v != 0.0)),
+        // the integration reads their directions (`integrate::unit_normals`).
+        None => map.map(usable_normal),
     };
     let camera = intrinsics_arg(k.as_ref(), "K")?;
     let options = IntegrationOptions {

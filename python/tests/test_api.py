@@ -181,6 +181,23 @@ def test_integrate_leaves_zero_vectors_out_and_takes_a_grazing_normal():
         ps.integrate(flipped)
 
 
+def test_integrate_reads_the_direction_of_scaled_vectors():
+    # What a numpy fit gives before it normalises, g = albedo * n with the albedo from 0.05 to
+    # 1: the same depth as the unit normals, under the default integrator and both others.
+    # Before, the clamp of n_z and the equations' weights read the lengths (the sphere's depth
+    # about ten times further off).
+    sc = ps.render("sphere", 96, np.array([[0.0, 0.0, 1.0]]), albedo=1.0)
+    normals, mask = sc["normals"].astype(np.float32), sc["mask"]
+    albedo = np.random.default_rng(7).uniform(0.05, 1.0, mask.shape).astype(np.float32)
+    for method in ["auto", "masked-ls", "bilateral"]:
+        unit = ps.integrate(normals, mask, method=method)
+        scaled = ps.integrate(normals * albedo[..., None], mask, method=method)
+        assert unit["method"] == scaled["method"]
+        a, b = unit["depth"][mask], scaled["depth"][mask]
+        span = np.ptp(sc["depth"][mask])
+        assert np.abs(a - b).max() < 1e-4 * span, (method, np.abs(a - b).max(), span)
+
+
 def test_reflectance_map_closed_form():
     light = np.array([0.3, -0.2, 1.0])
     r = ps.reflectance_map(light, size=257, extent=2.0)
