@@ -851,6 +851,9 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
         eprintln!("warning: {}", printable(&w.to_string()));
     }
     let integrated = r.depth.data().iter().filter(|v| v.is_finite()).count();
+    if let Some(w) = photostereo::run::Warning::of_normals(&normals, &mask) {
+        eprintln!("warning: {}", printable(&w.to_string()));
+    }
     if let Some(w) = r
         .closed_off
         .and_then(|c| photostereo::run::Warning::of_closed_off(c, integrated))

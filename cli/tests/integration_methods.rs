@@ -896,12 +896,13 @@ fn inside_sphere(c: usize, rw: usize) -> bool {
 }
 
 /// Writes `normal(pixel index)` inside the sphere and zero vectors around it as an EXR normal
-/// map, integrates it with the default command and no mask, and returns the depth and what the
-/// command said.
+/// map, integrates it with the default command (and, with `masked`, the sphere's pixels as
+/// `--mask`), and returns the depth and what the command said.
 fn integrate_sphere_map(
     dir: &std::path::Path,
     name: &str,
     normal: &dyn Fn(usize) -> [f32; 3],
+    masked: bool,
 ) -> (Vec<f32>, String) {
     let w = SPHERE.0;
     let channel = |k: usize| -> Vec<f32> {
@@ -920,13 +921,18 @@ fn integrate_sphere_map(
     photostereo::io::output::write_exr(&path, w, w, &[("R", &x), ("G", &y), ("B", &z)], &[])
         .unwrap();
     let depth = dir.join(format!("{name}-depth.exr"));
-    let o = Command::new(common::bin())
-        .args(["integrate", "--normals"])
-        .arg(&path)
-        .arg("-o")
-        .arg(&depth)
-        .output()
+    let mut command = Command::new(common::bin());
+    command.args(["integrate", "--normals"]).arg(&path);
+    if masked {
+        let mask = dir.join(format!("{name}-mask.png"));
+        image::GrayImage::from_fn(w as u32, w as u32, |c, rw| {
+            image::Luma([255 * u8::from(inside_sphere(c as usize, rw as usize))])
+        })
+        .save(&mask)
         .unwrap();
+        command.arg("--mask").arg(mask);
+    }
+    let o = command.arg("-o").arg(&depth).output().unwrap();
     let said = String::from_utf8_lossy(&o.stdout) + String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{said}");
     let d = read_image(&depth).unwrap();
@@ -945,13 +951,18 @@ fn the_default_integration_takes_a_normal_at_a_right_angle_to_the_view() {
     let w = SPHERE.0;
     let (_, _, _, normals) = field(w, w, sphere);
     let tmp = tempfile::tempdir().unwrap();
-    let (d, said) = integrate_sphere_map(tmp.path(), "normals", &|i| {
-        if i == 40 * w + 60 {
-            [1.0, 0.0, 0.0]
-        } else {
-            normals.data()[i].into()
-        }
-    });
+    let (d, said) = integrate_sphere_map(
+        tmp.path(),
+        "normals",
+        &|i| {
+            if i == 40 * w + 60 {
+                [1.0, 0.0, 0.0]
+            } else {
+                normals.data()[i].into()
+            }
+        },
+        false,
+    );
     assert!(said.contains("auto (bilateral)"), "{said}");
     let at = |c: usize, rw: usize| f64::from(d[rw * w + c]);
     for rw in 0..w {
@@ -978,10 +989,13 @@ fn the_command_reads_the_direction_of_a_scaled_normal_map() {
     let (_, _, _, normals) = field(w, w, sphere);
     let albedo = |i: usize| 0.05 + 0.95 * ((i * 7919) % 1000) as f32 / 1000.0;
     let tmp = tempfile::tempdir().unwrap();
-    let (unit, _) = integrate_sphere_map(tmp.path(), "unit", &|i| normals.data()[i].into());
-    let (scaled, _) = integrate_sphere_map(tmp.path(), "scaled", &|i| {
-        (normals.data()[i] * albedo(i)).into()
-    });
+    let (unit, _) = integrate_sphere_map(tmp.path(), "unit", &|i| normals.data()[i].into(), false);
+    let (scaled, _) = integrate_sphere_map(
+        tmp.path(),
+        "scaled",
+        &|i| (normals.data()[i] * albedo(i)).into(),
+        false,
+    );
     let (mut lo, mut hi, mut worst) = (f32::INFINITY, f32::NEG_INFINITY, 0.0f32);
     for i in 0..w * w {
         let inside = inside_sphere(i % w, i / w);
@@ -997,4 +1011,40 @@ fn the_command_reads_the_direction_of_a_scaled_normal_map() {
         "depth moved by {worst} of a range of {}",
         hi - lo
     );
+}
+
+/// Zero vectors inside the given mask (a block of 6×6 on the sphere's slope, as a tool that
+/// writes zeros for "no normal" leaves them): no depth there, a warning that counts them, and
+/// the rest of the sphere integrated. Before, the default integrator took them as normals that
+/// say nothing and filled them in (counted among the regions whose offset is a guess), and
+/// `masked-ls` as a flat patch.
+#[test]
+fn zero_vectors_inside_the_mask_are_left_without_depth_and_counted() {
+    let w = SPHERE.0;
+    let (_, _, _, normals) = field(w, w, sphere);
+    let block = |i: usize| (60..66).contains(&(i % w)) && (30..36).contains(&(i / w));
+    let tmp = tempfile::tempdir().unwrap();
+    let (d, said) = integrate_sphere_map(
+        tmp.path(),
+        "holes",
+        &|i| {
+            if block(i) {
+                [0.0; 3]
+            } else {
+                normals.data()[i].into()
+            }
+        },
+        true,
+    );
+    let masked = (0..w * w).filter(|&i| inside_sphere(i % w, i / w)).count();
+    assert!(
+        said.contains(&format!(
+            "36 of the {masked} pixels of the mask have no normal"
+        )),
+        "{said}"
+    );
+    for (i, z) in d.iter().enumerate() {
+        let has_depth = inside_sphere(i % w, i / w) && !block(i);
+        assert_eq!(z.is_finite(), has_depth, "pixel {i}");
+    }
 }

@@ -319,7 +319,9 @@ def integrate(
     """Normals (H x W x 3 float32) -> depth.
 
     Args:
-        normals: unit normals, camera frame.
+        normals: normals in the camera frame (x right, y up, z towards the viewer), of any
+            length: the integration reads their directions, so ``g = albedo * n`` integrates
+            as ``n``. NaN and the zero vector are "no normal": no depth there.
         mask: H x W bool domain (default: the pixels with a normal: finite and not the zero
             vector, so that NaN and zeros, the usual "no normal", are left out).
         method: one of :data:`INTEGRATORS`; ``"auto"`` chooses masked least squares, or the
@@ -335,7 +337,9 @@ def integrate(
         "data-noise", or "iteration-limit" / "breakdown" when it did not converge),
         "closed_off": dict or None (bilateral only: ``regions``, ``pixels`` and ``largest`` of
         the regions that depth jumps close off all around, whose offset from the rest is not
-        in the normals and is a guess)}``; NaN outside the mask.
+        in the normals and is a guess), "warnings": list of str (pixels of the mask without a
+        normal, a solve that did not converge, regions whose depth offset is a guess; each
+        also issued as :class:`PhotostereoWarning`)}``; NaN outside the mask.
     """
     normals = _check_array(normals, "normals")
     if normals.dtype != np.float32:
@@ -350,6 +354,8 @@ def integrate(
     for key in ("auto", "solve", "closed_off"):
         if r[key] is not None:
             r[key] = json.loads(r[key])
+    for w in r["warnings"]:
+        _warnings.warn(w, PhotostereoWarning, stacklevel=2)
     return r
 
 

@@ -198,6 +198,31 @@ def test_integrate_reads_the_direction_of_scaled_vectors():
         assert np.abs(a - b).max() < 1e-4 * span, (method, np.abs(a - b).max(), span)
 
 
+def test_integrate_leaves_no_normal_without_depth_and_says_so():
+    # NaN and zero vectors inside a given mask: no depth there, the rest as with NaN alone,
+    # and a warning that counts them. Before, masked least squares took the zeros as a flat
+    # patch, and nothing was said.
+    sc = ps.render("sphere", 96, np.array([[0.0, 0.0, 1.0]]), albedo=1.0)
+    normals, mask = sc["normals"].astype(np.float32), sc["mask"]
+    holes = normals.copy()
+    holes[30:36, 55:61] = 0.0
+    holes[60:62, 40:43] = np.nan
+    nan = holes.copy()
+    nan[30:36, 55:61] = np.nan
+    for method in ["auto", "masked-ls", "bilateral"]:
+        with pytest.warns(ps.PhotostereoWarning, match=f"42 of the {mask.sum()} pixels of the mask have no normal"):
+            out = ps.integrate(holes, mask, method=method)
+        assert any("no normal" in w for w in out["warnings"])
+        d = out["depth"]
+        gone = ~np.isfinite(holes).all(axis=2) | (holes == 0).all(axis=2)
+        assert (np.isfinite(d) == (mask & ~gone)).all(), method
+        with pytest.warns(ps.PhotostereoWarning):
+            same = ps.integrate(nan, mask, method=method)["depth"]
+        ok = mask & ~gone
+        assert np.abs(d[ok] - same[ok]).max() < 1e-6 * np.abs(same[ok]).max(), method
+    assert ps.integrate(normals, mask, method="masked-ls")["warnings"] == []
+
+
 def test_reflectance_map_closed_form():
     light = np.array([0.3, -0.2, 1.0])
     r = ps.reflectance_map(light, size=257, extent=2.0)

@@ -187,10 +187,10 @@ const UNIT_SQUARED_TOLERANCE: f32 = 1e-5;
 /// `normals` with every finite vector other than zero scaled to unit length, borrowed when
 /// those of `mask` already are. Integration reads only a normal's direction: the gradients do
 /// not depend on its length, but the clamp of n_z (or of the perspective factor m) at
-/// [`MIN_NZ`] and the weights of the least-squares equations (n_z², m²) do. Vectors scaled
-/// by an albedo (g = ρn from a photometric-stereo fit, or normals from another tool that
-/// did not normalise them) made the dark pixels' gradients clamped and their equations
-/// light, and the depth error of a sphere ten times larger. Zero vectors and NaN, the "no
+/// [`MIN_NZ`] and the weights that `bilateral`'s equations and `auto`'s test give each pixel
+/// (n_z², m²) do. Vectors scaled by an albedo (g = ρn from a photometric-stereo fit, or
+/// normals from another tool that did not normalise them) made the dark pixels' gradients
+/// clamped and their equations light, and the depth error of a sphere ten times larger. Zero vectors and NaN, the "no
 /// normal" of normal maps, are left as they are.
 ///
 /// ```
@@ -1062,6 +1062,51 @@ mod tests {
                 "{method:?}, {camera:?}: depth moved by {worst} of a range of {}",
                 hi - lo
             );
+        }
+    }
+
+    /// Zero vectors inside the mask (the "no normal" of many maps) are no normal, as NaN is:
+    /// every integrator leaves them without depth and integrates the rest as it would with NaN
+    /// there. Before, the gradient-based integrators took them as a flat patch (their clamped
+    /// gradients are 0; an 8×8 block on the slope of a rendered 128² sphere: `masked-ls`'s
+    /// depth RMSE 0.0065 → 0.18 px, up to 1.1 px off), and `bilateral` filled them in as
+    /// regions closed off.
+    #[test]
+    fn zero_vectors_in_the_mask_are_no_normal() {
+        let n = 64;
+        let block = |x: usize, y: usize| (38..44).contains(&x) && (20..26).contains(&y);
+        let hole =
+            |v: f32| move |x: usize, y: usize, n: [f32; 3]| if block(x, y) { [v; 3] } else { n };
+        let (zeros, mask) = hemisphere(n, hole(0.0));
+        let (nan, _) = hemisphere(n, hole(f32::NAN));
+        let k = Intrinsics {
+            fx: 300.0,
+            fy: 300.0,
+            cx: 20.0,
+            cy: 40.0,
+        };
+        for o in every_integrator(k) {
+            let run = |normals: &NormalMap| {
+                integrate_normals(normals, &mask, &o, &crate::progress::Silent)
+                    .unwrap_or_else(|e| panic!("{:?}, {:?}: {e}", o.method, o.camera))
+                    .depth
+            };
+            let (a, b) = (run(&zeros), run(&nan));
+            for y in 0..n {
+                for x in 0..n {
+                    let (za, zb) = (*a.at(x, y), *b.at(x, y));
+                    if block(x, y) || !mask.at(x, y) {
+                        assert!(za.is_nan(), "{:?}: ({x}, {y}) has a depth", o.method);
+                    } else {
+                        assert!(
+                            (za - zb).abs() <= 1e-6 * zb.abs().max(1.0),
+                            "{:?}, {:?}: ({x}, {y}) {za} against {zb}",
+                            o.method,
+                            o.camera
+                        );
+                    }
+                }
+            }
         }
     }
 

@@ -68,7 +68,8 @@ pub fn combine_channels(solutions: &[Solution]) -> (Vec<ScalarMap>, NormalMap, G
 }
 
 /// Surface gradients p = −n_x/n_z, q = −n_y/n_z (with n_z clamped to ≥ [`MIN_NZ`]); NaN
-/// outside `mask` or where the normal is undefined.
+/// outside `mask` or where there is no normal (NaN, or the zero vector that normal maps store
+/// for none: [`crate::integrate::usable_normal`]).
 pub fn gradients(normals: &NormalMap, mask: &Mask) -> (ScalarMap, ScalarMap) {
     gradient_maps(normals, mask, |_, n| {
         let nz = n.z.max(MIN_NZ);
@@ -76,8 +77,8 @@ pub fn gradients(normals: &NormalMap, mask: &Mask) -> (ScalarMap, ScalarMap) {
     })
 }
 
-/// Two maps of `f(pixel index, normal)` over the masked pixels with a finite normal (NaN
-/// elsewhere), computed in parallel over rows.
+/// Two maps of `f(pixel index, normal)` over the masked pixels with a normal (finite and not
+/// zero; NaN elsewhere), computed in parallel over rows.
 pub(crate) fn gradient_maps(
     normals: &NormalMap,
     mask: &Mask,
@@ -95,7 +96,7 @@ pub(crate) fn gradient_maps(
             let row = y * w;
             for (x, (p, q)) in p.iter_mut().zip(q).enumerate() {
                 let n = &normals.data()[row + x];
-                if mask.data()[row + x] && n.iter().all(|v| v.is_finite()) {
+                if mask.data()[row + x] && crate::integrate::usable_normal(n) {
                     (*p, *q) = f(row + x, n);
                 }
             }

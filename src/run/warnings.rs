@@ -118,6 +118,14 @@ pub enum Warning {
         /// Why it stopped.
         convergence: crate::integrate::Convergence,
     },
+    /// Pixels of the mask given to the integration without a normal (NaN, or the zero vector
+    /// that normal maps store for none): left without depth.
+    WithoutNormal {
+        /// Such pixels.
+        pixels: usize,
+        /// Pixels in the mask.
+        masked: usize,
+    },
     /// The discontinuity-preserving integrator's cuts close regions off all around
     /// ([`crate::integrate::ClosedOff`]): their depth offset relative to the rest is not in the
     /// normals, and the depth differences across those cuts are a guess (the least jump).
@@ -149,6 +157,23 @@ impl Warning {
             largest: closed.largest,
             integrated,
         })
+    }
+
+    /// The warning integrating `normals` over `mask` calls for: [`Warning::WithoutNormal`]
+    /// when some pixels of the mask have no normal ([`crate::integrate::usable_normal`]), else
+    /// none.
+    pub fn of_normals(
+        normals: &crate::grid::NormalMap,
+        mask: &crate::grid::Mask,
+    ) -> Option<Warning> {
+        let (mut masked, mut pixels) = (0, 0);
+        for (n, &m) in normals.data().iter().zip(mask.data()) {
+            if m {
+                masked += 1;
+                pixels += usize::from(!crate::integrate::usable_normal(n));
+            }
+        }
+        (pixels > 0).then_some(Warning::WithoutNormal { pixels, masked })
     }
 
     /// The warning a linear solve of the depth calls for: [`Warning::IntegrationNotConverged`]
@@ -230,6 +255,10 @@ impl fmt::Display for Warning {
                 f,
                 "the depth's linear solve ({solver}) stopped after {iterations} iterations {}: the depth is that of its last iterate and may be off by more than the data's noise",
                 convergence.describe()
+            ),
+            Warning::WithoutNormal { pixels, masked } => write!(
+                f,
+                "{pixels} of the {masked} pixels of the mask have no normal (NaN, or the zero vector that normal maps store for none): they are left without depth"
             ),
             Warning::DepthOffsetsGuessed {
                 regions,
@@ -413,6 +442,34 @@ pub(crate) fn warnings(
 mod tests {
     use super::*;
 
+    /// NaN and the zero vector inside the mask are counted as no normal; outside it, and any
+    /// other finite vector (of any length), are not.
+    #[test]
+    fn pixels_of_the_mask_without_a_normal_are_counted() {
+        use nalgebra::Vector3;
+        let normals = crate::grid::Grid::from_vec(
+            4,
+            1,
+            vec![
+                Vector3::new(f32::NAN, 0.0, 1.0),
+                Vector3::zeros(),
+                Vector3::new(0.0, 0.0, 0.3),
+                Vector3::zeros(),
+            ],
+        )
+        .unwrap();
+        let mask = crate::grid::Grid::from_vec(4, 1, vec![true, true, true, false]).unwrap();
+        assert_eq!(
+            Warning::of_normals(&normals, &mask),
+            Some(Warning::WithoutNormal {
+                pixels: 2,
+                masked: 3
+            })
+        );
+        let last = crate::grid::Grid::from_vec(4, 1, vec![false, false, true, false]).unwrap();
+        assert_eq!(Warning::of_normals(&normals, &last), None);
+    }
+
     /// One of each variant, with numbers found nowhere else in the sentences, and the texts
     /// each sentence must contain.
     fn cases() -> Vec<(Warning, Vec<&'static str>)> {
@@ -475,6 +532,13 @@ mod tests {
                     convergence: crate::integrate::Convergence::IterationLimit,
                 },
                 vec!["grid-multigrid-cg", "2017 iterations", "not converged"],
+            ),
+            (
+                Warning::WithoutNormal {
+                    pixels: 64,
+                    masked: 5021,
+                },
+                vec!["64 of the 5021", "no normal", "without depth"],
             ),
             (
                 Warning::DepthOffsetsGuessed {
