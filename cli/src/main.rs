@@ -765,9 +765,16 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
             );
             m
         }
-        // Where the normal map holds a unit-ish vector, less a uniform background.
+        // Where the normal map holds a vector (not NaN or zero), less a uniform background.
         None => {
             let domain = photostereo::integrate::normal_domain(&normals);
+            if domain.off_unit > 0 {
+                eprintln!(
+                    "warning: no --mask: {} of the {} pixels taken hold vectors that are not of unit length (read as their directions); if the map is a fit's g = ρn over the whole frame, its background is taken too: pass --mask to choose the pixels",
+                    domain.off_unit,
+                    domain.mask.count()
+                );
+            }
             if let Some(b) = domain.background {
                 eprintln!(
                     "warning: no --mask: {} pixels with the border's normal ({:.3}, {:.3}, {:.3}) are taken as background and left out; pass --mask to choose the pixels",
@@ -847,17 +854,7 @@ fn run_integrate(a: IntegrateArgs, progress: &dyn Progress) -> Result<()> {
     if let Some(d) = &r.auto {
         say!("  auto: {}", d.reason());
     }
-    if let Some(w) = r.solve.and_then(photostereo::run::Warning::of_solve) {
-        eprintln!("warning: {}", printable(&w.to_string()));
-    }
-    let integrated = r.depth.data().iter().filter(|v| v.is_finite()).count();
-    if let Some(w) = photostereo::run::Warning::of_normals(&normals, &mask) {
-        eprintln!("warning: {}", printable(&w.to_string()));
-    }
-    if let Some(w) = r
-        .closed_off
-        .and_then(|c| photostereo::run::Warning::of_closed_off(c, integrated))
-    {
+    for w in photostereo::run::Warning::of_integration(&normals, &mask, &r) {
         eprintln!("warning: {}", printable(&w.to_string()));
     }
     say!(

@@ -989,12 +989,20 @@ fn the_command_reads_the_direction_of_a_scaled_normal_map() {
     let (_, _, _, normals) = field(w, w, sphere);
     let albedo = |i: usize| 0.05 + 0.95 * ((i * 7919) % 1000) as f32 / 1000.0;
     let tmp = tempfile::tempdir().unwrap();
-    let (unit, _) = integrate_sphere_map(tmp.path(), "unit", &|i| normals.data()[i].into(), false);
-    let (scaled, _) = integrate_sphere_map(
+    let (unit, said) =
+        integrate_sphere_map(tmp.path(), "unit", &|i| normals.data()[i].into(), false);
+    assert!(!said.contains("not of unit length"), "{said}");
+    let (scaled, said) = integrate_sphere_map(
         tmp.path(),
         "scaled",
         &|i| (normals.data()[i] * albedo(i)).into(),
         false,
+    );
+    let taken = (0..w * w).filter(|&i| inside_sphere(i % w, i / w)).count();
+    assert!(
+        said.contains("pixels taken hold vectors that are not of unit length")
+            && said.contains(&format!("of the {taken} pixels taken")),
+        "{said}"
     );
     let (mut lo, mut hi, mut worst) = (f32::INFINITY, f32::NEG_INFINITY, 0.0f32);
     for i in 0..w * w {

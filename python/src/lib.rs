@@ -25,8 +25,8 @@ use photostereo::progress::Silent;
 use photostereo::ps::color::ColorSolve;
 use photostereo::ps::intensities::GainEstimate;
 use photostereo::ps::solve::{ImageModel, Method, PixelStatus};
-use photostereo::run::pipeline::{Config, estimate_models, reconstruct_normals_with_models};
 use photostereo::run::Warning;
+use photostereo::run::pipeline::{Config, estimate_models, reconstruct_normals_with_models};
 use photostereo::sfs::reflectance_map::ReflectanceMap;
 use photostereo::synth::reflectance::{
     BlinnPhong, Diffuse, Material, Mirror, Phong, Specular, TorranceSparrow, Ward,
@@ -672,18 +672,10 @@ fn integrate<'py>(
     };
     let result = lib(py.detach(|| integrate_normals(&map, &mask, &options, &Silent)))?;
     // What the command warns of, in the library's words.
-    let integrated = result.depth.data().iter().filter(|v| v.is_finite()).count();
-    let warnings: Vec<String> = [
-        Warning::of_normals(&map, &mask),
-        result.solve.and_then(Warning::of_solve),
-        result
-            .closed_off
-            .and_then(|c| Warning::of_closed_off(c, integrated)),
-    ]
-    .into_iter()
-    .flatten()
-    .map(|w| w.to_string())
-    .collect();
+    let warnings: Vec<String> = Warning::of_integration(&map, &mask, &result)
+        .iter()
+        .map(|w| w.to_string())
+        .collect();
     let out = PyDict::new(py);
     out.set_item("warnings", warnings)?;
     out.set_item(

@@ -41,6 +41,7 @@ pub mod path;
 pub mod poisson;
 pub(crate) mod sparse;
 
+pub use crate::ps::normals::usable_normal;
 pub use auto::AutoDecision;
 pub use bilateral::{BilateralParams, ClosedOff};
 pub use masked::SolveInfo;
@@ -172,26 +173,31 @@ pub fn normal_gradients(
     mask: &Mask,
     camera: Option<&Intrinsics>,
 ) -> (ScalarMap, ScalarMap) {
-    let normals = unit_normals(normals, mask);
+    unit_gradients(&unit_normals(normals, mask), mask, camera)
+}
+
+/// [`normal_gradients`] of normals already of unit length.
+pub(crate) fn unit_gradients(
+    normals: &NormalMap,
+    mask: &Mask,
+    camera: Option<&Intrinsics>,
+) -> (ScalarMap, ScalarMap) {
     match camera {
-        None => gradients(&normals, mask),
-        Some(k) => perspective_gradients(&normals, mask, k),
+        None => gradients(normals, mask),
+        Some(k) => perspective_gradients(normals, mask, k),
     }
 }
 
-/// How far the squared length of a normal may be from 1 for it to be taken as a unit vector:
-/// above the rounding of a normalisation in `f32` (a few 10⁻⁷), below that of a normal map
-/// stored in half floats (about 10⁻³), which is therefore normalised again.
-const UNIT_SQUARED_TOLERANCE: f32 = 1e-5;
-
 /// `normals` with every finite vector other than zero scaled to unit length, borrowed when
-/// those of `mask` already are. Integration reads only a normal's direction: the gradients do
-/// not depend on its length, but the clamp of n_z (or of the perspective factor m) at
-/// [`MIN_NZ`] and the weights that `bilateral`'s equations and `auto`'s test give each pixel
-/// (n_z², m²) do. Vectors scaled by an albedo (g = ρn from a photometric-stereo fit, or
-/// normals from another tool that did not normalise them) made the dark pixels' gradients
-/// clamped and their equations light, and the depth error of a sphere ten times larger. Zero vectors and NaN, the "no
-/// normal" of normal maps, are left as they are.
+/// those of `mask` already are (within 10⁻⁵ in squared length: above the rounding of `f32`,
+/// below that of a half-float map, which is normalised again). Integration reads only a
+/// normal's direction: the gradients do not depend on its length, but the clamp of n_z (or
+/// of the perspective factor m) at [`MIN_NZ`] and the weights that `bilateral`'s equations
+/// and `auto`'s test give each pixel (n_z², m²) do. Vectors scaled by an albedo (g = ρn
+/// from a photometric-stereo fit, or normals from another tool that did not normalise them)
+/// made the dark pixels' gradients clamped and their equations light, and the depth error
+/// of a sphere ten times larger. Zero vectors and NaN, the "no normal" of normal maps, are
+/// left as they are.
 ///
 /// ```
 /// use nalgebra::Vector3;
@@ -204,26 +210,16 @@ const UNIT_SQUARED_TOLERANCE: f32 = 1e-5;
 /// assert!((unit.at(1, 0).y - 0.6).abs() < 1e-6);
 /// ```
 pub fn unit_normals<'a>(normals: &'a NormalMap, mask: &Mask) -> Cow<'a, NormalMap> {
-    let off_unit = normals
+    use crate::ps::normals::{off_unit, unit_length};
+    let any = normals
         .data()
         .par_iter()
         .zip(mask.data().par_iter())
-        .any(|(n, &m)| {
-            m && usable_normal(n) && (n.norm_squared() - 1.0).abs() > UNIT_SQUARED_TOLERANCE
-        });
-    if !off_unit {
+        .any(|(n, &m)| m && off_unit(n));
+    if !any {
         return Cow::Borrowed(normals);
     }
-    Cow::Owned(normals.map(|n| {
-        if usable_normal(n) {
-            // By the largest component first, so that neither a huge nor a tiny vector
-            // overflows or underflows its squared length.
-            let v = n / n.amax();
-            v / v.norm()
-        } else {
-            *n
-        }
-    }))
+    Cow::Owned(normals.map(unit_length))
 }
 
 /// Integrates a gradient field (p, q) (x right, y up) over `mask` with a gradient-based method.
@@ -307,22 +303,6 @@ fn censored_gradients(
     })
 }
 
-/// Whether `n` can be a surface normal: finite, and not the zero vector, so that the zero
-/// vectors and NaN that normal maps use for "no normal" are not. Any length is taken:
-/// integration reads the direction ([`unit_normals`]).
-///
-/// ```
-/// use nalgebra::Vector3;
-/// use photostereo::integrate::usable_normal;
-/// assert!(usable_normal(&Vector3::new(0.0, 0.6, 0.8)));
-/// assert!(usable_normal(&Vector3::new(0.0, 0.06, 0.08)));
-/// assert!(!usable_normal(&Vector3::zeros()));
-/// assert!(!usable_normal(&Vector3::new(f32::NAN, 0.0, 1.0)));
-/// ```
-pub fn usable_normal(n: &nalgebra::Vector3<f32>) -> bool {
-    n.iter().all(|v| v.is_finite()) && n.amax() > 0.0
-}
-
 /// Where a normal map without a mask defines the surface, and what was left out.
 #[derive(Debug, Clone, PartialEq)]
 pub struct NormalDomain {
@@ -333,11 +313,14 @@ pub struct NormalDomain {
     pub background: Option<[f32; 3]>,
     /// Pixels left out as background.
     pub background_pixels: usize,
+    /// Pixels taken whose vector is not of unit length (read as its direction): a map of
+    /// g = ρn over the whole frame, whose background is then taken as well unless it is zero.
+    pub off_unit: usize,
 }
 
 /// The pixels of a normal map to integrate when no mask is given: those with a
-/// [`usable_normal`] (not NaN or the zero vector, which maps use for "none"), less a uniform background — the
-/// normal that at least 90% of the border pixels share exactly, which no real surface
+/// [`usable_normal`] (not NaN or the zero vector, which maps use for "none"), less a uniform
+/// background — the normal that at least 90% of the border pixels share exactly, which no real surface
 /// fills the frame's edge with. Without that test a white or flat background would be
 /// integrated with the object, joining them by a smooth sheet.
 pub fn normal_domain(normals: &NormalMap) -> NormalDomain {
@@ -364,7 +347,7 @@ pub fn normal_domain(normals: &NormalMap) -> NormalDomain {
     let background = best
         .filter(|&(_, count)| count as f64 >= 0.9 * edge as f64)
         .map(|(b, _)| b.map(f32::from_bits));
-    let mut background_pixels = 0;
+    let (mut background_pixels, mut off_unit) = (0, 0);
     let mask = normals.map(|n| {
         if !usable_normal(n) {
             return false;
@@ -373,12 +356,14 @@ pub fn normal_domain(normals: &NormalMap) -> NormalDomain {
             background_pixels += 1;
             return false;
         }
+        off_unit += usize::from(crate::ps::normals::off_unit(n));
         true
     });
     NormalDomain {
         mask,
         background,
         background_pixels,
+        off_unit,
     }
 }
 
@@ -386,7 +371,7 @@ pub fn normal_domain(normals: &NormalMap) -> NormalDomain {
 ///
 /// # Errors
 /// [`Error::DimensionMismatch`] when sizes differ; [`Error::Mask`] when no masked pixel has a
-/// finite normal; [`Error::InvalidParameter`] when a sparse factorisation fails.
+/// normal ([`usable_normal`]); [`Error::InvalidParameter`] when a sparse factorisation fails.
 pub fn integrate_normals(
     normals: &NormalMap,
     mask: &Mask,
@@ -406,7 +391,7 @@ fn normals_integrated(
 ) -> Result<Integration> {
     normals.check_same_size(mask, "mask vs normals")?;
     let normals = &*unit_normals(normals, mask);
-    let (p, q) = normal_gradients(normals, mask, options.camera.as_ref());
+    let (p, q) = unit_gradients(normals, mask, options.camera.as_ref());
     let domain = gradient_domain(&p, &q, mask)?;
     facing_the_camera(normals, &domain, options.camera.as_ref())?;
     progress.begin(options.method.name(), 1);
@@ -473,7 +458,7 @@ fn normals_integrated(
         }
     };
     // Where they were freed, the gradients again: the same maps, from the normals in one pass.
-    let (p, q) = kept.unwrap_or_else(|| normal_gradients(normals, mask, options.camera.as_ref()));
+    let (p, q) = kept.unwrap_or_else(|| unit_gradients(normals, mask, options.camera.as_ref()));
     progress.advance(1);
     progress.end();
     let residual = integration_residual(&z, &p, &q, &domain);
@@ -606,7 +591,7 @@ fn gradient_domain(p: &ScalarMap, q: &ScalarMap, mask: &Mask) -> Result<Mask> {
     if domain.count() == 0 {
         return Err(Error::Mask {
             path: "<integration domain>".into(),
-            reason: "no masked pixel has a finite normal".into(),
+            reason: "no masked pixel has a normal (NaN and the zero vector are none)".into(),
         });
     }
     Ok(domain)

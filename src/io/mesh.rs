@@ -23,7 +23,8 @@ pub struct Mesh {
 }
 
 impl Mesh {
-    /// The mesh of `depth` with per-vertex `normals`; orthographic when `camera` is `None`.
+    /// The mesh of `depth` with per-vertex `normals` (scaled to unit length); orthographic when
+    /// `camera` is `None`.
     ///
     /// # Errors
     /// [`crate::Error::DimensionMismatch`] when the maps differ in size.
@@ -55,6 +56,8 @@ impl Mesh {
                 };
                 index[i] = mesh.vertices.len() as u32;
                 mesh.vertices.push(p);
+                // Unit, whatever the map's lengths (integration reads directions too).
+                let n = crate::ps::normals::unit_length(&n);
                 mesh.normals.push([n.x, n.y, n.z]);
             }
         }
@@ -129,5 +132,20 @@ mod tests {
         let ply = m.to_ply();
         let header_end = ply.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
         assert_eq!(ply.len() - header_end, 11 * 24 + 11 * 13);
+    }
+
+    /// A map of vectors scaled by an albedo gives the mesh unit vertex normals (their
+    /// directions); unit ones are kept bit for bit.
+    #[test]
+    fn vertex_normals_are_unit_whatever_the_map_s_lengths() {
+        let depth = Grid::new(2, 1, 1.0f32);
+        let unit = Vector3::new(0.6f32, 0.0, 0.8);
+        let normals = Grid::from_vec(2, 1, vec![unit * 0.05, unit]).unwrap();
+        let m = Mesh::from_depth(&depth, &normals, None).unwrap();
+        for n in &m.normals {
+            let v = Vector3::from(*n);
+            assert!((v - unit).norm() < 1e-6, "{n:?}");
+        }
+        assert_eq!(m.normals[1], [unit.x, unit.y, unit.z]);
     }
 }

@@ -15,6 +15,45 @@ use serde::Serialize;
 /// keeping grazing rim pixels from dominating integration.
 pub const MIN_NZ: f32 = 0.02;
 
+/// Whether `n` can be a surface normal: finite, and not the zero vector, so that the zero
+/// vectors and NaN that normal maps use for "no normal" are not. Any length is taken:
+/// integration reads the direction ([`crate::integrate::unit_normals`]).
+///
+/// ```
+/// use nalgebra::Vector3;
+/// use photostereo::integrate::usable_normal;
+/// assert!(usable_normal(&Vector3::new(0.0, 0.6, 0.8)));
+/// assert!(usable_normal(&Vector3::new(0.0, 0.06, 0.08)));
+/// assert!(!usable_normal(&Vector3::zeros()));
+/// assert!(!usable_normal(&Vector3::new(f32::NAN, 0.0, 1.0)));
+/// ```
+pub fn usable_normal(n: &Vector3<f32>) -> bool {
+    n.iter().all(|v| v.is_finite()) && n.amax() > 0.0
+}
+
+/// How far the squared length of a normal may be from 1 for it to be taken as a unit vector:
+/// above the rounding of a normalisation in `f32` (a few 10⁻⁷), below that of a normal map
+/// stored in half floats (about 10⁻³), which is therefore normalised again.
+const UNIT_SQUARED_TOLERANCE: f32 = 1e-5;
+
+/// Whether `n` is a [`usable_normal`] that is not of unit length (beyond
+/// [`UNIT_SQUARED_TOLERANCE`]).
+pub(crate) fn off_unit(n: &Vector3<f32>) -> bool {
+    usable_normal(n) && (n.norm_squared() - 1.0).abs() > UNIT_SQUARED_TOLERANCE
+}
+
+/// `n` scaled to unit length when it is [`off_unit`] (by its largest component first, so that
+/// neither a huge nor a tiny vector overflows or underflows its squared length), else as it is
+/// (bit for bit).
+pub(crate) fn unit_length(n: &Vector3<f32>) -> Vector3<f32> {
+    if off_unit(n) {
+        let v = n / n.amax();
+        v / v.norm()
+    } else {
+        *n
+    }
+}
+
 /// Albedo and unit normals from a grey solve: ρ = |g|, N = g/ρ; NaN where not solved.
 pub fn albedo_and_normals(solution: &Solution) -> (ScalarMap, NormalMap) {
     let albedo = solution.g.map(|g| g.norm());
@@ -69,7 +108,7 @@ pub fn combine_channels(solutions: &[Solution]) -> (Vec<ScalarMap>, NormalMap, G
 
 /// Surface gradients p = −n_x/n_z, q = −n_y/n_z (with n_z clamped to ≥ [`MIN_NZ`]); NaN
 /// outside `mask` or where there is no normal (NaN, or the zero vector that normal maps store
-/// for none: [`crate::integrate::usable_normal`]).
+/// for none: [`usable_normal`]).
 pub fn gradients(normals: &NormalMap, mask: &Mask) -> (ScalarMap, ScalarMap) {
     gradient_maps(normals, mask, |_, n| {
         let nz = n.z.max(MIN_NZ);
@@ -96,7 +135,7 @@ pub(crate) fn gradient_maps(
             let row = y * w;
             for (x, (p, q)) in p.iter_mut().zip(q).enumerate() {
                 let n = &normals.data()[row + x];
-                if mask.data()[row + x] && crate::integrate::usable_normal(n) {
+                if mask.data()[row + x] && usable_normal(n) {
                     (*p, *q) = f(row + x, n);
                 }
             }

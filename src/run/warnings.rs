@@ -176,6 +176,28 @@ impl Warning {
         (pixels > 0).then_some(Warning::WithoutNormal { pixels, masked })
     }
 
+    /// The warnings that integrating `normals` over `mask` into `result` calls for, in this
+    /// order: pixels of the mask without a normal ([`Warning::of_normals`]), a linear solve
+    /// that stopped before converging ([`Warning::of_solve`]), regions whose depth offset is a
+    /// guess ([`Warning::of_closed_off`]).
+    pub fn of_integration(
+        normals: &crate::grid::NormalMap,
+        mask: &crate::grid::Mask,
+        result: &crate::integrate::Integration,
+    ) -> Vec<Warning> {
+        let integrated = result.depth.data().iter().filter(|v| v.is_finite()).count();
+        [
+            Warning::of_normals(normals, mask),
+            result.solve.and_then(Warning::of_solve),
+            result
+                .closed_off
+                .and_then(|c| Warning::of_closed_off(c, integrated)),
+        ]
+        .into_iter()
+        .flatten()
+        .collect()
+    }
+
     /// The warning a linear solve of the depth calls for: [`Warning::IntegrationNotConverged`]
     /// when it stopped before converging, else none.
     pub fn of_solve(solve: crate::integrate::SolveInfo) -> Option<Warning> {
