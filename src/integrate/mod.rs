@@ -931,6 +931,14 @@ mod tests {
         (normals, mask)
     }
 
+    /// A pinhole camera whose principal point is off the maps' centre.
+    const PINHOLE: Intrinsics = Intrinsics {
+        fx: 300.0,
+        fy: 300.0,
+        cx: 20.0,
+        cy: 40.0,
+    };
+
     /// The options of the integrators a map meets by default or by name (`auto`, `masked-ls`,
     /// `bilateral`), orthographic and under the pinhole `k`.
     fn every_integrator(k: Intrinsics) -> Vec<IntegrationOptions> {
@@ -1015,13 +1023,7 @@ mod tests {
             0.05 + 0.95 * h
         };
         let scaled = hemisphere(n, |x, y, v| v.map(|c| c * albedo(x, y)));
-        let k = Intrinsics {
-            fx: 300.0,
-            fy: 300.0,
-            cx: 20.0,
-            cy: 40.0,
-        };
-        for o in every_integrator(k) {
+        for o in every_integrator(PINHOLE) {
             let (method, camera) = (o.method, o.camera);
             let run = |(normals, mask): &(NormalMap, Mask)| {
                 integrate_normals(normals, mask, &o, &crate::progress::Silent)
@@ -1064,13 +1066,7 @@ mod tests {
             |v: f32| move |x: usize, y: usize, n: [f32; 3]| if block(x, y) { [v; 3] } else { n };
         let (zeros, mask) = hemisphere(n, hole(0.0));
         let (nan, _) = hemisphere(n, hole(f32::NAN));
-        let k = Intrinsics {
-            fx: 300.0,
-            fy: 300.0,
-            cx: 20.0,
-            cy: 40.0,
-        };
-        for o in every_integrator(k) {
+        for o in every_integrator(PINHOLE) {
             let run = |normals: &NormalMap| {
                 integrate_normals(normals, &mask, &o, &crate::progress::Silent)
                     .unwrap_or_else(|e| panic!("{:?}, {:?}: {e}", o.method, o.camera))
