@@ -615,6 +615,11 @@ pub struct SfsBenchArgs {
     /// Light slants from the view, degrees; lists are comma- or space-separated.
     #[arg(long, num_args = 1.., value_delimiter = ',', default_values_t = photostereo::eval::sfs::DEFAULT_SLANTS)]
     pub slants: Vec<f64>,
+    /// Azimuths of the oblique lights, degrees (x right, y up); lists are comma- or
+    /// space-separated. Where an object's detail lies relative to the brightest point of a
+    /// smooth convex surface depends on it, and so does Horn's result.
+    #[arg(long, num_args = 1.., value_delimiter = ',', default_values_t = photostereo::eval::sfs::DEFAULT_AZIMUTHS)]
+    pub azimuths: Vec<f64>,
     /// The methods to run (default: all); lists are comma- or space-separated.
     #[arg(long, num_args = 1.., value_delimiter = ',', value_name = "METHOD")]
     pub methods: Vec<SfsMethodArg>,

@@ -443,6 +443,7 @@ pub fn sfs(a: crate::args::SfsBenchArgs) -> Result<()> {
     let report = sweep(&SfsSweepOptions {
         size: a.size,
         slants: a.slants.clone(),
+        azimuths: a.azimuths.clone(),
         methods: if a.methods.is_empty() {
             defaults.methods
         } else {
@@ -469,11 +470,7 @@ pub(crate) fn sfs_table(report: &photostereo::eval::sfs::SfsSweepReport) -> Stri
          |---|---|---|---:|---:|---:|---:|---:|\n",
     );
     for r in &report.rows {
-        let light = if r.slant_deg == 0.0 {
-            "frontal".to_string()
-        } else {
-            format!("{}° oblique", r.slant_deg)
-        };
+        let light = sfs_light(r);
         match (&r.refused, r.normals_deg, r.depth) {
             (Some(_), _, _) => {
                 let _ = writeln!(
@@ -509,34 +506,49 @@ pub(crate) fn sfs_table(report: &photostereo::eval::sfs::SfsSweepReport) -> Stri
     s
 }
 
+/// A row's light in words: "frontal", "30° oblique" (at the default azimuth), or "30° oblique
+/// at 120°".
+fn sfs_light(r: &photostereo::eval::sfs::SfsRow) -> String {
+    if r.slant_deg == 0.0 {
+        "frontal".to_string()
+    } else if photostereo::eval::sfs::DEFAULT_AZIMUTHS.contains(&r.azimuth_deg) {
+        format!("{}° oblique", r.slant_deg)
+    } else {
+        format!("{}° oblique at {}°", r.slant_deg, r.azimuth_deg)
+    }
+}
+
 /// The chart of a shape-from-shading sweep (`STEM.svg/.png`): each method's normal error
 /// against its solve time, one series per method and light.
 pub(crate) fn sfs_chart(
     report: &photostereo::eval::sfs::SfsSweepReport,
     stem: &std::path::Path,
 ) -> Result<()> {
-    let slants = &report.options.slants;
     let mut series = Vec::new();
     let mut labels: Vec<String> = Vec::new();
+    let mut lights: Vec<String> = Vec::new();
     for r in &report.rows {
         if !labels.contains(&r.label()) {
             labels.push(r.label());
         }
+        if !lights.contains(&sfs_light(r)) {
+            lights.push(sfs_light(r));
+        }
     }
     for (k, label) in labels.iter().enumerate() {
-        for (j, &slant) in slants.iter().enumerate() {
+        for (j, light) in lights.iter().enumerate() {
             let points: Vec<(f64, f64)> = report
                 .rows
                 .iter()
-                .filter(|r| r.label() == *label && r.slant_deg == slant)
+                .filter(|r| r.label() == *label && sfs_light(r) == *light)
                 .filter_map(|r| r.normals_deg.map(|e| (r.seconds.max(1e-3), e)))
                 .collect();
             if points.is_empty() {
                 continue;
             }
-            let name = format!("{label} at {slant}°");
+            let name = format!("{label}, {light}");
             series.push(
-                Series::line(name, points, k * slants.len() + j)
+                Series::line(name, points, k * lights.len() + j)
                     .styled(crate::chart::Style::Markers),
             );
         }

@@ -453,7 +453,16 @@ fn perspective(
             "  refined: {} steps{} in {:.3} s{} over {} cells, energy {:.3e} -> {:.3e}, rms \
              relative residual {:.4}",
             f.iterations,
-            if f.converged { "" } else { " (not converged)" },
+            if f.discarded {
+                format!(
+                    " (discarded: they moved the whole surface by {:+.1}%)",
+                    100.0 * (f.shift.exp() - 1.0)
+                )
+            } else if f.converged {
+                String::new()
+            } else {
+                " (not converged)".to_string()
+            },
             f.seconds,
             if f.coarse_iterations > 0 {
                 format!(

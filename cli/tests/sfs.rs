@@ -1672,3 +1672,99 @@ quarter-resolution start {e_prepared:.2}°, refined {e_quarter:.2}°"
     println!("refined again from its own depth.exr: {e_again:.2}°");
     assert!(e_again < e + 0.2, "{e_again:.2}° against {e:.2}°");
 }
+
+/// The command on the relief at 64² under a point light 30° off the axis at azimuth 120°,
+/// where the perspective refinement heads for a surface nearer the camera as a whole
+/// (`tests/sfs_perspective.rs`): the refinement is discarded, and the summary, a warning and
+/// `report.json` say so; the depth is the swept solution's (`--no-refine`), value for value.
+#[test]
+fn sfs_command_discards_a_refinement_that_moves_the_whole_surface() {
+    use photostereo::synth::near::{NearPlacement, render_near};
+    let dir = tempfile::tempdir().unwrap();
+    let size = 64;
+    let scene = SceneKind::Relief.build(size, Albedo::Constant(1.0), Material::lambertian());
+    let placement = NearPlacement {
+        distance: 2.0 * size as f64,
+        scale: 1.0,
+    };
+    let camera = placement.camera(&scene);
+    let d = placement.distance;
+    let (slant, azimuth) = (30f64.to_radians(), 120f64.to_radians());
+    let at = Vector3::new(azimuth.cos(), azimuth.sin(), 0.0) * (d * slant.tan());
+    let mut lamp = Light::near(at, Vector3::new(0.0, 0.0, -d));
+    // Below 1 everywhere, so that the 16-bit file does not clip.
+    lamp.intensity = [0.6 * d * d; 3];
+    let r = render_near(
+        &scene,
+        &Lights::new(vec![lamp]).unwrap(),
+        &camera,
+        &placement,
+        &RenderOptions::default(),
+    )
+    .unwrap();
+    let png = dir.path().join("relief.png");
+    write_grey_png16(&png, &r.images[0][0]);
+    let k = dir.path().join("K.txt");
+    std::fs::write(
+        &k,
+        format!(
+            "{} 0 {}\n0 {} {}\n0 0 1\n",
+            camera.fx, camera.cx, camera.fy, camera.cy
+        ),
+    )
+    .unwrap();
+    let position = format!("{},{},{}", at.x, at.y, at.z);
+    let intensity = format!("{}", 0.6 * d * d);
+    let run = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(name);
+        let mut args = vec![
+            "sfs",
+            png.to_str().unwrap(),
+            "--camera",
+            k.to_str().unwrap(),
+            "--light-position",
+            &position,
+            "--light-intensity",
+            &intensity,
+            "--albedo",
+            "1",
+            "-o",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let o = cli(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let depth = photostereo::io::decode::read_exr_channel(&out.join("depth.exr"), "Z").unwrap();
+        (o, out, depth)
+    };
+    let (o, out, depth) = run("refined", &[]);
+    let said = String::from_utf8_lossy(&o.stdout);
+    let warned = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        said.contains("(discarded: they moved the whole surface by -"),
+        "{said}"
+    );
+    assert!(
+        warned.contains("refinement was discarded") || said.contains("refinement was discarded"),
+        "{said}{warned}"
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let refinement = &report["result"]["refinement"];
+    assert_eq!(refinement["discarded"], true, "{refinement}");
+    assert!(
+        refinement["shift"].as_f64().unwrap() < -0.05,
+        "{refinement}"
+    );
+    let (_, _, swept) = run("swept", &["--no-refine"]);
+    let mut worst = 0f32;
+    for i in 0..depth.len() {
+        if depth.data()[i].is_finite() || swept.data()[i].is_finite() {
+            worst = worst.max((depth.data()[i] - swept.data()[i]).abs() / swept.data()[i].abs());
+        }
+    }
+    assert!(
+        worst < 1e-6,
+        "the depth differs from the swept one by {worst:e}"
+    );
+}

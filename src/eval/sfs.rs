@@ -2,7 +2,8 @@
 //! (`photostereo bench sfs`, the README's table).
 //!
 //! Each shape is rendered twice per light: once for the distant-light methods (orthographic,
-//! a distant light at `slant` from the view, azimuth 40°) and once for the perspective method
+//! a distant light at `slant` from the view and `azimuth`, 40° by default) and once for the
+//! perspective method
 //! (a pinhole camera two scene widths away, a point light in the camera's plane seen from the
 //! scene's centre at the same `slant`; slant 0 is a light at the camera centre). Lambertian,
 //! albedo 0.8, cast shadows, no noise. Errors: mean normal angle over the mask, depth RMSE
@@ -34,8 +35,8 @@ pub const SFS_SCENES: [SceneKind; 5] = [
 pub const DEFAULT_SLANTS: [f64; 2] = [0.0, 30.0];
 /// Albedo of the rendered shapes.
 const ALBEDO: f64 = 0.8;
-/// Azimuth of the oblique lights (degrees, x right, y up).
-const AZIMUTH_DEG: f64 = 40.0;
+/// Azimuth of the oblique lights swept by default (degrees, x right, y up).
+pub const DEFAULT_AZIMUTHS: [f64; 1] = [40.0];
 
 /// What to sweep.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -44,6 +45,8 @@ pub struct SfsSweepOptions {
     pub size: usize,
     /// Light slants, degrees.
     pub slants: Vec<f64>,
+    /// Azimuths of the oblique lights, degrees (x right, y up); a frontal light is run once.
+    pub azimuths: Vec<f64>,
     /// Methods.
     pub methods: Vec<SfsMethod>,
 }
@@ -53,6 +56,7 @@ impl Default for SfsSweepOptions {
         SfsSweepOptions {
             size: 128,
             slants: DEFAULT_SLANTS.to_vec(),
+            azimuths: DEFAULT_AZIMUTHS.to_vec(),
             methods: vec![
                 SfsMethod::Horn,
                 SfsMethod::TsaiShah,
@@ -70,6 +74,8 @@ pub struct SfsRow {
     pub scene: &'static str,
     /// Light slant, degrees.
     pub slant_deg: f64,
+    /// Light azimuth, degrees (x right, y up; 0 for a frontal light).
+    pub azimuth_deg: f64,
     /// Method.
     pub method: SfsMethod,
     /// Why the method does not apply at this light, when it does not.
@@ -92,6 +98,9 @@ pub struct SfsRow {
     pub refined_coarse: usize,
     /// Solve time, seconds.
     pub seconds: f64,
+    /// What the method said was wrong with its result (the report's warnings): a wrong result
+    /// without one is a confident wrong answer.
+    pub warnings: Vec<String>,
 }
 
 impl SfsRow {
@@ -113,9 +122,9 @@ pub struct SfsSweepReport {
     pub rows: Vec<SfsRow>,
 }
 
-/// A distant light at `slant_deg` from the view, azimuth [`AZIMUTH_DEG`].
-fn distant(slant_deg: f64) -> Vector3<f64> {
-    crate::synth::light_sets::slanted(slant_deg, AZIMUTH_DEG)
+/// A distant light at `slant_deg` from the view and `azimuth_deg`.
+fn distant(slant_deg: f64, azimuth_deg: f64) -> Vector3<f64> {
+    crate::synth::light_sets::slanted(slant_deg, azimuth_deg)
 }
 
 fn scores(r: &SfsResult, truth: &HeightField) -> Result<(f64, f64)> {
@@ -140,6 +149,27 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
     if let Some(s) = options.slants.iter().find(|s| !(0.0..=60.0).contains(*s)) {
         return Err(Error::param("slant", format!("{s}° is outside [0°, 60°]")));
     }
+    if let Some(a) = options.azimuths.iter().find(|a| !a.is_finite()) {
+        return Err(Error::param(
+            "azimuth",
+            format!("{a}° is not a finite angle"),
+        ));
+    }
+    if options.azimuths.is_empty() {
+        return Err(Error::param("azimuth", "no azimuth to sweep"));
+    }
+    // A frontal light has no azimuth: it is run once.
+    let lights: Vec<(f64, f64)> = options
+        .slants
+        .iter()
+        .flat_map(|&slant| {
+            if slant == 0.0 {
+                vec![(slant, 0.0)]
+            } else {
+                options.azimuths.iter().map(|&a| (slant, a)).collect()
+            }
+        })
+        .collect();
     let mut rows = Vec::new();
     for kind in SFS_SCENES {
         let scene = kind.build(
@@ -147,8 +177,8 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
             Albedo::Constant(ALBEDO as f32),
             Material::lambertian(),
         );
-        for &slant in &options.slants {
-            let l = distant(slant);
+        for &(slant, azimuth) in &lights {
+            let l = distant(slant, azimuth);
             let ortho = render(
                 &scene,
                 &Lights::new(vec![Light::new(l)])?,
@@ -160,7 +190,7 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
             };
             let camera = placement.camera(&scene);
             let d = placement.distance;
-            let az = AZIMUTH_DEG.to_radians();
+            let az = azimuth.to_radians();
             let at = Vector3::new(az.cos(), az.sin(), 0.0) * (d * slant.to_radians().tan());
             let mut point = Light::near(at, Vector3::new(0.0, 0.0, -d));
             point.intensity = [d * d; 3];
@@ -186,6 +216,7 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
                 let row = |refused: Option<String>| SfsRow {
                     scene: kind.name(),
                     slant_deg: slant,
+                    azimuth_deg: azimuth,
                     method,
                     refused,
                     normals_deg: None,
@@ -196,6 +227,7 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
                     refined: None,
                     refined_coarse: 0,
                     seconds: 0.0,
+                    warnings: Vec::new(),
                 };
                 let (result, truth) = if method == SfsMethod::Perspective {
                     let r = crate::sfs::perspective::solve(
@@ -253,6 +285,7 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
                         .as_ref()
                         .map_or(result.report.coarse_iterations, |r| r.coarse_iterations),
                     seconds: result.report.seconds,
+                    warnings: result.report.warnings.clone(),
                     ..row(None)
                 });
             }
@@ -294,6 +327,7 @@ mod tests {
         let report = sweep(&SfsSweepOptions {
             size: 48,
             slants: vec![0.0, 30.0],
+            azimuths: DEFAULT_AZIMUTHS.to_vec(),
             methods: vec![
                 SfsMethod::TsaiShah,
                 SfsMethod::FastMarching,
@@ -334,5 +368,47 @@ mod tests {
             bust(SfsMethod::Perspective),
             bust(SfsMethod::FastMarching)
         );
+    }
+
+    /// Each oblique slant is run at every azimuth, the frontal light once; the light moves with
+    /// the azimuth (the results differ), and the method's warnings are carried into the rows.
+    #[test]
+    fn oblique_lights_are_swept_over_the_azimuths() {
+        let report = sweep(&SfsSweepOptions {
+            size: 32,
+            slants: vec![0.0, 30.0],
+            azimuths: vec![40.0, 220.0],
+            methods: vec![SfsMethod::TsaiShah],
+        })
+        .unwrap();
+        assert_eq!(report.rows.len(), SFS_SCENES.len() * 3);
+        for scene in SFS_SCENES {
+            let rows: Vec<&SfsRow> = report
+                .rows
+                .iter()
+                .filter(|r| r.scene == scene.name())
+                .collect();
+            let lights: Vec<(f64, f64)> =
+                rows.iter().map(|r| (r.slant_deg, r.azimuth_deg)).collect();
+            assert_eq!(lights, [(0.0, 0.0), (30.0, 40.0), (30.0, 220.0)]);
+            assert!(rows[0].refused.is_some() && rows[1].refused.is_none());
+            assert_ne!(rows[1].normals_deg, rows[2].normals_deg, "{}", scene.name());
+        }
+        assert!(
+            report
+                .rows
+                .iter()
+                .filter(|r| r.refused.is_none())
+                .any(|r| !r.warnings.is_empty())
+        );
+        for azimuths in [vec![], vec![f64::NAN]] {
+            let err = sweep(&SfsSweepOptions {
+                size: 32,
+                azimuths,
+                ..SfsSweepOptions::default()
+            })
+            .unwrap_err();
+            assert!(err.to_string().contains("azimuth"), "{err}");
+        }
     }
 }

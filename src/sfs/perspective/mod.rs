@@ -1024,7 +1024,9 @@ fn solve_swept(
             let mut report = refine::refine(&problem, &mut zk, refine_options)?;
             report.coarse_iterations = coarse_iterations;
             let fitted = problem.fitted();
-            if report.cells > 0 {
+            // A discarded refinement left `zk` at its start, which stays as swept (or
+            // upsampled), with what was solved and what interpolated.
+            if report.cells > 0 && !report.discarded {
                 for k in known.iter_mut() {
                     *k = false;
                 }
@@ -1107,7 +1109,9 @@ fn solve_swept(
             options.albedo, light.intensity
         ),
     ];
-    if extrapolated > 0 && refinement.is_none() {
+    // Whether the depth returned is the swept one (not refined, or its refinement discarded).
+    let swept_depth = refinement.as_ref().is_none_or(|r| r.discarded);
+    if extrapolated > 0 && swept_depth {
         assumptions.push(format!(
             "{extrapolated} pixels on the occluding contour continue the depth inside in a \
              straight line"
@@ -1118,14 +1122,17 @@ fn solve_swept(
             "swept at {cw}×{ch} (halving the resolution until the mask has at most \
              {SWEEP_AT_MOST} pixels), refined at each resolution from the one below"
         ));
-    } else if refinement.as_ref().is_some_and(|r| r.coarse_iterations > 0) {
+    } else if refinement
+        .as_ref()
+        .is_some_and(|r| r.coarse_iterations > 0 && !r.discarded)
+    {
         assumptions.push(
             "the swept start refined at half resolution first (recursively), its change \
              interpolated back"
                 .to_string(),
         );
     }
-    if let Some(r) = &refinement {
+    if let Some(r) = refinement.as_ref().filter(|r| !r.discarded) {
         assumptions.push(format!(
             "refined: the depth of least squared image residual over {} cells of lit pixels \
              plus {} times its squared second differences, from the swept solution (a local \
@@ -1154,7 +1161,21 @@ fn solve_swept(
              depth: the albedo or the light's intensity is too low, or the light is misplaced"
         ));
     }
-    if let Some(r) = refinement.as_ref().filter(|r| !r.converged) {
+    if let Some(r) = refinement.as_ref().filter(|r| r.discarded) {
+        let start = match coarse {
+            Some((cw, ch)) => format!("the solution at {cw}×{ch}, upsampled"),
+            None => "the swept solution".to_string(),
+        };
+        warnings.push(format!(
+            "the refinement was discarded: its steps moved the whole surface by {:+.1}% of its \
+             distance from its start, {start} (more than {:.0}% is not a refinement of it: the \
+             energy has a lower valley elsewhere, which the image alone does not rule out), so \
+             the depth is that start, less accurate than a refined one",
+            100.0 * (r.shift.exp() - 1.0),
+            100.0 * (refine::MAX_SHIFT.exp() - 1.0)
+        ));
+    }
+    if let Some(r) = refinement.as_ref().filter(|r| !r.converged && !r.discarded) {
         warnings.push(format!(
             "the refinement stopped at its limit of {} step{} without converging (energy \
              {:.3e} from {:.3e})",
@@ -1172,7 +1193,7 @@ fn solve_swept(
             all.len()
         ));
     }
-    if grazing > 0 && refinement.is_none() {
+    if grazing > 0 && swept_depth {
         let what = format!(
             "{grazing} of {n} lit pixels have no solution of the scheme (typically where the \
              light grazes the surface): their depth is interpolated from their neighbours"
