@@ -622,14 +622,7 @@ fn sfs_perspective_command_end_to_end() {
         let mask_png = dir.path().join("mask.png");
         write_mask_png(&mask_png, &r.truth.mask);
         let k = dir.path().join("K.txt");
-        std::fs::write(
-            &k,
-            format!(
-                "{} 0 {}\n0 {} {}\n0 0 1\n",
-                camera.fx, camera.cx, camera.fy, camera.cy
-            ),
-        )
-        .unwrap();
+        write_k(&k, &camera);
         let out = dir.path().join(format!("out_{name}"));
         let intensity = format!("{}", 0.6 * d * d);
         // --light-position chooses the perspective method by default.
@@ -1194,6 +1187,18 @@ fn write_grey_png16(path: &std::path::Path, image: &ScalarMap) {
 }
 
 /// Writes `mask` as an 8-bit PNG (255 inside).
+/// Writes the intrinsics as the `--camera` file (three rows of three numbers).
+fn write_k(path: &std::path::Path, camera: &photostereo::camera::Intrinsics) {
+    std::fs::write(
+        path,
+        format!(
+            "{} 0 {}\n0 {} {}\n0 0 1\n",
+            camera.fx, camera.cx, camera.fy, camera.cy
+        ),
+    )
+    .unwrap();
+}
+
 fn write_mask_png(path: &std::path::Path, mask: &Mask) {
     let bytes: Vec<u8> = mask.data().iter().map(|&m| u8::from(m) * 255).collect();
     photostereo::io::output::write_png8(path, mask.width(), mask.height(), 1, &bytes).unwrap();
@@ -1673,15 +1678,18 @@ quarter-resolution start {e_prepared:.2}°, refined {e_quarter:.2}°"
     assert!(e_again < e + 0.2, "{e_again:.2}° against {e:.2}°");
 }
 
-/// The command on the relief at 64² under a point light 30° off the axis at azimuth 120°,
-/// where the perspective refinement heads for a surface nearer the camera as a whole
-/// (`tests/sfs_perspective.rs`): the refinement is discarded, and the summary, a warning and
-/// `report.json` say so; the depth is the swept solution's (`--no-refine`), value for value.
-#[test]
-fn sfs_command_discards_a_refinement_that_moves_the_whole_surface() {
+/// A run of the command: its output, its output folder and the depth it wrote.
+type Ran = (std::process::Output, std::path::PathBuf, ScalarMap);
+
+/// The relief at `size`² under a point light 30° off the axis at azimuth 120° (intensity 0.6 D²,
+/// so that the 16-bit file does not clip), written with its K into `dir`; `run(name, extra)`
+/// runs the `sfs` command on it (albedo 1, the light given) into `dir/name` and returns its
+/// output, the output folder and the depth. Also returns the truth.
+fn relief_lit_from_120(
+    dir: &std::path::Path,
+    size: usize,
+) -> (impl Fn(&str, &[&str]) -> Ran, HeightField) {
     use photostereo::synth::near::{NearPlacement, render_near};
-    let dir = tempfile::tempdir().unwrap();
-    let size = 64;
     let scene = SceneKind::Relief.build(size, Albedo::Constant(1.0), Material::lambertian());
     let placement = NearPlacement {
         distance: 2.0 * size as f64,
@@ -1692,7 +1700,6 @@ fn sfs_command_discards_a_refinement_that_moves_the_whole_surface() {
     let (slant, azimuth) = (30f64.to_radians(), 120f64.to_radians());
     let at = Vector3::new(azimuth.cos(), azimuth.sin(), 0.0) * (d * slant.tan());
     let mut lamp = Light::near(at, Vector3::new(0.0, 0.0, -d));
-    // Below 1 everywhere, so that the 16-bit file does not clip.
     lamp.intensity = [0.6 * d * d; 3];
     let r = render_near(
         &scene,
@@ -1702,21 +1709,15 @@ fn sfs_command_discards_a_refinement_that_moves_the_whole_surface() {
         &RenderOptions::default(),
     )
     .unwrap();
-    let png = dir.path().join("relief.png");
+    let png = dir.join("relief.png");
     write_grey_png16(&png, &r.images[0][0]);
-    let k = dir.path().join("K.txt");
-    std::fs::write(
-        &k,
-        format!(
-            "{} 0 {}\n0 {} {}\n0 0 1\n",
-            camera.fx, camera.cx, camera.fy, camera.cy
-        ),
-    )
-    .unwrap();
+    let k = dir.join("K.txt");
+    write_k(&k, &camera);
     let position = format!("{},{},{}", at.x, at.y, at.z);
     let intensity = format!("{}", 0.6 * d * d);
-    let run = |name: &str, extra: &[&str]| {
-        let out = dir.path().join(name);
+    let dir = dir.to_path_buf();
+    let run = move |name: &str, extra: &[&str]| {
+        let out = dir.join(name);
         let mut args = vec![
             "sfs",
             png.to_str().unwrap(),
@@ -1737,6 +1738,44 @@ fn sfs_command_discards_a_refinement_that_moves_the_whole_surface() {
         let depth = photostereo::io::decode::read_exr_channel(&out.join("depth.exr"), "Z").unwrap();
         (o, out, depth)
     };
+    (run, r.truth)
+}
+
+/// The command on the relief at 128² under a point light 30° off the axis at azimuth 120°,
+/// whose half-resolution refinement used to run towards the camera and be kept (26° and 29% of
+/// the range): now refined within 5° and 5%, and not discarded.
+#[test]
+fn sfs_command_refines_the_relief_lit_from_azimuth_120() {
+    let dir = tempfile::tempdir().unwrap();
+    let (run, truth) = relief_lit_from_120(dir.path(), 128);
+    let (o, out, depth) = run("refined", &[]);
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        said.contains("refined:") && !said.contains("discarded"),
+        "{said}"
+    );
+    let normals = photostereo::io::decode::read_normal_map(&out.join("normal.exr")).unwrap();
+    let ne = angular_errors(&normals, &truth.normals, &truth.mask)
+        .unwrap()
+        .mean_deg;
+    let de = depth_errors(&depth, &truth.depth, &truth.mask)
+        .unwrap()
+        .rmse_over_range;
+    println!(
+        "relief 128², light 30° off at azimuth 120°: {ne:.2}°, depth {:.2}% of the range",
+        100.0 * de
+    );
+    assert!(ne < 5.0 && de < 0.05, "{ne:.2}° {de:.4}");
+}
+
+/// The command on the relief at 64² under the same light, where the full resolution's
+/// refinement heads for a surface nearer the camera as a whole (`tests/sfs_perspective.rs`):
+/// the refinement is discarded, and the summary, a warning and `report.json` say so; the depth
+/// is the swept solution's (`--no-refine`), value for value.
+#[test]
+fn sfs_command_discards_a_refinement_that_moves_the_whole_surface() {
+    let dir = tempfile::tempdir().unwrap();
+    let (run, _) = relief_lit_from_120(dir.path(), 64);
     let (o, out, depth) = run("refined", &[]);
     let said = String::from_utf8_lossy(&o.stdout);
     let warned = String::from_utf8_lossy(&o.stderr);
@@ -1759,8 +1798,10 @@ fn sfs_command_discards_a_refinement_that_moves_the_whole_surface() {
     let (_, _, swept) = run("swept", &["--no-refine"]);
     let mut worst = 0f32;
     for i in 0..depth.len() {
-        if depth.data()[i].is_finite() || swept.data()[i].is_finite() {
-            worst = worst.max((depth.data()[i] - swept.data()[i]).abs() / swept.data()[i].abs());
+        let (a, b) = (depth.data()[i], swept.data()[i]);
+        assert_eq!(a.is_finite(), b.is_finite(), "pixel {i}: {a} against {b}");
+        if a.is_finite() {
+            worst = worst.max((a - b).abs() / b.abs());
         }
     }
     assert!(
