@@ -470,7 +470,7 @@ pub(crate) fn sfs_table(report: &photostereo::eval::sfs::SfsSweepReport) -> Stri
          |---|---|---|---:|---:|---:|---:|---:|\n",
     );
     for r in &report.rows {
-        let light = sfs_light(r);
+        let light = sfs_light(r, &report.options.azimuths);
         match (&r.refused, r.normals_deg, r.depth) {
             (Some(_), _, _) => {
                 let _ = writeln!(
@@ -496,7 +496,13 @@ pub(crate) fn sfs_table(report: &photostereo::eval::sfs::SfsSweepReport) -> Stri
                         (None, 0) => String::new(),
                         (None, c) => format!(" (after {c} at lower resolutions)"),
                     },
-                    if r.converged { "" } else { " (not converged)" },
+                    if r.discarded {
+                        " (refinement discarded)"
+                    } else if r.converged {
+                        ""
+                    } else {
+                        " (not converged)"
+                    },
                     r.seconds
                 );
             }
@@ -506,12 +512,12 @@ pub(crate) fn sfs_table(report: &photostereo::eval::sfs::SfsSweepReport) -> Stri
     s
 }
 
-/// A row's light in words: "frontal", "30° oblique" (at the default azimuth), or "30° oblique
-/// at 120°".
-fn sfs_light(r: &photostereo::eval::sfs::SfsRow) -> String {
+/// A row's light in words: "frontal", "30° oblique" (a sweep at the default azimuth), or "30°
+/// oblique at 120°" (a sweep over `azimuths` other than the default).
+fn sfs_light(r: &photostereo::eval::sfs::SfsRow, azimuths: &[f64]) -> String {
     if r.slant_deg == 0.0 {
         "frontal".to_string()
-    } else if photostereo::eval::sfs::DEFAULT_AZIMUTHS.contains(&r.azimuth_deg) {
+    } else if azimuths == photostereo::eval::sfs::DEFAULT_AZIMUTHS {
         format!("{}° oblique", r.slant_deg)
     } else {
         format!("{}° oblique at {}°", r.slant_deg, r.azimuth_deg)
@@ -531,8 +537,9 @@ pub(crate) fn sfs_chart(
         if !labels.contains(&r.label()) {
             labels.push(r.label());
         }
-        if !lights.contains(&sfs_light(r)) {
-            lights.push(sfs_light(r));
+        let light = sfs_light(r, &report.options.azimuths);
+        if !lights.contains(&light) {
+            lights.push(light);
         }
     }
     for (k, label) in labels.iter().enumerate() {
@@ -540,7 +547,7 @@ pub(crate) fn sfs_chart(
             let points: Vec<(f64, f64)> = report
                 .rows
                 .iter()
-                .filter(|r| r.label() == *label && sfs_light(r) == *light)
+                .filter(|r| r.label() == *label && sfs_light(r, &report.options.azimuths) == *light)
                 .filter_map(|r| r.normals_deg.map(|e| (r.seconds.max(1e-3), e)))
                 .collect();
             if points.is_empty() {

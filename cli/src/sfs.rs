@@ -448,35 +448,38 @@ fn perspective(
         rep.seconds,
         rep.mean_abs_residual
     );
-    if let Some(f) = &rep.refinement {
-        say!(
+    let from = |f: &photostereo::sfs::perspective::RefineReport| {
+        if f.coarse_iterations > 0 {
+            format!(
+                " (from a start refined in {} steps at lower resolutions)",
+                f.coarse_iterations
+            )
+        } else {
+            String::new()
+        }
+    };
+    match &rep.refinement {
+        Some(f) if f.discarded => say!(
+            "  refinement discarded after {} steps in {:.3} s{}: they moved the whole surface \
+             by {:+.1}%; the depth is their start",
+            f.iterations,
+            f.seconds,
+            from(f),
+            100.0 * (f.shift.exp() - 1.0)
+        ),
+        Some(f) => say!(
             "  refined: {} steps{} in {:.3} s{} over {} cells, energy {:.3e} -> {:.3e}, rms \
              relative residual {:.4}",
             f.iterations,
-            if f.discarded {
-                format!(
-                    " (discarded: they moved the whole surface by {:+.1}%)",
-                    100.0 * (f.shift.exp() - 1.0)
-                )
-            } else if f.converged {
-                String::new()
-            } else {
-                " (not converged)".to_string()
-            },
+            if f.converged { "" } else { " (not converged)" },
             f.seconds,
-            if f.coarse_iterations > 0 {
-                format!(
-                    " (from a start refined in {} steps at lower resolutions)",
-                    f.coarse_iterations
-                )
-            } else {
-                String::new()
-            },
+            from(f),
             f.cells,
             f.energy_start,
             f.energy_end,
             f.rms_residual
-        );
+        ),
+        None => {}
     }
     tell(rep, &a.output);
     Ok(())

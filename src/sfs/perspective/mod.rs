@@ -963,6 +963,7 @@ fn solve_swept(
             singular,
             coarse: None,
             coarse_steps: None,
+            coarse_discarded: false,
         })
     };
     let Swept {
@@ -977,6 +978,7 @@ fn solve_swept(
         singular,
         coarse,
         coarse_steps,
+        coarse_discarded,
     } = match coarse_start(image, mask, camera, light, options, &all)? {
         Some(swept) => swept,
         None => sweep()?,
@@ -1024,15 +1026,22 @@ fn solve_swept(
             let mut report = refine::refine(&problem, &mut zk, refine_options)?;
             report.coarse_iterations = coarse_iterations;
             let fitted = problem.fitted();
-            // A discarded refinement left `zk` at its start, which stays as swept (or
-            // upsampled), with what was solved and what interpolated.
-            if report.cells > 0 && !report.discarded {
-                for k in known.iter_mut() {
-                    *k = false;
+            // A discarded refinement left `zk` at its start, which is returned. The swept depth
+            // keeps what its sweeps solved and what they interpolated; any other start (moved by
+            // the half-resolution refinement, or upsampled) counts the pixels of lit cells as
+            // solved, as a refined result does.
+            let swept_start = coarse_steps.is_none() && coarse_iterations == 0;
+            if report.cells > 0 {
+                if !(report.discarded && swept_start) {
+                    for k in known.iter_mut() {
+                        *k = false;
+                    }
+                    for (t, &k) in keep.iter().enumerate() {
+                        known[k] = fitted[t];
+                    }
                 }
                 for (t, &k) in keep.iter().enumerate() {
                     lnz[k] = zk[t];
-                    known[k] = fitted[t];
                 }
             }
             Some(report)
@@ -1120,12 +1129,15 @@ fn solve_swept(
     if let Some((cw, ch)) = &coarse {
         assumptions.push(format!(
             "swept at {cw}×{ch} (halving the resolution until the mask has at most \
-             {SWEEP_AT_MOST} pixels), refined at each resolution from the one below"
+             {SWEEP_AT_MOST} pixels), refined at each resolution from the one below{}",
+            if coarse_discarded {
+                " (at half resolution the refinement moved the whole surface and was \
+                 discarded: that level's start was upsampled)"
+            } else {
+                ""
+            }
         ));
-    } else if refinement
-        .as_ref()
-        .is_some_and(|r| r.coarse_iterations > 0 && !r.discarded)
-    {
+    } else if refinement.as_ref().is_some_and(|r| r.coarse_iterations > 0) {
         assumptions.push(
             "the swept start refined at half resolution first (recursively), its change \
              interpolated back"
@@ -1164,15 +1176,22 @@ fn solve_swept(
     if let Some(r) = refinement.as_ref().filter(|r| r.discarded) {
         let start = match coarse {
             Some((cw, ch)) => format!("the solution at {cw}×{ch}, upsampled"),
+            None if r.coarse_iterations > 0 => {
+                "the swept solution as its refinement at half resolution moved it".to_string()
+            }
             None => "the swept solution".to_string(),
         };
+        // The limit is symmetric in ln Z: nearer, it is a little under 5%.
+        let bound = 100.0 * ((refine::MAX_SHIFT * r.shift.signum()).exp() - 1.0);
         warnings.push(format!(
-            "the refinement was discarded: its steps moved the whole surface by {:+.1}% of its \
-             distance from its start, {start} (more than {:.0}% is not a refinement of it: the \
-             energy has a lower valley elsewhere, which the image alone does not rule out), so \
-             the depth is that start, less accurate than a refined one",
+            "the refinement was discarded after {} step{}: they moved the whole surface by \
+             {:+.2}% of its distance, past the {bound:+.2}% within which a refinement stays \
+             near its start (the energy has a lower valley elsewhere, which the image alone \
+             does not rule out); the depth is that start, {start}, less accurate than a \
+             refined one",
+            r.iterations,
+            if r.iterations == 1 { "" } else { "s" },
             100.0 * (r.shift.exp() - 1.0),
-            100.0 * (refine::MAX_SHIFT.exp() - 1.0)
         ));
     }
     if let Some(r) = refinement.as_ref().filter(|r| !r.converged && !r.discarded) {
@@ -1278,6 +1297,9 @@ struct Swept {
     coarse: Option<(usize, usize)>,
     /// For an upsampled start: the refinement steps taken at the lower resolutions to make it.
     coarse_steps: Option<usize>,
+    /// For an upsampled start: whether the refinement at the resolution below was discarded
+    /// (the swept solution there was upsampled).
+    coarse_discarded: bool,
 }
 
 /// For a large mask whose result is to be refined: the solution of the half-resolution image
@@ -1378,11 +1400,11 @@ fn coarse_start(
         unfilled: 0,
         singular: r.singular_points,
         coarse: Some(swept_size),
-        coarse_steps: Some(
-            r.refinement
-                .as_ref()
-                .map_or(0, |f| f.iterations + f.coarse_iterations),
-        ),
+        // A refinement discarded at the lower resolution changed nothing there.
+        coarse_steps: Some(r.refinement.as_ref().map_or(0, |f| {
+            f.coarse_iterations + if f.discarded { 0 } else { f.iterations }
+        })),
+        coarse_discarded: r.refinement.as_ref().is_some_and(|f| f.discarded),
     }))
 }
 

@@ -637,8 +637,10 @@ pub(super) fn refine_from_half(
         &mut cz,
         options,
     );
-    let Ok(report) = refine(&cproblem, &mut cz, options) else {
-        return 0;
+    let report = match refine(&cproblem, &mut cz, options) {
+        Ok(r) if !r.discarded => r,
+        // Failed, or discarded there: no start (whatever the levels below it moved).
+        _ => return 0,
     };
     let change: Vec<f64> = cz.iter().zip(&start).map(|(a, b)| a - b).collect();
     let moved: Vec<f64> = z
