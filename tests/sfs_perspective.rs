@@ -357,6 +357,36 @@ fn a_refinement_that_moves_the_whole_surface_is_discarded_and_said() {
     );
 }
 
+/// The same scene at 136² (18 496 pixels, so swept and refined at 68² first and upsampled): the
+/// 68² refinement runs away and is discarded there, the report's assumptions say so, no steps
+/// are counted for it, and the full resolution refines the upsampled swept solution within 5°
+/// and 5%.
+#[test]
+fn a_refinement_discarded_below_an_upsampled_start_is_said() {
+    let (c, _, out) = relief_lit_from_120(136);
+    let s = score(&out, &c.truth);
+    let r = out.report.refinement.as_ref().unwrap();
+    assert!(
+        r.converged && !r.discarded && r.coarse_iterations == 0,
+        "{r:?}"
+    );
+    assert!(
+        out.report
+            .assumptions
+            .iter()
+            .any(|a| a.starts_with("swept at 68×68")
+                && a.contains("refinement moved the whole surface and was discarded")),
+        "{:?}",
+        out.report.assumptions
+    );
+    assert!(
+        s.normals_deg < 5.0 && s.depth < 0.05,
+        "{:.2}° {:.4}",
+        s.normals_deg,
+        s.depth
+    );
+}
+
 /// A refinement stopped by its step limit says so in a warning and in its report.
 #[test]
 fn a_refinement_cut_short_says_so() {
