@@ -625,27 +625,10 @@ fn sfs_perspective_command_end_to_end() {
         write_k(&k, &camera);
         let out = dir.path().join(format!("out_{name}"));
         let intensity = format!("{}", 0.6 * d * d);
+        let mut extra = vec!["--mask", mask_png.to_str().unwrap()];
+        extra.extend_from_slice(brdf);
         // --light-position chooses the perspective method by default.
-        let mut args = vec![
-            "sfs",
-            png.to_str().unwrap(),
-            "--camera",
-            k.to_str().unwrap(),
-            "--light-position",
-            "0,0,0",
-            "--light-intensity",
-            &intensity,
-            "--albedo",
-            "0.8",
-            "--mask",
-            mask_png.to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
-        ];
-        args.extend_from_slice(brdf);
-        let o = cli(&args);
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let depth = photostereo::io::decode::read_exr_channel(&out.join("depth.exr"), "Z").unwrap();
+        let (o, depth) = sfs_point_light(&png, &k, ["0,0,0", &intensity, "0.8"], &out, &extra);
         let normals = photostereo::io::decode::read_normal_map(&out.join("normal.exr")).unwrap();
         let ne = angular_errors(&normals, &r.truth.normals, &r.truth.mask).unwrap();
         let (mut se, mut n, mut lo, mut hi) = (0.0, 0.0, f64::INFINITY, f64::NEG_INFINITY);
@@ -1186,6 +1169,37 @@ fn write_grey_png16(path: &std::path::Path, image: &ScalarMap) {
     photostereo::io::output::write_png16(path, image.width(), image.height(), 1, &codes).unwrap();
 }
 
+/// Runs the `sfs` command on `png` with the camera file `k` and a point light (`[position,
+/// intensity, albedo]` as the command takes them) into `out`, with `extra` arguments; checks
+/// that it succeeded and returns its output and the depth it wrote.
+fn sfs_point_light(
+    png: &std::path::Path,
+    k: &std::path::Path,
+    [position, intensity, albedo]: [&str; 3],
+    out: &std::path::Path,
+    extra: &[&str],
+) -> (std::process::Output, ScalarMap) {
+    let mut args = vec![
+        "sfs",
+        png.to_str().unwrap(),
+        "--camera",
+        k.to_str().unwrap(),
+        "--light-position",
+        position,
+        "--light-intensity",
+        intensity,
+        "--albedo",
+        albedo,
+        "-o",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    let o = cli(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let depth = photostereo::io::decode::read_exr_channel(&out.join("depth.exr"), "Z").unwrap();
+    (o, depth)
+}
+
 /// Writes the intrinsics as the `--camera` file (three rows of three numbers).
 fn write_k(path: &std::path::Path, camera: &photostereo::camera::Intrinsics) {
     std::fs::write(
@@ -1718,24 +1732,7 @@ fn relief_lit_from_120(
     let dir = dir.to_path_buf();
     let run = move |name: &str, extra: &[&str]| {
         let out = dir.join(name);
-        let mut args = vec![
-            "sfs",
-            png.to_str().unwrap(),
-            "--camera",
-            k.to_str().unwrap(),
-            "--light-position",
-            &position,
-            "--light-intensity",
-            &intensity,
-            "--albedo",
-            "1",
-            "-o",
-            out.to_str().unwrap(),
-        ];
-        args.extend_from_slice(extra);
-        let o = cli(&args);
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let depth = photostereo::io::decode::read_exr_channel(&out.join("depth.exr"), "Z").unwrap();
+        let (o, depth) = sfs_point_light(&png, &k, [&position, &intensity, "1"], &out, extra);
         (o, out, depth)
     };
     (run, r.truth)

@@ -384,6 +384,19 @@ pub fn integrate_bilateral(
             reason: "no pixel of the domain has a normal (NaN and the zero vector are none)".into(),
         });
     }
+    bilateral_within(normals, domain, camera, params, solver)
+}
+
+/// [`integrate_bilateral`] on unit `normals` over a non-empty `domain` whose every pixel has a
+/// normal: what [`super::integrate_normals`] hands it, having normalised the map and left the
+/// pixels without a normal out of its domain already.
+pub(super) fn bilateral_within(
+    normals: &NormalMap,
+    domain: &Mask,
+    camera: Option<&Intrinsics>,
+    params: &BilateralParams,
+    solver: LinearSolver,
+) -> Result<BilateralResult> {
     let u = Unknowns::new(domain);
     let n = u.len();
     let c = coefficients(normals, &u, camera);

@@ -429,7 +429,9 @@ fn normals_integrated(
     // bilateral integrator works on the normals.
     let (z, solve, weights, iterations, closed_off, kept) = if method == Integrator::Bilateral {
         drop((p, q));
-        let r = bilateral::integrate_bilateral(
+        // The map is unit and the domain holds only pixels with a normal (their gradients are
+        // finite): the checks of the public entry are done.
+        let r = bilateral::bilateral_within(
             normals,
             &domain,
             options.camera.as_ref(),
@@ -530,8 +532,8 @@ pub(crate) fn normal_factor(
         .collect()
 }
 
-/// Refuses a normal map most of whose normals (over `domain`, those that [`usable_normal`]
-/// takes) face away from the camera: n_z < 0
+/// Refuses a normal map most of whose normals (over `domain`, where every pixel has a
+/// [`usable_normal`]) face away from the camera: n_z < 0
 /// orthographic, or with a pinhole `camera` at more than a right angle to their pixel's ray
 /// (m < 0). No visible surface does (a few such normals at grazing rims are noise); such a map
 /// is in another convention, and its gradients, clamped where the normal is at or past a right
@@ -547,9 +549,9 @@ fn facing_the_camera(
 ) -> Result<()> {
     let w = normals.width();
     let (mut away, mut total) = (0usize, 0usize);
+    // The domain holds only pixels with a normal (zero vectors and NaN have no finite gradient).
     for (i, (n, &m)) in normals.data().iter().zip(domain.data()).enumerate() {
-        // Zero vectors (a background inside the mask) face nowhere.
-        if !m || !usable_normal(n) {
+        if !m {
             continue;
         }
         total += 1;
