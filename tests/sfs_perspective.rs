@@ -629,3 +629,72 @@ fn refusals() {
     .to_string();
     assert!(err.contains("black"), "{err}");
 }
+
+/// A refinement discarded at full resolution after its half-resolution refinement moved the
+/// swept start (the vase at 160², a light 40° off the axis at azimuth 200°: 44 steps at 80²
+/// kept, then two at 160² that move the whole surface by 5.2%): the depth is that moved start,
+/// the report's energy ends where it started, the warning names the start, and the assumptions
+/// no longer say that the contour pixels continue the swept depth in a straight line (the
+/// half-resolution change moved them; until 2026-12-07 they did). The result is poor either way
+/// (swept 19.0°, returned 26.3°): a light this far off the axis is beyond what the method holds.
+#[test]
+fn a_refinement_discarded_after_a_half_resolution_move_returns_the_moved_start() {
+    let c = capture_at(
+        SceneKind::Vase,
+        160,
+        (40.0, 200.0),
+        Material::lambertian(),
+        0.0,
+    );
+    let (swept, out) = (
+        solve_with(&c, None),
+        solve_with(&c, Some(RefineOptions::default())),
+    );
+    let r = out.report.refinement.as_ref().unwrap();
+    assert!(
+        r.discarded && r.coarse_iterations > 0 && r.iterations > 0,
+        "{r:?}"
+    );
+    assert!(
+        r.shift > photostereo::sfs::perspective::refine::MAX_SHIFT,
+        "{r:?}"
+    );
+    assert_eq!(r.energy_end, r.energy_start, "{r:?}");
+    assert!(
+        out.report.warnings.iter().any(|w| w.contains(
+            "the depth is that start, the swept solution as its refinement at half resolution moved it"
+        )),
+        "{:?}",
+        out.report.warnings
+    );
+    assert!(
+        swept
+            .report
+            .assumptions
+            .iter()
+            .any(|a| a.contains("continue the depth inside in a straight line")),
+        "{:?}",
+        swept.report.assumptions
+    );
+    assert!(
+        !out.report
+            .assumptions
+            .iter()
+            .any(|a| a.contains("continue the depth inside in a straight line")),
+        "{:?}",
+        out.report.assumptions
+    );
+    // The half-resolution change moved the start: the depth is not the swept one.
+    let mut moved = 0f64;
+    for i in 0..c.truth.mask.len() {
+        if c.truth.mask.data()[i] {
+            let (a, b) = (swept.depth.data()[i], out.depth.data()[i]);
+            assert!(a.is_finite() && b.is_finite(), "pixel {i}: {a} against {b}");
+            moved = moved.max(f64::from((a - b).abs() / a.abs()));
+        }
+    }
+    assert!(
+        moved > 1e-3,
+        "the depth is the swept one (largest change {moved:e})"
+    );
+}

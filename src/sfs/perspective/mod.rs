@@ -1118,8 +1118,11 @@ fn solve_swept(
             options.albedo, light.intensity
         ),
     ];
-    // Whether the depth returned is the swept one (not refined, or its refinement discarded).
-    let swept_depth = refinement.as_ref().is_none_or(|r| r.discarded);
+    // Whether the depth returned is the swept one (not refined, or its refinement discarded
+    // with no lower resolution having moved its start).
+    let swept_depth = refinement
+        .as_ref()
+        .is_none_or(|r| r.discarded && r.coarse_iterations == 0);
     if extrapolated > 0 && swept_depth {
         assumptions.push(format!(
             "{extrapolated} pixels on the occluding contour continue the depth inside in a \
