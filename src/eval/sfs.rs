@@ -45,7 +45,8 @@ pub struct SfsSweepOptions {
     pub size: usize,
     /// Light slants, degrees.
     pub slants: Vec<f64>,
-    /// Azimuths of the oblique lights, degrees (x right, y up); a frontal light is run once.
+    /// Azimuths of the oblique lights, degrees (x right, y up), taken modulo 360° and each
+    /// once (the rows carry them in [0°, 360°)); a frontal light is run once.
     pub azimuths: Vec<f64>,
     /// Methods.
     pub methods: Vec<SfsMethod>,
@@ -161,6 +162,13 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
     if options.azimuths.is_empty() && options.slants.iter().any(|&s| s > 0.0) {
         return Err(Error::param("azimuth", "none given for the oblique slants"));
     }
+    // Azimuths in [0°, 360°), each once (400° and 40° are one light).
+    let mut azimuths: Vec<f64> = Vec::with_capacity(options.azimuths.len());
+    for a in options.azimuths.iter().map(|a| a.rem_euclid(360.0)) {
+        if !azimuths.contains(&a) {
+            azimuths.push(a);
+        }
+    }
     // A frontal light has no azimuth: it is run once.
     let lights: Vec<(f64, f64)> = options
         .slants
@@ -169,7 +177,7 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
             if slant == 0.0 {
                 vec![(slant, 0.0)]
             } else {
-                options.azimuths.iter().map(|&a| (slant, a)).collect()
+                azimuths.iter().map(|&a| (slant, a)).collect()
             }
         })
         .collect();
@@ -383,10 +391,11 @@ mod tests {
     /// the azimuth (the results differ), and the method's warnings are carried into the rows.
     #[test]
     fn oblique_lights_are_swept_over_the_azimuths() {
+        // 400° is 40°, and −140° is 220°: each is run once, named in [0°, 360°).
         let report = sweep(&SfsSweepOptions {
             size: 32,
             slants: vec![0.0, 30.0],
-            azimuths: vec![40.0, 220.0],
+            azimuths: vec![40.0, -140.0, 400.0],
             methods: vec![SfsMethod::TsaiShah],
         })
         .unwrap();
