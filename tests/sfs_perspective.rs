@@ -656,7 +656,7 @@ fn a_refinement_discarded_after_a_half_resolution_move_returns_the_moved_start()
         "{r:?}"
     );
     assert!(
-        r.shift > photostereo::sfs::perspective::refine::MAX_SHIFT,
+        r.shift.abs() > photostereo::sfs::perspective::refine::MAX_SHIFT,
         "{r:?}"
     );
     assert_eq!(r.energy_end, r.energy_start, "{r:?}");

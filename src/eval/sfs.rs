@@ -37,6 +37,8 @@ pub const DEFAULT_SLANTS: [f64; 2] = [0.0, 30.0];
 const ALBEDO: f64 = 0.8;
 /// Azimuth of the oblique lights swept by default (degrees, x right, y up).
 pub const DEFAULT_AZIMUTHS: [f64; 1] = [40.0];
+/// Azimuths closer than this (degrees, after taking them modulo 360°) are one light.
+const AZIMUTH_SAME: f64 = 1e-9;
 
 /// What to sweep.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -46,7 +48,8 @@ pub struct SfsSweepOptions {
     /// Light slants, degrees.
     pub slants: Vec<f64>,
     /// Azimuths of the oblique lights, degrees (x right, y up), taken modulo 360° and each
-    /// once (the rows carry them in [0°, 360°)); a frontal light is run once.
+    /// once (the rows and the report's options carry them in [0°, 360°)); a frontal light is
+    /// run once.
     pub azimuths: Vec<f64>,
     /// Methods.
     pub methods: Vec<SfsMethod>,
@@ -162,10 +165,16 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
     if options.azimuths.is_empty() && options.slants.iter().any(|&s| s > 0.0) {
         return Err(Error::param("azimuth", "none given for the oblique slants"));
     }
-    // Azimuths in [0°, 360°), each once (400° and 40° are one light).
+    // Azimuths in [0°, 360°), each once (400° and 40° are one light; −0° and a rounding just
+    // under 360° are 0°).
     let mut azimuths: Vec<f64> = Vec::with_capacity(options.azimuths.len());
     for a in options.azimuths.iter().map(|a| a.rem_euclid(360.0)) {
-        if !azimuths.contains(&a) {
+        let a = if a == 0.0 || a >= 360.0 - AZIMUTH_SAME {
+            0.0
+        } else {
+            a
+        };
+        if !azimuths.iter().any(|b| (a - b).abs() < AZIMUTH_SAME) {
             azimuths.push(a);
         }
     }
@@ -309,7 +318,10 @@ pub fn sweep(options: &SfsSweepOptions) -> Result<SfsSweepReport> {
         }
     }
     Ok(SfsSweepReport {
-        options: options.clone(),
+        options: SfsSweepOptions {
+            azimuths,
+            ..options.clone()
+        },
         rows,
     })
 }
@@ -409,6 +421,7 @@ mod tests {
             let lights: Vec<(f64, f64)> =
                 rows.iter().map(|r| (r.slant_deg, r.azimuth_deg)).collect();
             assert_eq!(lights, [(0.0, 0.0), (30.0, 40.0), (30.0, 220.0)]);
+            assert_eq!(report.options.azimuths, [40.0, 220.0]);
             assert!(rows[0].refused.is_some());
             let (a, b) = (rows[1].normals_deg.unwrap(), rows[2].normals_deg.unwrap());
             assert!(a.is_finite() && b.is_finite() && a != b, "{}", scene.name());

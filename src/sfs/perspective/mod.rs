@@ -1118,11 +1118,13 @@ fn solve_swept(
             options.albedo, light.intensity
         ),
     ];
-    // Whether the depth returned is the swept one (not refined, or its refinement discarded
-    // with no lower resolution having moved its start).
-    let swept_depth = refinement
-        .as_ref()
-        .is_none_or(|r| r.discarded && r.coarse_iterations == 0);
+    // Whether the depth returned is the one swept at this resolution: not refined, or refined
+    // on no cell, or its refinement discarded with no lower resolution having moved its start
+    // (an upsampled start is never the swept depth).
+    let swept_depth = coarse.is_none()
+        && refinement
+            .as_ref()
+            .is_none_or(|r| r.cells == 0 || (r.discarded && r.coarse_iterations == 0));
     if extrapolated > 0 && swept_depth {
         assumptions.push(format!(
             "{extrapolated} pixels on the occluding contour continue the depth inside in a \
@@ -1147,7 +1149,7 @@ fn solve_swept(
                 .to_string(),
         );
     }
-    if let Some(r) = refinement.as_ref().filter(|r| !r.discarded) {
+    if let Some(r) = refinement.as_ref().filter(|r| !r.discarded && r.cells > 0) {
         assumptions.push(format!(
             "refined: the depth of least squared image residual over {} cells of lit pixels \
              plus {} times its squared second differences, from the swept solution (a local \
