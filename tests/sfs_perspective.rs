@@ -271,6 +271,19 @@ fn light_off_the_axis() {
     }
 }
 
+/// The largest relative change of depth from `a` to `b` over `mask`, every depth finite.
+fn largest_relative_change(mask: &Mask, a: &SfsResult, b: &SfsResult) -> f64 {
+    let mut worst = 0f64;
+    for i in 0..mask.len() {
+        if mask.data()[i] {
+            let (x, y) = (a.depth.data()[i], b.depth.data()[i]);
+            assert!(x.is_finite() && y.is_finite(), "pixel {i}: {x} against {y}");
+            worst = worst.max(f64::from((x - y).abs() / x.abs()));
+        }
+    }
+    worst
+}
+
 /// The relief at `size`² under a light 30° off the axis at azimuth 120°, solved swept only and
 /// refined.
 fn relief_lit_from_120(size: usize) -> (Capture, SfsResult, SfsResult) {
@@ -343,14 +356,7 @@ fn a_refinement_that_moves_the_whole_surface_is_discarded_and_said() {
         "{:?}",
         out.report.warnings
     );
-    let mut worst = 0f64;
-    for i in 0..c.truth.mask.len() {
-        if c.truth.mask.data()[i] {
-            let (a, b) = (swept.depth.data()[i], out.depth.data()[i]);
-            assert!(a.is_finite() && b.is_finite(), "pixel {i}: {a} against {b}");
-            worst = worst.max(f64::from((a - b).abs() / a.abs()));
-        }
-    }
+    let worst = largest_relative_change(&c.truth.mask, &swept, &out);
     assert!(
         worst < 1e-6,
         "the depth differs from the swept one by {worst:e}"
@@ -685,14 +691,7 @@ fn a_refinement_discarded_after_a_half_resolution_move_returns_the_moved_start()
         out.report.assumptions
     );
     // The half-resolution change moved the start: the depth is not the swept one.
-    let mut moved = 0f64;
-    for i in 0..c.truth.mask.len() {
-        if c.truth.mask.data()[i] {
-            let (a, b) = (swept.depth.data()[i], out.depth.data()[i]);
-            assert!(a.is_finite() && b.is_finite(), "pixel {i}: {a} against {b}");
-            moved = moved.max(f64::from((a - b).abs() / a.abs()));
-        }
-    }
+    let moved = largest_relative_change(&c.truth.mask, &swept, &out);
     assert!(
         moved > 1e-3,
         "the depth is the swept one (largest change {moved:e})"
