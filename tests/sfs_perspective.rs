@@ -287,13 +287,17 @@ fn largest_relative_change(mask: &Mask, a: &SfsResult, b: &SfsResult) -> f64 {
 /// The relief at `size`² under a light 30° off the axis at azimuth 120°, solved swept only and
 /// refined.
 fn relief_lit_from_120(size: usize) -> (Capture, SfsResult, SfsResult) {
-    let c = capture_at(
-        SceneKind::Relief,
-        size,
-        (30.0, 120.0),
-        Material::lambertian(),
-        0.0,
-    );
+    swept_and_refined(SceneKind::Relief, size, (30.0, 120.0))
+}
+
+/// Lambertian `kind` at `size`² without noise under a light at (slant, azimuth), solved swept
+/// only and refined.
+fn swept_and_refined(
+    kind: SceneKind,
+    size: usize,
+    light: (f64, f64),
+) -> (Capture, SfsResult, SfsResult) {
+    let c = capture_at(kind, size, light, Material::lambertian(), 0.0);
     let (swept, refined) = (
         solve_with(&c, None),
         solve_with(&c, Some(RefineOptions::default())),
@@ -645,17 +649,7 @@ fn refusals() {
 /// (swept 19.0°, returned 26.3°): a light this far off the axis is beyond what the method holds.
 #[test]
 fn a_refinement_discarded_after_a_half_resolution_move_returns_the_moved_start() {
-    let c = capture_at(
-        SceneKind::Vase,
-        160,
-        (40.0, 200.0),
-        Material::lambertian(),
-        0.0,
-    );
-    let (swept, out) = (
-        solve_with(&c, None),
-        solve_with(&c, Some(RefineOptions::default())),
-    );
+    let (c, swept, out) = swept_and_refined(SceneKind::Vase, 160, (40.0, 200.0));
     let r = out.report.refinement.as_ref().unwrap();
     assert!(
         r.discarded && r.coarse_iterations > 0 && r.iterations > 0,

@@ -985,8 +985,11 @@ fn solve_swept(
     };
 
     // The variational refinement, from the swept and filled depth, on every pixel with one.
-    let refinement = match &options.refine {
-        None => None,
+    // The refinement's report, and whether the depth returned is the one swept at this
+    // resolution (not refined, refined on no cell, or its refinement discarded with no lower
+    // resolution having moved its start; an upsampled start is never the swept depth).
+    let (refinement, swept_depth) = match &options.refine {
+        None => (None, true),
         Some(refine_options) => {
             let keep: Vec<usize> = (0..all.len()).filter(|&k| lnz[k].is_finite()).collect();
             let sites: Vec<refine::Site> = keep
@@ -1030,9 +1033,10 @@ fn solve_swept(
             // keeps what its sweeps solved and what they interpolated; any other start (moved by
             // the half-resolution refinement, or upsampled) counts the pixels of lit cells as
             // solved, as a refined result does.
-            let swept_start = coarse_steps.is_none() && coarse_iterations == 0;
+            let swept = coarse_steps.is_none()
+                && (report.cells == 0 || (report.discarded && coarse_iterations == 0));
             if report.cells > 0 {
-                if !(report.discarded && swept_start) {
+                if !swept {
                     for k in known.iter_mut() {
                         *k = false;
                     }
@@ -1044,7 +1048,7 @@ fn solve_swept(
                     lnz[k] = zk[t];
                 }
             }
-            Some(report)
+            (Some(report), swept)
         }
     };
     let depth_v: Vec<f64> = lnz.iter().map(|v| v.exp()).collect();
@@ -1118,13 +1122,6 @@ fn solve_swept(
             options.albedo, light.intensity
         ),
     ];
-    // Whether the depth returned is the one swept at this resolution: not refined, or refined
-    // on no cell, or its refinement discarded with no lower resolution having moved its start
-    // (an upsampled start is never the swept depth).
-    let swept_depth = coarse.is_none()
-        && refinement
-            .as_ref()
-            .is_none_or(|r| r.cells == 0 || (r.discarded && r.coarse_iterations == 0));
     if extrapolated > 0 && swept_depth {
         assumptions.push(format!(
             "{extrapolated} pixels on the occluding contour continue the depth inside in a \
