@@ -265,16 +265,7 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
             path.display()
         );
     }
-    if let Some(o) = &rep.outline {
-        say!(
-            "  outline: {:.0}% of {} pixels with normals more than {:.0}° from its outward \
-             direction (mean {:.1}°)",
-            100.0 * o.misaligned_fraction,
-            o.pixels,
-            photostereo::sfs::OUTLINE_TOLERANCE_DEG,
-            o.mean_angle_deg
-        );
-    }
+    say_outline(rep);
     if let Some(r) = &rep.outline_repair {
         say!(
             "  outline repair: the first solve had {:.0}% misaligned; solved again upsampled 2× \
@@ -481,8 +472,24 @@ fn perspective(
         ),
         None => {}
     }
+    say_outline(rep);
     tell(rep, &a.output);
     Ok(())
+}
+
+/// The line on how the normals beside the mask's outline agree with an occluding contour, when
+/// the method measured it.
+fn say_outline(rep: &photostereo::sfs::SfsReport) {
+    if let Some(o) = &rep.outline {
+        say!(
+            "  outline: {:.0}% of {} pixels with normals more than {:.0}° from its outward \
+             direction (mean {:.1}°)",
+            100.0 * o.misaligned_fraction,
+            o.pixels,
+            photostereo::sfs::OUTLINE_TOLERANCE_DEG,
+            o.mean_angle_deg
+        );
+    }
 }
 
 /// The material of `--brdf` and its parameters; a parameter the model does not use is refused.

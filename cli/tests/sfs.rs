@@ -664,6 +664,15 @@ fn sfs_perspective_command_end_to_end() {
                 .unwrap();
         assert_eq!(report["result"]["method"], "perspective");
         assert_eq!(report["result"]["converged"], true);
+        // The bust's outline is an occluding contour inside the image, honoured.
+        let misaligned = report["result"]["outline"]["misaligned_fraction"]
+            .as_f64()
+            .expect("the outline's agreement in the report");
+        assert!(
+            misaligned <= photostereo::sfs::OUTLINE_MISALIGNED_WARN,
+            "{misaligned}"
+        );
+        assert!(said.contains("  outline: "), "{said}");
     }
     // What the method needs, and what the others refuse.
     let png = dir.path().join("lambert.png");

@@ -534,8 +534,9 @@ def sfs(
     bool, "mask", "method", "light": the direction used (perspective: from the surface's
     centre to the light), "albedo", "light_source" and "albedo_source" ("given", "estimated"
     or "assumed"), "estimate": dict or None, "report": dict (iterations, convergence,
-    assumptions, warnings, the refinement, and for horn with an occluding boundary "outline":
-    how well the normals beside the mask's outline agree with it), "warnings": list,
+    assumptions, warnings, the refinement, and for horn with an occluding boundary and for
+    perspective "outline": how well the normals beside the mask's outline agree with it),
+    "warnings": list,
     "start_scale", "start_filled": with ``start``, as above}``; NaN outside the mask.
     Each warning is also issued as a :class:`PhotostereoWarning`.
     """
