@@ -692,67 +692,68 @@ fn a_refinement_discarded_after_a_half_resolution_move_returns_the_moved_start()
     );
 }
 
-/// The outline's normals against the occluding contour the method assumes there: the vase at
-/// 64² under a light 40° off the axis at azimuth 200° comes out on another branch (the swept
-/// solution already; about 24° off), with nearly half of its outline's normals turned more than
-/// 45° from the outline's outward direction, and says so; the same vase under a light 30° off at
-/// azimuth 40°, and the sphere under the 40° light, are within 5° and 5% and honour their
-/// outlines (the threshold is Horn's, `OUTLINE_MISALIGNED_WARN`; over the bench's rendered
-/// solves at 64²–160² it warned on no result within 5° and 5%).
+/// The outline's normals against the occluding contour the method assumes there. The vase at
+/// 64² under lights 40° off the axis (azimuths 40°, 120° and 200°) comes out on another branch
+/// (11–24° off when measured, with about half of its outline's normals turned more than 45° from
+/// the outline's outward direction); each such result must say so, and at least two of the three
+/// must be such results, so that the test keeps testing the warning. The same vase 30° off at
+/// azimuth 40°, and the sphere 40° off, are within 5° and 5%, honour their outlines and must not
+/// warn (the threshold is Horn's, `OUTLINE_MISALIGNED_WARN`; over the bench's 320 rendered
+/// solves at 64²–160² it warned on none of the 208 within 5° and 5%).
 #[test]
 fn a_solution_that_contradicts_its_occluding_contour_says_so() {
     use photostereo::sfs::OUTLINE_MISALIGNED_WARN;
-    let says = |out: &SfsResult| {
-        out.report
+    let solved = |kind: SceneKind, light: (f64, f64)| {
+        let c = capture_at(kind, 64, light, Material::lambertian(), 0.0);
+        let out = solve_with(&c, Some(RefineOptions::default()));
+        let s = score(&out, &c.truth);
+        let o = out.report.outline.expect("the outline is inside the image");
+        let says = out
+            .report
             .warnings
             .iter()
-            .any(|w| w.contains("contradicts the occluding boundary it assumed"))
+            .any(|w| w.contains("contradicts the occluding boundary it assumed"));
+        println!(
+            "{} 64², {light:?}: {:.2}°, {:.2}%; outline {:.0}% of {} misaligned (mean {:.1}°), \
+             warned {says}",
+            kind.name(),
+            s.normals_deg,
+            100.0 * s.depth,
+            100.0 * o.misaligned_fraction,
+            o.pixels,
+            o.mean_angle_deg
+        );
+        assert_eq!(
+            says,
+            o.misaligned_fraction > OUTLINE_MISALIGNED_WARN,
+            "{o:?}"
+        );
+        (s, says)
     };
-    let c = capture_at(
-        SceneKind::Vase,
-        64,
-        (40.0, 200.0),
-        Material::lambertian(),
-        0.0,
+    let mut wrong = 0;
+    for azimuth in [40.0, 120.0, 200.0] {
+        let (s, says) = solved(SceneKind::Vase, (40.0, azimuth));
+        if s.normals_deg > 9.0 {
+            wrong += 1;
+            assert!(says, "{:.2}° without the warning", s.normals_deg);
+        } else {
+            assert!(s.normals_deg < 5.0 && s.depth < 0.05 && !says);
+        }
+    }
+    assert!(
+        wrong >= 2,
+        "{wrong} of 3 on another branch: the warning is no longer tested"
     );
-    let out = solve_with(&c, Some(RefineOptions::default()));
-    let s = score(&out, &c.truth);
-    let o = out
-        .report
-        .outline
-        .expect("the vase's outline is inside the image");
-    println!(
-        "vase 64², 40° at 200°: {:.2}°, {:.2}%; outline {:.0}% of {} misaligned (mean {:.1}°)",
-        s.normals_deg,
-        100.0 * s.depth,
-        100.0 * o.misaligned_fraction,
-        o.pixels,
-        o.mean_angle_deg
-    );
-    assert!(s.normals_deg > 12.0, "{:.2}°", s.normals_deg);
-    assert!(o.misaligned_fraction > OUTLINE_MISALIGNED_WARN, "{o:?}");
-    assert!(says(&out), "{:?}", out.report.warnings);
     for (kind, light) in [
         (SceneKind::Vase, (30.0, 40.0)),
         (SceneKind::Sphere, (40.0, 200.0)),
     ] {
-        let c = capture_at(kind, 64, light, Material::lambertian(), 0.0);
-        let out = solve_with(&c, Some(RefineOptions::default()));
-        let s = score(&out, &c.truth);
-        let o = out.report.outline.expect("an outline inside the image");
-        println!(
-            "{} 64², {light:?}: {:.2}°, {:.2}%; outline {:.0}% misaligned",
-            kind.name(),
-            s.normals_deg,
-            100.0 * s.depth,
-            100.0 * o.misaligned_fraction
-        );
+        let (s, says) = solved(kind, light);
         assert!(
             s.normals_deg < 5.0 && s.depth < 0.05,
             "{:.2}°",
             s.normals_deg
         );
-        assert!(o.misaligned_fraction <= OUTLINE_MISALIGNED_WARN, "{o:?}");
-        assert!(!says(&out), "{:?}", out.report.warnings);
+        assert!(!says);
     }
 }

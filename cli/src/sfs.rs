@@ -77,7 +77,9 @@ pub fn run(a: SfsArgs, progress: &dyn photostereo::progress::Progress) -> Result
         SfsMethodArg::Horn
     });
     if a.no_outline_repair && method != SfsMethodArg::Horn {
-        bail!("--no-outline-repair is for --method horn (the only method that checks the outline)");
+        bail!(
+            "--no-outline-repair is for --method horn (the only method that repairs the outline)"
+        );
     }
     if a.no_restarts && method != SfsMethodArg::Horn {
         bail!("--no-restarts is for --method horn (the only method that repeats its continuation)");

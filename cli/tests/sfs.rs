@@ -668,10 +668,7 @@ fn sfs_perspective_command_end_to_end() {
         let misaligned = report["result"]["outline"]["misaligned_fraction"]
             .as_f64()
             .expect("the outline's agreement in the report");
-        assert!(
-            misaligned <= photostereo::sfs::OUTLINE_MISALIGNED_WARN,
-            "{misaligned}"
-        );
+        assert!(misaligned <= OUTLINE_MISALIGNED_WARN, "{misaligned}");
         assert!(said.contains("  outline: "), "{said}");
     }
     // What the method needs, and what the others refuse.

@@ -1143,7 +1143,7 @@ fn sfs<'py>(
     }
     if !outline_repair && method != SfsMethod::Horn {
         return Err(PyValueError::new_err(format!(
-            "outline_repair: for the horn method (the only method that checks the outline), not {}",
+            "outline_repair: for the horn method (the only method that repairs the outline), not {}",
             method.name()
         )));
     }

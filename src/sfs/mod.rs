@@ -211,6 +211,7 @@ impl Default for SfsOptions {
 }
 
 /// What a shape-from-shading run did, assumed and found.
+#[non_exhaustive]
 #[derive(Debug, Clone, Serialize)]
 pub struct SfsReport {
     /// The method.
@@ -255,8 +256,8 @@ pub struct SfsReport {
     pub refinement: Option<perspective::RefineReport>,
     /// How well the normals beside the mask's outline agree with an occluding contour there
     /// (Horn's method under [`Boundary::Occluding`], and the perspective method, which takes
-    /// the outline for an occluding contour; when the outline is inside the image; `None`
-    /// otherwise).
+    /// the outline for an occluding contour), when the outline is inside the image; `None`
+    /// otherwise.
     pub outline: Option<OutlineAgreement>,
     /// What the outline repair did, when it was tried ([`outline_repair`]; Horn only).
     pub outline_repair: Option<outline_repair::OutlineRepair>,
@@ -268,6 +269,7 @@ pub struct SfsReport {
 /// occluding boundaries", Artificial Intelligence 17, 1981). A solve that settled on another
 /// surface explaining the image as well (a rough surface's flatter reflectance map, a small
 /// image) turns those normals elsewhere, while its residual stays as low as a correct solve's.
+#[non_exhaustive]
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct OutlineAgreement {
     /// Mask pixels with a neighbour (of eight) outside the mask but inside the image (the
@@ -281,16 +283,17 @@ pub struct OutlineAgreement {
     pub misaligned_fraction: f64,
 }
 
-/// The start of the warning that a result contradicts the occluding boundary it assumed
-/// (`o.misaligned_fraction` above [`OUTLINE_MISALIGNED_WARN`]): what was measured and the two
-/// readings of it; each method says why its own result can take another surface, and what to
-/// try.
-pub(crate) fn outline_contradicted(o: &OutlineAgreement) -> String {
+/// The first part of the warning that a result contradicts the occluding boundary it assumed
+/// (`o.misaligned_fraction` above [`OUTLINE_MISALIGNED_WARN`]): what was measured and its two
+/// readings, `settled` naming what may have settled on another surface ("the iteration",
+/// "the solution"). A sentence fragment: each method finishes it with why its result can take
+/// another surface and what to try.
+pub(crate) fn outline_contradicted_warning(o: &OutlineAgreement, settled: &str) -> String {
     format!(
         "the result contradicts the occluding boundary it assumed: {:.0}% of the {} pixels \
          beside the mask's outline have normals turned more than {OUTLINE_TOLERANCE_DEG:.0}° \
-         from it (mean {:.1}°). Either the outline is not an occluding contour there, or the \
-         solution settled on another surface that explains the image as well",
+         from it (mean {:.1}°). Either the outline is not an occluding contour there, or \
+         {settled} settled on another surface that explains the image as well",
         100.0 * o.misaligned_fraction,
         o.pixels,
         o.mean_angle_deg,
@@ -349,6 +352,7 @@ pub(crate) fn outline_agreement(u: &Unknowns, normals: &NormalMap) -> Option<Out
 }
 
 /// The result of [`shape_from_shading`].
+#[non_exhaustive]
 #[derive(Debug, Clone)]
 pub struct SfsResult {
     /// Height towards the camera (pixel units), zero-mean per connected part; NaN outside.
@@ -713,7 +717,7 @@ fn finish(
         warnings.push(format!(
             "{} (a rough or small image admits several); the shape is probably wrong: try the \
              perspective method with the light's position, or a larger image{}",
-            outline_contradicted(&o),
+            outline_contradicted_warning(&o, "the iteration"),
             match repair.and_then(|r| r.upsampled) {
                 Some(u) if u.misaligned_fraction <= OUTLINE_MISALIGNED_WARN => {
                     " (solved again upsampled 2×, it honoured the boundary but did not converge, \

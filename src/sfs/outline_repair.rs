@@ -42,6 +42,7 @@ use serde::Serialize;
 pub const MAX_UNKNOWNS: usize = 16_384;
 
 /// What the repair did (in [`super::SfsReport::outline_repair`]).
+#[non_exhaustive]
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct OutlineRepair {
     /// The first solve's agreement with the outline, which failed the check.

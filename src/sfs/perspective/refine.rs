@@ -151,6 +151,7 @@ impl RefineOptions {
 }
 
 /// What the refinement did.
+#[non_exhaustive]
 #[derive(Debug, Clone, Serialize)]
 pub struct RefineReport {
     /// Steps solved at full resolution (kept or not).
