@@ -849,7 +849,8 @@ pub struct IntegrationArgs {
     /// Bilateral: iteration limit.
     #[arg(long, default_value_t = BilateralParams::default().max_iter, value_name = "N")]
     pub bilateral_iterations: usize,
-    /// Bilateral: stop when the energy changes by less than this, relatively.
+    /// Bilateral: stop when the energy changes by less than this, relatively (with the
+    /// re-integration the steps also stop once three in a row have changed no edge's class).
     #[arg(long, default_value_t = BilateralParams::default().tol, value_name = "TOL")]
     pub bilateral_tol: f64,
     /// Bilateral: return the published method's soft-weighted depth, without the final
