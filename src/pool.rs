@@ -24,10 +24,70 @@ pub(crate) fn in_pool<R: Send>(work: impl FnOnce() -> R + Send) -> R {
     rayon::scope(|_| work())
 }
 
+/// Indices per chunk of [`ordered_fold`].
+const FOLD_CHUNK: usize = 4096;
+
+/// Folds the indices `0..n` in parallel into one value that depends neither on the number of
+/// threads nor on which thread stole which work: each fixed chunk of [`FOLD_CHUNK`] indices is
+/// folded in order by `fold` from `identity()`, and the chunks' results are merged by `merge` in
+/// chunk order, from `identity()`. Rayon's own `sum`, `reduce` and `fold` split the work where
+/// idle threads steal it, so a floating-point result taken with them can change in its last
+/// bits from one run to the next, and a solver that compares such sums (a line search, a
+/// stopping test) can then take another path.
+pub(crate) fn ordered_fold<A: Send>(
+    n: usize,
+    identity: impl Fn() -> A + Sync,
+    fold: impl Fn(A, usize) -> A + Sync,
+    merge: impl Fn(A, A) -> A,
+) -> A {
+    use rayon::prelude::*;
+    let parts: Vec<A> = (0..n.div_ceil(FOLD_CHUNK))
+        .into_par_iter()
+        .map(|chunk| {
+            let end = ((chunk + 1) * FOLD_CHUNK).min(n);
+            (chunk * FOLD_CHUNK..end).fold(identity(), &fold)
+        })
+        .collect();
+    parts.into_iter().fold(identity(), merge)
+}
+
 #[cfg(test)]
 mod tests {
-    use super::in_pool;
+    use super::{in_pool, ordered_fold};
     use rayon::prelude::*;
+
+    /// Runs `f` in a pool of `threads` threads.
+    fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .expect("a thread pool")
+            .install(f)
+    }
+
+    /// A floating-point sum whose value depends on the order of its terms (terms of widely
+    /// different magnitudes) comes out bit for bit the same on one thread and on four, and as
+    /// the sequential sum of the chunks' sequential sums.
+    #[test]
+    fn an_ordered_fold_does_not_depend_on_the_threads() {
+        let n = 200_003;
+        let term = |i: usize| ((i as f64) * 0.7).sin() * 10f64.powi((i % 17) as i32 - 8);
+        let sum = || ordered_fold(n, || 0.0, |a, i| a + term(i), |a, b| a + b);
+        let (one, four) = (with_threads(1, sum), with_threads(4, sum));
+        assert_eq!(one.to_bits(), four.to_bits());
+        let chunks: Vec<f64> = (0..n)
+            .collect::<Vec<_>>()
+            .chunks(super::FOLD_CHUNK)
+            .map(|c| c.iter().fold(0.0, |a, &i| a + term(i)))
+            .collect();
+        assert_eq!(
+            one.to_bits(),
+            chunks.iter().fold(0.0, |a, b| a + b).to_bits()
+        );
+        // The terms are such that their order matters: the plain sequential sum differs.
+        let sequential = (0..n).fold(0.0, |a, i| a + term(i));
+        assert_ne!(one.to_bits(), sequential.to_bits());
+    }
 
     /// The work runs on a pool thread, whether the caller is outside the pool or a pool
     /// thread itself, and a parallel loop inside it gives what it gives outside.
@@ -51,11 +111,7 @@ mod tests {
     /// be rebuilt in a test, so the call from outside such a pool is not exercised here.)
     #[test]
     fn a_pool_of_one_thread_runs_it() {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(1)
-            .build()
-            .expect("a pool of one thread");
-        let total = pool.install(|| {
+        let total = with_threads(1, || {
             in_pool(|| {
                 assert_eq!(rayon::current_thread_index(), Some(0));
                 (0..10_000u64).into_par_iter().sum::<u64>()

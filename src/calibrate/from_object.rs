@@ -375,9 +375,12 @@ fn recover(
                 0.0,
             )
         };
-        let (normal_s, abs_res, inlier_sum) = fit_set
-            .par_iter()
-            .fold(zero, |mut acc, &pix| {
+        // In fixed chunks and order, so that the lights do not change from run to run.
+        let (normal_s, abs_res, inlier_sum) = crate::pool::ordered_fold(
+            fit_set.len(),
+            zero,
+            |mut acc, k| {
+                let pix = fit_set[k];
                 let fitted = fit_pixel(
                     &pseudo_lights,
                     f,
@@ -405,8 +408,8 @@ fn recover(
                     }
                 }
                 acc
-            })
-            .reduce(zero, |mut a, b| {
+            },
+            |mut a, b| {
                 for (x, y) in a.0.iter_mut().zip(&b.0) {
                     x.0 += y.0;
                     x.1 += y.1;
@@ -414,7 +417,8 @@ fn recover(
                 a.1.extend(b.1);
                 a.2 += b.2;
                 a
-            });
+            },
+        );
         for (i, (m, r)) in normal_s.iter().enumerate() {
             if let Some(inv) = m.try_inverse() {
                 pseudo_lights[i] = inv * r;

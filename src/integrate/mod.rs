@@ -891,12 +891,13 @@ pub(crate) fn edge_differences_with_cuts(
 /// Sets pixels outside `domain` to NaN and subtracts the mean over `domain`.
 pub(crate) fn finish_depth(z: Vec<f64>, domain: &Mask) -> ScalarMap {
     let m = domain.data();
-    let (sum, n) = z
-        .par_iter()
-        .zip(m)
-        .filter(|(_, m)| **m)
-        .map(|(z, _)| (*z, 1usize))
-        .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+    // Summed in fixed chunks and order, so that the depth does not change from run to run.
+    let (sum, n) = crate::pool::ordered_fold(
+        z.len().min(m.len()),
+        || (0.0, 0usize),
+        |(s, c), i| if m[i] { (s + z[i], c + 1) } else { (s, c) },
+        |a, b| (a.0 + b.0, a.1 + b.1),
+    );
     let mean = if n > 0 { sum / n as f64 } else { 0.0 };
     let data = z
         .par_iter()
@@ -910,6 +911,44 @@ pub(crate) fn finish_depth(z: Vec<f64>, domain: &Mask) -> ScalarMap {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The depth's mean is taken in fixed chunks and order: the same depth, bit for bit, on one
+    /// thread and on four (rayon's `reduce` split the sum where work was stolen, so its last
+    /// bits moved with the threads and from run to run).
+    #[test]
+    fn the_depths_mean_does_not_depend_on_the_threads() {
+        let (w, h) = (300, 200);
+        let domain = Grid::from_fn(w, h, |x, y| (x * 7 + y * 3) % 11 != 0);
+        // Far from zero and close to one another, so that the mean's last bits show in the
+        // differences from it.
+        let z: Vec<f64> = (0..w * h)
+            .map(|i| 1e8 + ((i as f64) * 0.37).sin() * 10f64.powi((i % 5) as i32 - 4))
+            .collect();
+        let run = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("a thread pool")
+                .install(|| finish_depth(z.clone(), &domain))
+        };
+        let (one, four) = (run(1), run(4));
+        assert!(
+            one.data()
+                .iter()
+                .zip(four.data())
+                .all(|(a, b)| a.to_bits() == b.to_bits())
+        );
+        let inside: Vec<f64> = one
+            .data()
+            .iter()
+            .zip(domain.data())
+            .filter(|(_, m)| **m)
+            .map(|(v, _)| f64::from(*v))
+            .collect();
+        // Zero-mean over the domain, to the rounding of the f32 differences (up to 1).
+        let mean = inside.iter().sum::<f64>() / inside.len() as f64;
+        assert!(mean.abs() < 1e-6, "{mean}");
+    }
 
     /// A hemisphere's normals (orthographic, x right, y up, z towards the viewer) over an n×n
     /// disc, each passed through `edit`, and the disc.
