@@ -30,10 +30,10 @@ const FOLD_CHUNK: usize = 4096;
 /// Folds the indices `0..n` in parallel into one value that depends neither on the number of
 /// threads nor on which thread stole which work: each fixed chunk of [`FOLD_CHUNK`] indices is
 /// folded in order by `fold` from `identity()`, and the chunks' results are merged by `merge` in
-/// chunk order, from `identity()`. Rayon's own `sum`, `reduce` and `fold` split the work where
-/// idle threads steal it, so a floating-point result taken with them can change in its last
-/// bits from one run to the next, and a solver that compares such sums (a line search, a
-/// stopping test) can then take another path.
+/// chunk order, from `identity()`. Rayon's own `sum`, `reduce` and `fold` split the work by the
+/// number of threads and where idle threads steal it, so a floating-point result taken with
+/// them can change in its last bits with the threads and from one run to the next, and a solver
+/// that compares such sums (a line search, a stopping test) can then take another path.
 pub(crate) fn ordered_fold<A: Send>(
     n: usize,
     identity: impl Fn() -> A + Sync,
