@@ -54,16 +54,8 @@ pub(crate) fn ordered_fold<A: Send>(
 #[cfg(test)]
 mod tests {
     use super::{in_pool, ordered_fold};
+    use crate::synth::test_support::with_threads;
     use rayon::prelude::*;
-
-    /// Runs `f` in a pool of `threads` threads.
-    fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .expect("a thread pool")
-            .install(f)
-    }
 
     /// A floating-point sum whose value depends on the order of its terms (terms of widely
     /// different magnitudes) comes out bit for bit the same on one thread and on four, and as

@@ -117,11 +117,9 @@ fn the_lights_do_not_depend_on_the_threads() {
     let stack = r.to_stack(&lights, ColorMode::Grey).unwrap();
     let mask = r.truth.mask.clone();
     let run = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .expect("a thread pool")
-            .install(|| lights_from_stack(&stack, &mask, &FromObjectOptions::default()).unwrap())
+        common::with_threads(threads, || {
+            lights_from_stack(&stack, &mask, &FromObjectOptions::default()).unwrap()
+        })
     };
     let (one, four) = (run(1), run(4));
     let bits = |o: &ObjectLights| -> Vec<u64> {

@@ -10,6 +10,8 @@
 //! `PS_SIZE=256 cargo test --release --test sfs_perspective -- --nocapture` prints the README's
 //! table at 256².
 
+mod common;
+
 use photostereo::camera::Intrinsics;
 use photostereo::capture::lights::{Light, Lights};
 use photostereo::eval::metrics::{angular_errors, depth_errors};
@@ -766,11 +768,7 @@ fn a_solution_that_contradicts_its_occluding_contour_says_so() {
 fn the_result_does_not_depend_on_the_threads() {
     let c = capture(SceneKind::Vase, 128, 30.0, Material::lambertian(), 0.0);
     let run = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .expect("a thread pool")
-            .install(|| solve_with(&c, Some(RefineOptions::default())))
+        common::with_threads(threads, || solve_with(&c, Some(RefineOptions::default())))
     };
     let (one, four) = (run(1), run(4));
     let refined = one.report.refinement.as_ref().expect("refined");

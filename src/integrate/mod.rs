@@ -925,11 +925,7 @@ mod tests {
             .map(|i| 1e8 + ((i as f64) * 0.37).sin() * 10f64.powi((i % 5) as i32 - 4))
             .collect();
         let run = |threads: usize| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .expect("a thread pool")
-                .install(|| finish_depth(z.clone(), &domain))
+            crate::synth::test_support::with_threads(threads, || finish_depth(z.clone(), &domain))
         };
         let (one, four) = (run(1), run(4));
         assert!(

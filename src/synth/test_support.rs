@@ -129,3 +129,13 @@ pub(crate) fn assert_same_solutions(
         assert_same_bits(&a.noise, &b.noise, &format!("{what}: noise"));
     }
 }
+
+/// Runs `f` in a pool of `threads` threads of its own (results that must not depend on the
+/// thread count are compared across pools).
+pub(crate) fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("a thread pool")
+        .install(f)
+}

@@ -221,3 +221,13 @@ pub fn sphere_on_ground(material: Material, lights: usize, size: usize) -> (Capt
     let capture = Capture::from_stack(stack, lights, Some(r.truth.mask.clone())).unwrap();
     (capture, r)
 }
+
+/// Runs `f` in a pool of `threads` threads of its own (results that must not depend on the
+/// thread count are compared across pools).
+pub fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("a thread pool")
+        .install(f)
+}

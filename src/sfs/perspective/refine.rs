@@ -858,23 +858,19 @@ mod tests {
             })
             .collect();
         let run = |threads: usize| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .expect("a thread pool")
-                .install(|| {
-                    let problem = Problem::new(&m, &sites, &grid, w, h);
-                    let mut z = start.clone();
-                    let e0 = problem.energy(&z, 0.0);
-                    let report = refine(&problem, &mut z, &RefineOptions::default()).unwrap();
-                    (
-                        e0,
-                        report.energy_start,
-                        report.energy_end,
-                        report.iterations,
-                        z,
-                    )
-                })
+            crate::synth::test_support::with_threads(threads, || {
+                let problem = Problem::new(&m, &sites, &grid, w, h);
+                let mut z = start.clone();
+                let e0 = problem.energy(&z, 0.0);
+                let report = refine(&problem, &mut z, &RefineOptions::default()).unwrap();
+                (
+                    e0,
+                    report.energy_start,
+                    report.energy_end,
+                    report.iterations,
+                    z,
+                )
+            })
         };
         let (one, four) = (run(1), run(4));
         assert!(one.3 > 0, "no step taken");
