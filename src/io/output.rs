@@ -82,6 +82,21 @@ struct Held {
 static LOCKS: Mutex<Vec<Held>> = Mutex::new(Vec::new());
 static STAGING: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
 
+/// Set by [`discard_uncommitted`] (under [`STAGING`]'s lock): no staging folder is created, and
+/// no file begun in one, after it.
+static DISCARDED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// The error of a set begun or written after [`discard_uncommitted`].
+fn discarded(path: &Path) -> Error {
+    Error::io(
+        path,
+        std::io::Error::new(
+            std::io::ErrorKind::Interrupted,
+            "the run was interrupted and its outputs discarded",
+        ),
+    )
+}
+
 fn guard<T>(m: &'static Mutex<T>) -> std::sync::MutexGuard<'static, T> {
     m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
@@ -376,13 +391,18 @@ fn remove_leftovers(parent: &Path, name: &std::ffi::OsStr) {
 
 /// Removes every staging folder of this process not yet committed, for an exit that skips
 /// destructors (the interrupt handler, after [`hold_commits`]), and the lock files of this
-/// process.
+/// process. From then on no staging folder is created and no file begun in one (an error says
+/// the run was interrupted), so that the folders stay removed while the run's other threads go
+/// on until the exit.
 pub fn discard_uncommitted() {
-    for s in guard(&STAGING).drain(..) {
+    let mut uncommitted = guard(&STAGING);
+    DISCARDED.store(true, std::sync::atomic::Ordering::SeqCst);
+    for s in uncommitted.drain(..) {
         if std::fs::remove_dir_all(&s).is_err() {
             let _ = std::fs::remove_file(&s);
         }
     }
+    drop(uncommitted);
     for h in guard(&LOCKS).drain(..) {
         let _ = std::fs::remove_file(&h.lock_path);
     }
@@ -702,6 +722,13 @@ impl OutputDir {
         let lock = OutputLock::acquire(dir, Overwrite::PreviousSet)?;
         let (parent, name) = (lock.parent.clone(), lock.name.clone());
         let staging = sibling(&parent, &name, &unpredictable());
+        // Created and listed under the list's lock, which the interrupt handler takes before it
+        // removes what the list holds: a Ctrl-C between the two would otherwise leave a staging
+        // folder that nothing removes (the demo's scene set, interrupted as it began, did).
+        let mut uncommitted = guard(&STAGING);
+        if DISCARDED.load(std::sync::atomic::Ordering::SeqCst) {
+            return Err(discarded(dir));
+        }
         // Created exclusively: it cannot be a folder or link planted beforehand.
         std::fs::create_dir(&staging).map_err(|e| {
             Error::io(
@@ -715,7 +742,8 @@ impl OutputDir {
                 ),
             )
         })?;
-        guard(&STAGING).push(staging.clone());
+        uncommitted.push(staging.clone());
+        drop(uncommitted);
         Ok(OutputDir {
             dir: dir.to_path_buf(),
             staging,
@@ -745,6 +773,13 @@ impl OutputDir {
         relative_name(&self.dir, name)?;
         let dest = self.dir.join(name);
         let path = self.staging.join(name);
+        // Under the staging list's lock, so that the interrupt handler's removal of the staging
+        // folder cannot interleave with a file (or its folder) being created in it: a file
+        // created while the folder's entries were removed would keep the folder itself.
+        let uncommitted = guard(&STAGING);
+        if DISCARDED.load(std::sync::atomic::Ordering::SeqCst) {
+            return Err(discarded(&dest));
+        }
         if let Some(parent) = path.parent() {
             std::fs::create_dir_all(parent).map_err(|e| Error::io(&dest, e))?;
         }
@@ -754,6 +789,7 @@ impl OutputDir {
             .create_new(true)
             .open(&path)
             .map_err(|e| Error::io(&dest, e))?;
+        drop(uncommitted);
         Ok(PendingFile {
             file,
             name: name.to_string(),
