@@ -21,7 +21,9 @@
 //!
 //! # What an interruption leaves
 //! A failed run, or one stopped by Ctrl-C or SIGTERM, removes its staging folder and lock file:
-//! nothing of it is left. A killed run (`SIGKILL`, power loss) can leave the hidden staging
+//! nothing of it is left (the interrupt handler removes what [`discard_uncommitted`] lists, and
+//! nothing more is made after it; only an empty probe folder of [`ensure_writable_dir`], made and
+//! removed at once, can be left by a Ctrl-C between the two, and the next run removes it). A killed run (`SIGKILL`, power loss) can leave the hidden staging
 //! folder and lock file beside the output folder, never a partial set in it; the next run into
 //! that folder removes both.
 //!
@@ -82,8 +84,8 @@ struct Held {
 static LOCKS: Mutex<Vec<Held>> = Mutex::new(Vec::new());
 static STAGING: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
 
-/// Set by [`discard_uncommitted`] (under [`STAGING`]'s lock): no staging folder is created, and
-/// no file begun in one, after it.
+/// Set by [`discard_uncommitted`] (under [`STAGING`]'s lock): no staging folder, temporary or
+/// lock file is created, and no file begun in a staging folder, after it.
 static DISCARDED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 
 /// The error of a set begun or written after [`discard_uncommitted`].
@@ -195,6 +197,11 @@ impl OutputLock {
     /// when the lock file cannot be created.
     pub fn acquire(dir: &Path, overwrite: Overwrite) -> Result<Self> {
         let mut locks = guard(&LOCKS);
+        // The interrupt handler sets the flag before it removes the lock files listed here:
+        // after that, no lock file is made (one made before is listed, and removed).
+        if DISCARDED.load(std::sync::atomic::Ordering::SeqCst) {
+            return Err(discarded(dir));
+        }
         // The same path as given is the same folder, even if it came to resolve elsewhere.
         if let Some(h) = locks.iter_mut().find(|h| h.given == dir) {
             h.guards += 1;
@@ -389,11 +396,11 @@ fn remove_leftovers(parent: &Path, name: &std::ffi::OsStr) {
     }
 }
 
-/// Removes every staging folder of this process not yet committed, for an exit that skips
-/// destructors (the interrupt handler, after [`hold_commits`]), and the lock files of this
-/// process. From then on no staging folder is created and no file begun in one (an error says
-/// the run was interrupted), so that the folders stay removed while the run's other threads go
-/// on until the exit.
+/// Removes every staging folder and temporary file of this process not yet committed, for an
+/// exit that skips destructors (the interrupt handler, after [`hold_commits`]), and the lock
+/// files of this process. From then on no staging folder, temporary or lock file is created and
+/// no file begun in a staging folder (an error says the run was interrupted), so that what was
+/// removed stays removed while the run's other threads go on until the exit.
 pub fn discard_uncommitted() {
     let mut uncommitted = guard(&STAGING);
     DISCARDED.store(true, std::sync::atomic::Ordering::SeqCst);
@@ -1091,11 +1098,18 @@ pub fn write_file(
     };
     std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
     let tmp = sibling(parent, name, &format!("{}.tmp", unpredictable()));
+    // Created and listed under the list's lock, as a staging folder is ([`OutputDir::create`]).
+    let mut uncommitted = guard(&STAGING);
+    if DISCARDED.load(std::sync::atomic::Ordering::SeqCst) {
+        return Err(discarded(path));
+    }
     let mut file = std::fs::OpenOptions::new()
         .write(true)
         .create_new(true)
         .open(&tmp)
         .map_err(|e| Error::io(path, e))?;
+    uncommitted.push(tmp.clone());
+    drop(uncommitted);
     struct Remove<'a>(&'a Path);
     impl Drop for Remove<'_> {
         fn drop(&mut self) {
@@ -1103,7 +1117,6 @@ pub fn write_file(
             guard(&STAGING).retain(|s| s != self.0);
         }
     }
-    guard(&STAGING).push(tmp.clone());
     let _remove = Remove(&tmp);
     write(&mut file, path)?;
     file.sync_all().map_err(|e| Error::io(path, e))?;
