@@ -183,6 +183,14 @@ pub enum Error {
         /// What is wrong.
         reason: String,
     },
+    /// The ambient image (the scene with every lamp off) does not fit the capture.
+    #[error("ambient image {path}: {reason}")]
+    Ambient {
+        /// The ambient image's file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
     /// A DiLiGenT-layout folder is incomplete or inconsistent.
     #[error("data set {path}: {reason}")]
     Dataset {

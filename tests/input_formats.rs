@@ -13,7 +13,7 @@ use nalgebra::Vector3;
 use photostereo::Error;
 use photostereo::capture::lights::{Light, Lights};
 use photostereo::capture::stack::{
-    ColorMode, GREY_WEIGHTS, ImageStack, LoadOptions, Transfer, load_stack,
+    ColorMode, GREY_WEIGHTS, ImageStack, LoadOptions, Transfer, load_stack, load_stack_with_ambient,
 };
 use photostereo::grid::Window;
 use photostereo::io::decode::{SampleFormat, image_size, read_image, read_mask, srgb_to_linear};
@@ -986,6 +986,131 @@ fn grey_images_are_divided_by_grey_mixed_intensity() {
             );
         }
     }
+}
+
+/// An ambient image is converted as each image is — the same transfer function, then divided
+/// by that image's light intensity — and subtracted: 8-bit sRGB RGB files, per-channel
+/// intensities, grey and per-channel loads. A pixel saturated in the ambient image counts as
+/// saturated in every image; values below 0 after the subtraction are kept.
+#[test]
+fn an_ambient_image_is_subtracted_as_each_image_is_converted() {
+    let dir = tempfile::tempdir().unwrap();
+    // Two pixels: RGB codes of two images and of the ambient frame (its second pixel
+    // saturated in G).
+    let images: [[u8; 6]; 3] = [
+        [200, 120, 60, 90, 10, 250],
+        [150, 220, 30, 40, 5, 17],
+        [100, 100, 100, 2, 3, 4],
+    ];
+    let ambient_codes: [u8; 6] = [20, 30, 40, 60, 255, 5];
+    let mut paths = Vec::new();
+    for (k, codes) in images.iter().enumerate() {
+        let p = dir.path().join(format!("img{k}.png"));
+        save(rgb8(2, 1, codes), &p);
+        paths.push(p);
+    }
+    let ambient = dir.path().join("ambient.png");
+    save(rgb8(2, 1, &ambient_codes), &ambient);
+    let lights = lights_with(&INTENSITIES);
+    let lin = |c: u8| srgb_to_linear(f32::from(c) / 255.0);
+    let grey = load_stack_with_ambient(
+        &paths,
+        &lights,
+        Some(&ambient),
+        &LoadOptions::default(),
+        &Silent,
+    )
+    .unwrap();
+    let per = load_stack_with_ambient(
+        &paths,
+        &lights,
+        Some(&ambient),
+        &opts(ColorMode::PerChannel, Transfer::Auto),
+        &Silent,
+    )
+    .unwrap();
+    let plain = load_stack(&paths, &lights, &LoadOptions::default(), &Silent).unwrap();
+    for (k, int) in INTENSITIES.iter().enumerate() {
+        let i = int.map(|v| v as f32);
+        let own =
+            |p: usize, c: usize| (lin(images[k][3 * p + c]) - lin(ambient_codes[3 * p + c])) / i[c];
+        let expected: Vec<f32> = (0..2)
+            .map(|p| (0..3).map(|c| GREY_WEIGHTS[c] * own(p, c)).sum())
+            .collect();
+        assert_close(grey.plane(k, 0), &expected, 1e-6, &format!("grey {k}"));
+        for c in 0..3 {
+            let e: Vec<f32> = (0..2).map(|p| own(p, c)).collect();
+            assert_close(per.plane(k, c), &e, 1e-6, &format!("image {k} channel {c}"));
+        }
+        // The ambient frame's saturated pixel is saturated in every image; without the frame
+        // no pixel is (no code of the images is 255).
+        assert_eq!(saturated_pixels(&grey, k), vec![1], "image {k}");
+        assert_eq!(
+            saturated_pixels(&plain, k),
+            Vec::<usize>::new(),
+            "image {k}"
+        );
+        assert_eq!(grey.info()[k].saturated, 1);
+    }
+    // Image 2's second pixel is darker than the frame in R: below 0, kept.
+    assert!(per.plane(2, 0)[1] < 0.0);
+}
+
+/// An ambient image of another size, colour channel count or integer format than the images
+/// is refused, naming it; a half-float frame beside float images is one scale and is used.
+#[test]
+fn an_ambient_image_that_does_not_fit_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let img = dir.path().join("img.png");
+    save(rgb8(2, 2, &[50; 12]), &img);
+    let paths = vec![img.clone(), img.clone(), img];
+    let lights = unit_lights(3);
+    let refused = |ambient: &Path, needle: &str| {
+        let e = load_stack_with_ambient(
+            &paths,
+            &lights,
+            Some(ambient),
+            &LoadOptions::default(),
+            &Silent,
+        )
+        .unwrap_err();
+        assert!(matches!(e, Error::Ambient { .. }), "{e}");
+        let text = e.to_string();
+        assert!(
+            text.contains(&*ambient.to_string_lossy()) && text.contains(needle),
+            "{text}"
+        );
+    };
+    let small = dir.path().join("small.png");
+    save(rgb8(1, 2, &[5; 6]), &small);
+    refused(&small, "size 1x2");
+    let grey = dir.path().join("grey.png");
+    save(luma8(2, 2, &[5; 4]), &grey);
+    refused(&grey, "1 colour channel(s)");
+    let deep = dir.path().join("deep.png");
+    save(rgb16(2, 2, &[500; 12]), &deep);
+    refused(&deep, "16-bit");
+
+    let y = vec![0.5f32, 0.25, 0.125, 1.0];
+    let float = dir.path().join("float.exr");
+    write_exr(&float, 2, 2, &[("Y", &y)], &[]).unwrap();
+    let half = dir.path().join("half.exr");
+    write_exr_channels(
+        &half,
+        2,
+        2,
+        vec![("Y", FlatSamples::F16(halves(&[0.125; 4])))],
+    );
+    let stack = load_stack_with_ambient(
+        &[float.clone(), float],
+        &unit_lights(2),
+        Some(&half),
+        &LoadOptions::default(),
+        &Silent,
+    )
+    .unwrap();
+    let e: Vec<f32> = y.iter().map(|v| v - 0.125).collect();
+    assert_close(stack.plane(1, 0), &e, 1e-7, "float less half");
 }
 
 /// Saturation is judged on stored values, before the division by intensity.

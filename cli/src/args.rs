@@ -82,6 +82,12 @@ pub struct RunArgs {
     /// Object mask (pixels > 0 are solved); default: every pixel (DiLiGenT: its mask.png).
     #[arg(long, value_name = "FILE")]
     pub mask: Option<PathBuf>,
+    /// Ambient image: the scene photographed with every lamp off, as the images are (same
+    /// camera settings, size and format), subtracted from every image. Room light or a
+    /// camera's black level left in the images lifts every shadow and flattens the normals;
+    /// the run measures that offset and warns when it matters
+    #[arg(long, value_name = "FILE")]
+    pub ambient: Option<PathBuf>,
     /// Output folder (refused when it exists and is not empty, unless --force).
     #[arg(long, short, value_name = "DIR")]
     pub output: Option<PathBuf>,
@@ -1008,6 +1014,8 @@ pub struct RunConfig {
     pub source: Source,
     /// Mask file.
     pub mask: Option<PathBuf>,
+    /// Ambient image file.
+    pub ambient: Option<PathBuf>,
     /// Output folder.
     pub output: PathBuf,
     /// Image reading.
@@ -1054,6 +1062,7 @@ impl RunArgs {
             let mut inputs: Vec<&Path> = self.inputs.iter().map(PathBuf::as_path).collect();
             inputs.extend(self.lights.as_deref());
             inputs.extend(self.mask.as_deref());
+            inputs.extend(self.ambient.as_deref());
             inputs.extend(self.method.integration.camera.as_deref());
             photostereo::io::output::ensure_apart(&output, &inputs)?;
         }
@@ -1113,6 +1122,7 @@ impl RunArgs {
             band_rows: self.band_rows,
             source,
             mask: self.mask.or(list_mask),
+            ambient: self.ambient,
             output,
             load: self.load.options()?,
             config: Config {

@@ -220,7 +220,7 @@ pub fn lock_output(dir: &Path, force: bool) -> Result<OutputLock> {
 
 /// The capture's files, resolved without decoding.
 fn capture_files(rc: &RunConfig) -> Result<CaptureFiles> {
-    Ok(match &rc.source {
+    let files = match &rc.source {
         Source::Diligent(dir) => CaptureFiles::from_diligent(dir, rc.mask.as_deref())?,
         Source::Files {
             images,
@@ -233,6 +233,10 @@ fn capture_files(rc: &RunConfig) -> Result<CaptureFiles> {
                 ),
                 e => e.into(),
             })?,
+    };
+    Ok(match &rc.ambient {
+        Some(path) => files.with_ambient(path)?,
+        None => files,
     })
 }
 
@@ -287,7 +291,9 @@ fn in_memory_bytes(rc: &RunConfig, files: &CaptureFiles, window_only: bool) -> R
         }
         _ => (photostereo::grid::Window::full(w, h), w * h),
     };
-    let stack = files.images.len() as u64 * channels * window.len() as u64 * 4;
+    let stack = files.images.len() as u64 * channels * window.len() as u64 * 4
+        // An ambient image is held decoded (at most 16 bytes a pixel: RGBA float).
+        + files.ambient_source.as_ref().map_or(0, |_| w as u64 * h as u64 * 16);
     let resident = photostereo::run::stream::resident_bytes(
         w,
         h,
@@ -1002,6 +1008,11 @@ fn flag_hint(w: &photostereo::run::Warning) -> &'static str {
         Warning::Filled { .. } => " (--strict leaves them without a normal)",
         Warning::IntensitiesCorrected { .. } => " (--no-recalibrate keeps it as given)",
         Warning::PoorIntegrability { .. } => " (--integrate bilateral)",
+        Warning::ShadowLight {
+            level,
+            ambient_subtracted: false,
+            ..
+        } if *level > 0.0 => " (--ambient FILE)",
         Warning::NearLights { .. } => {
             " (the near-light model needs every light's position, --camera K.txt and depth; --distant-lights turns it off)"
         }

@@ -205,6 +205,39 @@ fn error_cases(root: &Path, out: &Path) -> Vec<Case> {
         small_args,
         &["small.png", "50x40"],
     );
+    // An ambient frame that is missing, of another size, or stored otherwise than the images
+    // (8-bit beside float).
+    let (d, imgs) = dataset(root, "ambient");
+    let missing = d.join("dark.exr").to_string_lossy().into_owned();
+    add(
+        "a missing ambient image",
+        main_args(&imgs, &d.join("lights.json"), &["--ambient", &missing], out),
+        &["dark.exr", "No such file"],
+    );
+    let small = d.join("dark-small.exr");
+    write_exr(&small, 48, 96, &[("Y", &vec![0.01; 48 * 96])], &[]).unwrap();
+    let s = small.to_string_lossy().into_owned();
+    add(
+        "an ambient image of another size",
+        main_args(&imgs, &d.join("lights.json"), &["--ambient", &s], out),
+        &["ambient image", "dark-small.exr", "48x96", "96x96"],
+    );
+    let byte = d.join("dark-8bit.png");
+    image::GrayImage::from_pixel(96, 96, image::Luma([3]))
+        .save(&byte)
+        .unwrap();
+    let b = byte.to_string_lossy().into_owned();
+    add(
+        "an 8-bit ambient image beside float images",
+        main_args(&imgs, &d.join("lights.json"), &["--ambient", &b], out),
+        &[
+            "ambient image",
+            "dark-8bit.png",
+            "8-bit",
+            "floating-point",
+            "as the images are",
+        ],
+    );
     // Corrupt and unsupported image files.
     let (d, imgs) = dataset(root, "corrupt");
     let bytes = std::fs::read(&imgs[7]).unwrap();

@@ -59,6 +59,7 @@ fn scene(dir: &Path, format: &str) -> (CaptureFiles, photostereo::grid::NormalMa
         images,
         lights_source: Some(dir.join("lights.json")),
         mask_source: Some(dir.join("mask.png")),
+        ambient_source: None,
     };
     (files, rendering.truth.normals)
 }
@@ -667,5 +668,59 @@ fn a_3_mpx_capture_with_depth_streams_within_256_mib() {
     eprintln!(
         "48 × 1732² under --max-memory {BUDGET_MIB}M: peak {:.0} MiB, {:.1} s; {plan}",
         m.peak_mb, m.secs
+    );
+}
+
+/// With an ambient frame, the bands subtract its rows as the whole load subtracts it: the same
+/// normals, and the light measured in the attached shadows adds up over the bands to the
+/// whole run's.
+#[test]
+fn bands_subtract_the_ambient_frame_as_the_whole_load_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let lights = Lights::fibonacci(LIGHTS, 30.0).unwrap();
+    let scene = Scene::sphere_on_ground(SIZE, Material::lambertian());
+    let options = RenderOptions {
+        noise_sigma: 0.005,
+        ambient: 0.06,
+        seed: 4,
+        ..RenderOptions::default()
+    };
+    let rendering = render(&scene, &lights, &options).unwrap();
+    write_synthetic(&rendering, &lights, dir.path(), ImageFormat::Png16).unwrap();
+    let images: Vec<PathBuf> = (0..LIGHTS)
+        .map(|k| dir.path().join(format!("img_{k:03}.png")))
+        .collect();
+    let plain = CaptureFiles::from_files(
+        &images,
+        &dir.path().join("lights.json"),
+        Some(&dir.path().join("mask.png")),
+    )
+    .unwrap();
+    let files = plain
+        .clone()
+        .with_ambient(&dir.path().join("ambient.png"))
+        .unwrap();
+    let load = LoadOptions::default();
+    let config = config(Method::Threshold);
+    let capture = files.load(&load, &Silent).unwrap();
+    let whole = reconstruct(&capture, &config, &Silent).unwrap();
+    let s = streamed(&files, &load, &config, Some(7));
+    let e = angular_errors(&s.recon.maps.normals, &whole.maps.normals, &capture.mask).unwrap();
+    assert!(e.mean_deg < 1e-4 && e.missing == 0, "{e:?}");
+    assert_eq!(s.recon.model.shadow_light, whole.model.shadow_light);
+    assert_eq!(s.summary.ambient, Some(dir.path().join("ambient.png")));
+    // Without the frame the same bands see the ambient light in the shadows.
+    let left = streamed(&plain, &load, &config, Some(7));
+    let level =
+        |r: &photostereo::run::pipeline::Reconstruction| r.model.shadow_light[0].level.unwrap();
+    assert!(
+        level(&whole).abs() < 0.003,
+        "{:?}",
+        whole.model.shadow_light
+    );
+    assert!(
+        level(&left.recon) > 0.05,
+        "{:?}",
+        left.recon.model.shadow_light
     );
 }

@@ -214,7 +214,9 @@ struct Cli {
     /// formats store at most 1 whatever this is, so with them it must be ≤ 1.
     #[arg(long, value_name = "LEVEL", help_heading = "Camera")]
     saturation: Option<f32>,
-    /// Ambient light added as A·albedo·diffuse colour to every pixel (0 for a dark room).
+    /// Ambient light added as A·albedo·diffuse colour to every pixel (0 for a dark room). With
+    /// A > 0 the frame with every lamp off is written too, as `ambient.exr` (or `.png`), through
+    /// the same camera: pass it to photostereo as --ambient, and the images as `img_*`
     #[arg(long, default_value_t = 0.0, value_name = "A", help_heading = "Camera")]
     ambient: f32,
     /// Angular radius of each light in degrees, in (0, 90) [default: 1.5]: the size of mirror
@@ -1334,7 +1336,7 @@ fn run(plan: &Plan) -> Result<String> {
         eprintln!("warning: {w}");
     }
     Ok(format!(
-        "wrote {} files to {}: {} {} images {}×{} of {}, {}, {}, camera: {}; lights.json, mask.png{}, ground truth and shadow masks",
+        "wrote {} files to {}: {} {} images {}×{} of {}, {}, {}, camera: {}; lights.json, mask.png{}{}, ground truth and shadow masks",
         written.len(),
         plan.output.display(),
         plan.lights.len(),
@@ -1351,6 +1353,15 @@ fn run(plan: &Plan) -> Result<String> {
         plan.lights_summary,
         plan.describe_camera(),
         if plan.near.is_some() { ", K.txt" } else { "" },
+        if rendering.ambient.is_some() {
+            format!(
+                ", {}.{} (every lamp off: pass it as --ambient)",
+                photostereo::synth::write::AMBIENT_STEM,
+                plan.format.extension()
+            )
+        } else {
+            String::new()
+        },
     ))
 }
 

@@ -386,7 +386,9 @@ def render(
     pixel's area, as a camera does.
 
     Returns ``{"images": N x H x W float32, "lights", "normals": H x W x 3, "depth", "albedo",
-    "mask", "cast_shadows": N x H x W bool, "attached_shadows"}`` (truth NaN outside the mask).
+    "mask", "cast_shadows": N x H x W bool, "attached_shadows"}`` (truth NaN outside the mask),
+    and with ``ambient`` > 0 ``"ambient"``: H x W, the frame with every lamp off (the ambient
+    light through the same camera noise), which a rig would subtract.
     """
     return _native.render(
         scene,

@@ -852,6 +852,9 @@ fn render<'py>(
         |m: &[Mask]| ndarray::Array3::from_shape_fn((m.len(), h, w), |(k, y, x)| *m[k].at(x, y));
     out.set_item("cast_shadows", stack(&r.cast).into_pyarray(py))?;
     out.set_item("attached_shadows", stack(&r.attached).into_pyarray(py))?;
+    if let Some(ambient) = &r.ambient {
+        out.set_item("ambient", ambient[0].clone().into_array().into_pyarray(py))?;
+    }
     Ok(out)
 }
 

@@ -38,6 +38,29 @@ def test_rendered_sphere_is_recovered(scene):
     assert np.abs(diff).mean() < 0.02 * (t[m].max() - t[m].min())
 
 
+def test_room_light_is_measured_and_its_frame_subtracted():
+    # A sphere lit by 16 lamps and a room light of 8% of a lamp's: the solve reports the light
+    # in the attached shadows and warns; subtracting the rendered frame with every lamp off
+    # (float images: no transfer function) brings the error back to the dark room's.
+    lights = np.vstack([ps.light_ring(8, 30.0), ps.light_ring(8, 60.0, 20.0)])
+    lit = ps.render("sphere", 96, lights, noise=0.005, ambient=0.08, seed=2)
+    dark = ps.render("sphere", 96, lights, noise=0.005, seed=2)
+    m = lit["mask"]
+    assert "ambient" not in dark
+    assert abs(float(lit["ambient"][m].mean()) - 0.08 * 0.8) < 0.002
+    left = ps.solve(lit["images"], lights, mask=m)
+    level = left.model_summary["shadow_light"][0]["level"]
+    assert 0.07 < level < 0.082, level
+    assert any("attached shadow" in w for w in left.warnings), left.warnings
+    removed = ps.solve(lit["images"] - lit["ambient"][None], lights, mask=m)
+    base = ps.solve(dark["images"], lights, mask=m)
+    e = {k: angles(r.normals, lit["normals"], m).mean() for k, r in
+         [("left", left), ("removed", removed), ("base", base)]}
+    assert e["left"] > e["base"] + 1.0, e
+    assert e["removed"] < e["base"] + 0.1, e
+    assert not any("attached shadow" in w for w in removed.warnings), removed.warnings
+
+
 def test_sample_types_give_the_same_normals(scene):
     s, lights = scene
     img = s["images"]

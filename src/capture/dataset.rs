@@ -7,7 +7,7 @@
 
 use crate::capture::lights::Lights;
 use crate::capture::order::ImageOrder;
-use crate::capture::stack::{ImageStack, LoadOptions, load_stack};
+use crate::capture::stack::{ImageStack, LoadOptions, load_stack_with_ambient};
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask};
 use crate::io::decode::read_mask;
@@ -29,6 +29,9 @@ pub struct Capture {
     pub lights_source: Option<PathBuf>,
     /// The mask file, if any.
     pub mask_source: Option<PathBuf>,
+    /// The ambient image subtracted from every image (see
+    /// [`crate::capture::stack::load_stack_with_ambient`]), if any.
+    pub ambient_source: Option<PathBuf>,
 }
 
 /// True when `dir` is a folder with DiLiGenT's `filenames.txt` and `light_directions.txt`.
@@ -63,6 +66,7 @@ impl Capture {
                 .collect(),
             lights_source: self.lights_source.clone(),
             mask_source: self.mask_source.clone(),
+            ambient_source: self.ambient_source.clone(),
         })
     }
 
@@ -98,6 +102,7 @@ impl Capture {
             images: Vec::new(),
             lights_source: None,
             mask_source: None,
+            ambient_source: None,
         })
     }
 
@@ -174,6 +179,7 @@ impl Capture {
         lights: Lights,
         lights_source: Option<&Path>,
         mask_file: Option<&Path>,
+        ambient: Option<&Path>,
         options: &LoadOptions,
         progress: &dyn Progress,
     ) -> Result<Self> {
@@ -191,7 +197,7 @@ impl Capture {
             window: options.window.or(window),
             ..*options
         };
-        let stack = load_stack(&images, &lights, &options, progress)?;
+        let stack = load_stack_with_ambient(&images, &lights, ambient, &options, progress)?;
         let mask = match (mask, mask_file) {
             (Some(m), Some(path)) => check_mask_size(m, path, &stack)?,
             _ => Grid::new(stack.width(), stack.height(), true),
@@ -203,6 +209,7 @@ impl Capture {
             images,
             lights_source: lights_source.map(Path::to_path_buf),
             mask_source: mask_file.map(Path::to_path_buf),
+            ambient_source: ambient.map(Path::to_path_buf),
         })
     }
 }
@@ -219,9 +226,29 @@ pub struct CaptureFiles {
     pub lights_source: Option<PathBuf>,
     /// The mask file, if any.
     pub mask_source: Option<PathBuf>,
+    /// The ambient image (the scene with every lamp off), subtracted from every image when
+    /// loaded; set by [`CaptureFiles::with_ambient`].
+    pub ambient_source: Option<PathBuf>,
 }
 
 impl CaptureFiles {
+    /// The same files with `ambient`, the scene photographed with every lamp off, to be
+    /// subtracted from every image ([`crate::capture::stack::load_stack_with_ambient`]).
+    ///
+    /// # Errors
+    /// [`Error::Io`] when it cannot be read, the errors of decoding its header, and
+    /// [`Error::Ambient`] when its size differs from the first image's, before anything is
+    /// decoded.
+    pub fn with_ambient(mut self, ambient: &Path) -> Result<Self> {
+        let size = crate::io::decode::image_size(ambient)?;
+        if let Some(first) = self.images.first() {
+            let images = crate::io::decode::image_size(first)?;
+            crate::capture::stack::check_ambient_size(ambient, size, images)?;
+        }
+        self.ambient_source = Some(ambient.to_path_buf());
+        Ok(self)
+    }
+
     /// `images` lit by the lights of `lights_file` (matched as [`Capture::from_files`] does),
     /// with an optional mask file; numbered images in text order are refused when the lights
     /// are a plain list ([`ImageOrder::Checked`]).
@@ -263,6 +290,7 @@ impl CaptureFiles {
             images,
             lights_source: Some(lights_file.to_path_buf()),
             mask_source: mask_file.map(Path::to_path_buf),
+            ambient_source: None,
         })
     }
 
@@ -317,6 +345,7 @@ impl CaptureFiles {
             lights,
             lights_source: Some(dirs_file),
             mask_source: mask,
+            ambient_source: None,
         })
     }
 
@@ -331,6 +360,7 @@ impl CaptureFiles {
             self.lights.clone(),
             self.lights_source.as_deref(),
             self.mask_source.as_deref(),
+            self.ambient_source.as_deref(),
             options,
             progress,
         )

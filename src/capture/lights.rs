@@ -601,7 +601,7 @@ impl Lights {
             let Some(k) = found else {
                 return Err(Error::LightsMismatch {
                     reason: format!(
-                        "image {index} ({}) has no light in the lights file",
+                        "image {index} ({}) has no light in the lights file (a frame taken with every lamp off is not one of the images: give it as the ambient image)",
                         image.display()
                     ),
                 });

@@ -385,6 +385,29 @@ pub fn load_stack(
     options: &LoadOptions,
     progress: &dyn Progress,
 ) -> Result<ImageStack> {
+    load_stack_with_ambient(paths, lights, None, options, progress)
+}
+
+/// [`load_stack`] with an ambient image subtracted: `ambient`, the scene photographed with
+/// every lamp off (room light, the camera's black level, a screen's glow), is decoded once,
+/// converted as each image is (its transfer function, then divided by that image's light
+/// intensity) and subtracted from it, so that each image holds only its own lamp's light, as
+/// Lambert's law I = ρ n·l assumes. Photometric stereo has no term for light that every image
+/// shares: left in, it lifts every shadow and flattens the normals towards the mean light
+/// direction. A pixel saturated in the ambient image is counted saturated in every image
+/// (its lamp's share there is unknown). Values may fall slightly below 0 after the
+/// subtraction (noise); they are kept, so that the noise stays unbiased.
+///
+/// # Errors
+/// As [`load_stack`]; [`Error::Ambient`] when the ambient image's size, colour channels or
+/// sample format differ from the images'.
+pub fn load_stack_with_ambient(
+    paths: &[PathBuf],
+    lights: &Lights,
+    ambient: Option<&Path>,
+    options: &LoadOptions,
+    progress: &dyn Progress,
+) -> Result<ImageStack> {
     if paths.len() != lights.len() {
         return Err(Error::LightsMismatch {
             reason: format!("{} images for {} lights", paths.len(), lights.len()),
@@ -409,6 +432,13 @@ pub fn load_stack(
         ColorMode::PerChannel => 3,
     };
     let lut = srgb_lut();
+    let ambient = ambient
+        .map(|path| {
+            let raw = decode_raw(path, Some(0..window.y1))?;
+            check_ambient_size(path, (raw.width, raw.height), (width, height))?;
+            Ok::<_, Error>((path, raw))
+        })
+        .transpose()?;
     progress.begin("load", paths.len() as u64);
     let mut data = crate::buffer::zeroed_f32(paths.len() * channels * n);
     let results: Vec<Result<(Option<Vec<u64>>, ImageInfo)>> = data
@@ -437,7 +467,10 @@ pub fn load_stack(
                 });
             }
             let cv = Convert::new(options, lights, index, &lut);
-            let r = convert_into(&raw, &cv, out, path, window);
+            let mut r = convert_into(&raw, &cv, out, path, window);
+            if let Some((apath, araw)) = &ambient {
+                subtract_ambient(araw, apath, &raw, &cv, out, window, &mut r)?;
+            }
             progress.advance(1);
             // Where the verdicts below apply, for their messages.
             let where_ = || {
@@ -488,6 +521,98 @@ pub fn load_stack(
         info,
         window,
     })
+}
+
+/// Refuses an ambient image (`path`, of `size` pixels) whose size is not the images'
+/// (`images`, width and height).
+pub(crate) fn check_ambient_size(
+    path: &Path,
+    size: (usize, usize),
+    images: (usize, usize),
+) -> Result<()> {
+    if size != images {
+        return Err(Error::Ambient {
+            path: path.to_path_buf(),
+            reason: format!(
+                "size {}x{} differs from the images' {}x{}",
+                size.0, size.1, images.0, images.1
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// Subtracts the ambient image `ambient` (decoded from `path`; the same rows as `image`),
+/// converted by image `image`'s conversion `cv`, from that image's converted planes `out`
+/// (window `window`), and counts the pixels saturated in the ambient image as saturated in the
+/// image (`converted`: its saturation flags and what loading found).
+pub(crate) fn subtract_ambient(
+    ambient: &RawDecoded,
+    path: &Path,
+    image: &RawDecoded,
+    cv: &Convert,
+    out: &mut [f32],
+    window: Window,
+    converted: &mut (Option<Vec<u64>>, ImageInfo),
+) -> Result<()> {
+    let (bits, info) = converted;
+    let refuse = |reason: String| Error::Ambient {
+        path: path.to_path_buf(),
+        reason,
+    };
+    if ambient.channels != image.channels {
+        return Err(refuse(format!(
+            "it has {} colour channel(s) but {} has {}; it must be taken as the images are",
+            ambient.channels,
+            info.path.display(),
+            image.channels
+        )));
+    }
+    // A camera RAW file is developed with its own levels and white balance; beside other
+    // files it is another measurement.
+    if ambient.raw.is_some() != image.raw.is_some() {
+        return Err(refuse(format!(
+            "it is {}a camera RAW file but {} is {}; it must be taken and stored as the images are",
+            if ambient.raw.is_some() { "" } else { "not " },
+            info.path.display(),
+            if image.raw.is_some() { "one" } else { "not" }
+        )));
+    }
+    // Integer codes are scaled by their format's largest code: an 8-bit frame beside 16-bit
+    // images (or float ones) is another measurement. Half and single floats are one scale.
+    if ambient.format != image.format && (ambient.format.is_integer() || image.format.is_integer())
+    {
+        let name = |f: SampleFormat| match f {
+            SampleFormat::U8 => "8-bit",
+            SampleFormat::U16 => "16-bit",
+            SampleFormat::F16 | SampleFormat::F32 => "floating-point",
+        };
+        return Err(refuse(format!(
+            "it is stored {} but {} is {}; it must be taken and stored as the images are",
+            name(ambient.format),
+            info.path.display(),
+            name(image.format)
+        )));
+    }
+    let mut light = vec![0f32; out.len()];
+    let (abits, ainfo) = convert_into(ambient, cv, &mut light, path, window);
+    if ainfo.non_finite > 0 {
+        return Err(refuse(format!(
+            "{} pixel(s) hold NaN or infinite values; an ambient image must be finite where the images are solved",
+            ainfo.non_finite
+        )));
+    }
+    for (o, a) in out.iter_mut().zip(&light) {
+        *o -= a;
+    }
+    if let Some(abits) = abits {
+        let merged = bits.get_or_insert_with(|| vec![0u64; abits.len()]);
+        for (m, a) in merged.iter_mut().zip(&abits) {
+            *m |= a;
+        }
+        info.saturated = merged.iter().map(|w| w.count_ones() as usize).sum();
+    }
+    Ok(())
 }
 
 /// The part of `width`×`height` images a load stores: `window` clamped to them (refused when

@@ -253,6 +253,11 @@ fn fit_shared(
             sol.record(p, &channel);
         }
     }
+    // The light in each channel's attached shadows, on the shared normals and that channel's
+    // albedo (before the fill, as the grey solve measures it).
+    for (c, sol) in out.iter_mut().enumerate() {
+        sol.shadow_light = Some(crate::ps::ambient::measure(stack, c, lights, mask, sol));
+    }
     if options.fill {
         // Each channel from its solved neighbours only: the grey fit's weights that would
         // give the data term are not kept for the pixels it could not solve.

@@ -14,9 +14,12 @@
 //!   reconstructed shape and subtracted (opt-in, a pipeline stage).
 //! - [`lobes`]: a non-Lambertian refit (a diffuse term plus specular lobes) of the pixels
 //!   Lambert's law does not explain, kept where it explains them ([`solve::SolveOptions::lobes`]).
+//! - [`ambient`]: the light in attached shadows (ambient light, a black level,
+//!   interreflections), measured after the solve, and how far it bends the normals.
 //! - [`shadows`]: spatially coherent shadow/inlier labels per image (graph cuts) and the refit
 //!   from them (opt-in: [`solve::SolveOptions::shadow_labels`]).
 
+pub mod ambient;
 pub mod color;
 pub mod fill;
 pub mod intensities;

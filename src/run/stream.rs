@@ -24,6 +24,7 @@ use crate::capture::dataset::CaptureFiles;
 use crate::capture::lights::{Lights, MAX_LIGHT_CONDITION};
 use crate::capture::stack::{
     ColorMode, Convert, ImageInfo, ImageStack, LoadOptions, convert_into, srgb_lut,
+    subtract_ambient,
 };
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, Window};
@@ -332,6 +333,8 @@ pub fn parse_size(text: &str) -> Result<u64> {
 /// The opened images of a capture, checked against each other.
 struct Opened {
     readers: Vec<BandReader>,
+    /// The ambient image's reader, when one is subtracted.
+    ambient: Option<BandReader>,
     width: usize,
     height: usize,
     /// Channels solved.
@@ -426,8 +429,10 @@ fn open_all(
         .bounding_box()
         .unwrap_or(Window::full(width, height))
         .clamp(width, height);
+    let ambient = open_ambient(files, width, height)?;
     Ok(Opened {
         readers,
+        ambient,
         width,
         height,
         channels,
@@ -580,11 +585,21 @@ fn plan_for(
         }
         Keep::Assembled => 0,
     };
+    // An ambient image's rows are decoded once a band and converted for each image being
+    // converted (its planes and flags, one per thread).
+    let ambient = if o.ambient.is_some() {
+        o.width as u64 * 16
+            + threads
+                * (o.channels as u64 * win.width() as u64 * 4 + (o.width as u64).div_ceil(64) * 8)
+    } else {
+        0
+    };
     let row_bytes = count as u64 * o.channels as u64 * win.width() as u64 * 4
         + count as u64 * (o.width as u64).div_ceil(64) * 8
         + 24 * o.channels as u64 * o.width as u64
         + threads * o.width as u64 * 16
-        + outputs * o.width as u64;
+        + outputs * o.width as u64
+        + ambient;
     let in_memory = count as u64 * o.channels as u64 * win.len() as u64 * 4;
     let fits = |c: &Config| {
         let (bands, finish) = phases_of(c);
@@ -660,9 +675,22 @@ struct Tally {
     pixels: usize,
 }
 
-/// Decodes rows `rows` of every image into a band stack (`window`'s columns only).
+/// The reader of `files`' ambient image, checked against the images' size, when there is one.
+fn open_ambient(files: &CaptureFiles, width: usize, height: usize) -> Result<Option<BandReader>> {
+    let Some(path) = &files.ambient_source else {
+        return Ok(None);
+    };
+    let reader = BandReader::open(path)?;
+    crate::capture::stack::check_ambient_size(path, reader.size(), (width, height))?;
+    Ok(Some(reader))
+}
+
+/// Decodes rows `rows` of every image into a band stack (`window`'s columns only), less the
+/// same rows of the ambient image when `ambient` reads one.
+#[allow(clippy::too_many_arguments)]
 fn read_band(
     readers: &mut [BandReader],
+    ambient: Option<&mut BandReader>,
     files: &CaptureFiles,
     load: &LoadOptions,
     channels: usize,
@@ -678,6 +706,10 @@ fn read_band(
         y1: rows.len(),
     };
     let n = band.len();
+    let ambient = match (ambient, &files.ambient_source) {
+        (Some(reader), Some(path)) => Some((path, reader.read(rows.clone())?)),
+        _ => None,
+    };
     let mut data = crate::buffer::zeroed_f32(readers.len() * channels * n);
     let results: Vec<Result<(Option<Vec<u64>>, ImageInfo)>> = data
         .par_chunks_mut(channels * n)
@@ -687,7 +719,11 @@ fn read_band(
             let path = &files.images[index];
             let raw = reader.read(rows.clone())?;
             let cv = Convert::new(load, &files.lights, index, lut);
-            Ok(convert_into(&raw, &cv, out, path, band))
+            let mut r = convert_into(&raw, &cv, out, path, band);
+            if let Some((apath, araw)) = &ambient {
+                subtract_ambient(araw, apath, &raw, &cv, out, band, &mut r)?;
+            }
+            Ok(r)
         })
         .collect();
     let mut saturated = Vec::with_capacity(readers.len());
@@ -756,6 +792,7 @@ fn estimate_models(
         .par_iter()
         .map(|p| BandReader::open(p))
         .collect::<Result<_>>()?;
+    let mut ambient = open_ambient(files, o.width, o.height)?;
     let mut parts: Vec<(ImageStack, Mask)> = Vec::new();
     let mut last_end = 0;
     for s in starts {
@@ -765,10 +802,20 @@ fn estimate_models(
             continue;
         }
         last_end = e;
-        let (stack, _) = read_band(&mut readers, files, load, o.channels, win, s..e, lut)?;
+        let (stack, _) = read_band(
+            &mut readers,
+            ambient.as_mut(),
+            files,
+            load,
+            o.channels,
+            win,
+            s..e,
+            lut,
+        )?;
         parts.push((stack, mask_rows(&o.mask, s..e)));
     }
     drop(readers);
+    drop(ambient);
     let (stack, mask) = stack_rows(parts, o.channels)?;
     if solved_channels == 1 && o.channels == 3 {
         let grey = stack.grey_mix();
@@ -929,6 +976,7 @@ impl<'a> FileBands<'a> {
         summary.width = self.opened.width;
         summary.height = self.opened.height;
         summary.color = self.load.color;
+        summary.ambient.clone_from(&files.ambient_source);
         Ok((self.plan, info, summary, self.read_s))
     }
 }
@@ -969,7 +1017,12 @@ impl BandSource for FileBands<'_> {
         let win = self.opened.window;
         let y = self.next;
         if y >= win.y1 {
-            for r in &mut self.opened.readers {
+            for r in self
+                .opened
+                .readers
+                .iter_mut()
+                .chain(&mut self.opened.ambient)
+            {
                 r.verify_rest()?;
             }
             return Ok(None);
@@ -979,6 +1032,7 @@ impl BandSource for FileBands<'_> {
         let o = &mut self.opened;
         let (stack, info) = read_band(
             &mut o.readers,
+            o.ambient.as_mut(),
             self.files,
             self.load,
             o.channels,
@@ -1067,6 +1121,7 @@ impl BandRun {
             unmasked_files: files.mask_source.is_none(),
             behind: files.lights.behind(),
             positioned: files.lights.positioned(),
+            ambient_subtracted: files.ambient_source.is_some(),
         }
     }
 }
@@ -1097,6 +1152,7 @@ fn run_bands<S: BandSink>(
     let (sink, times) = solve_bands(&mut source, &files.lights, &solve_config, progress, start)?;
     source.band = None;
     drop(std::mem::take(&mut source.opened.readers));
+    drop(source.opened.ambient.take());
     let (plan, info, summary, read_s) = source.finish()?;
     Ok((
         sink,

@@ -93,6 +93,19 @@ pub enum Warning {
     /// Intensities estimated from the images differ from the stated ones but were not applied
     /// (they did not converge or did not fit the data better).
     IntensitiesNotApplied,
+    /// The samples in attached shadow hold light — ambient light, a black level,
+    /// interreflections — enough to turn the normals by [`SHADOW_LIGHT_WARN_DEG`] or more on
+    /// average ([`crate::ps::ambient`]).
+    ShadowLight {
+        /// The level, a fraction of a lit surface's brightness (negative: below zero).
+        level: f64,
+        /// Pixels it was measured over.
+        pixels: usize,
+        /// The mean angle (degrees) such an offset turns the normals by.
+        bias_deg: f64,
+        /// An ambient image was subtracted already.
+        ambient_subtracted: bool,
+    },
     /// The median |curl| of the gradient field is above [`POOR_CURL`].
     PoorIntegrability {
         /// Median |curl| per pixel.
@@ -209,6 +222,16 @@ impl Warning {
     }
 }
 
+/// Mean angle (degrees) by which the light measured in attached shadows would turn the
+/// normals, at the level's end nearer zero of its two-standard-error interval
+/// ([`crate::ps::ambient::ShadowLight::confident_bias_deg`]), from which a run warns.
+/// A degree: on rendered scenes (0.5% noise, 8–48 lights) the error without any offset is
+/// 0.2–0.45°, an ambient term of 2% of a lamp's light adds about 0.3–0.8° and one of 5% adds
+/// 0.9–2.4°; DiLiGenT cat, bear and reading, whose shadows hold 1.3–2.5% (interreflections
+/// and subsurface light, which subtracting would not remove), predict 0.5–1.0° (reading 0.94°
+/// at the confident end).
+pub const SHADOW_LIGHT_WARN_DEG: f64 = 1.0;
+
 /// Least share of the integrated pixels in regions closed off by depth jumps for which
 /// [`Warning::of_closed_off`] warns.
 pub const GUESSED_SHARE: f64 = 0.01;
@@ -321,6 +344,41 @@ impl fmt::Display for Warning {
             }
             Warning::IntensitiesNotApplied => f.write_str(
                 "the light intensities estimated from the images differ from the stated ones but did not converge or fit the data better, so the stated intensities were kept (estimate in report.json → model.estimated_gains); strong highlights or interreflections can cause this",
+            ),
+            Warning::ShadowLight {
+                level,
+                pixels,
+                bias_deg,
+                ambient_subtracted,
+            } if *level >= 0.0 => write!(
+                f,
+                "the samples in attached shadow (whose lamp the surface faces away from) hold {:.1}% of a lit surface's brightness (median over {pixels} pixels){}: light no lamp sends there — ambient light, the camera's black level or interreflections; an offset that every image shares turns the normals towards the lights' mean direction, here by about {bias_deg:.1}° on average{}",
+                100.0 * level,
+                if *ambient_subtracted {
+                    ", after the ambient image was subtracted"
+                } else {
+                    ""
+                },
+                if *ambient_subtracted {
+                    "; interreflections do this where the surface sees itself, or the ambient image was taken under less light than the images"
+                } else {
+                    "; if the room was lit or the camera adds an offset, subtract an image taken with every lamp off"
+                }
+            ),
+            Warning::ShadowLight {
+                level,
+                pixels,
+                bias_deg,
+                ambient_subtracted,
+            } => write!(
+                f,
+                "the samples in attached shadow (whose lamp the surface faces away from) sit {:.1}% of a lit surface's brightness below zero (median over {pixels} pixels){}: an offset the images did not hold was taken off them, which turns the normals away from the lights' mean direction, here by about {bias_deg:.1}° on average",
+                -100.0 * level,
+                if *ambient_subtracted {
+                    ", after the ambient image was subtracted: was it taken under more light than the images?"
+                } else {
+                    ""
+                }
             ),
             Warning::PoorIntegrability { median_abs_curl } => write!(
                 f,
@@ -445,6 +503,30 @@ pub(crate) fn warnings(
             warnings.push(Warning::IntensitiesNotApplied);
         }
     }
+    // The channel whose attached shadows bend the normals most, judged at the level the data
+    // show at least (two standard errors nearer zero).
+    let shadow = models
+        .iter()
+        .filter_map(|m| m.shadow_light.as_ref())
+        .filter_map(|s| {
+            Some((
+                s.level?,
+                s.pixels,
+                s.predicted_bias_deg?,
+                s.confident_bias_deg()?,
+            ))
+        })
+        .max_by(|a, b| a.3.total_cmp(&b.3));
+    if let Some((level, pixels, bias_deg, confident)) = shadow
+        && confident >= SHADOW_LIGHT_WARN_DEG
+    {
+        warnings.push(Warning::ShadowLight {
+            level,
+            pixels,
+            bias_deg,
+            ambient_subtracted: facts.ambient_subtracted,
+        });
+    }
     if integrability.pixels > 0 && integrability.median_abs_curl > POOR_CURL {
         warnings.push(Warning::PoorIntegrability {
             median_abs_curl: integrability.median_abs_curl,
@@ -546,6 +628,45 @@ mod tests {
             (
                 Warning::AlbedoAboveOne { pixels: 2929 },
                 vec!["2929 pixels"],
+            ),
+            (
+                Warning::ShadowLight {
+                    level: 0.0763,
+                    pixels: 742,
+                    bias_deg: 1.386,
+                    ambient_subtracted: false,
+                },
+                vec!["7.6%", "742 pixels", "1.4°", "every lamp off"],
+            ),
+            (
+                Warning::ShadowLight {
+                    level: 0.0521,
+                    pixels: 743,
+                    bias_deg: 2.04,
+                    ambient_subtracted: true,
+                },
+                vec![
+                    "5.2%",
+                    "743 pixels",
+                    "2.0°",
+                    "after the ambient image",
+                    "interreflections",
+                ],
+            ),
+            (
+                Warning::ShadowLight {
+                    level: -0.0481,
+                    pixels: 744,
+                    bias_deg: 1.88,
+                    ambient_subtracted: true,
+                },
+                vec![
+                    "4.8%",
+                    "below zero",
+                    "744 pixels",
+                    "1.9°",
+                    "more light than the images",
+                ],
             ),
             (
                 Warning::IntegrationNotConverged {

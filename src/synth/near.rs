@@ -255,6 +255,9 @@ pub fn render_near(
     let (truth, depths) = trace(scene, camera, placement, top);
     let (w, h) = (scene.width, scene.height);
     let channels = if options.color { 3 } else { 1 };
+    // The ambient term lights every surface pixel, shadowed or not.
+    let ambient_light =
+        crate::synth::render::ambient_light(scene, &truth, channels, options.ambient);
     let per_light: Vec<LightImages> = lights
         .lights()
         .par_iter()
@@ -304,10 +307,8 @@ pub fn render_near(
                 let f = obj
                     .material
                     .eval(rho, &frame.to_local(&l), &frame.to_local(&view));
-                let rgb = [0, 1, 2].map(|ch| {
-                    light.intensity[ch] * fall * std::f64::consts::PI * f[ch] * cos_i
-                        + f64::from(options.ambient) * rho * obj.material.diffuse_color[ch]
-                });
+                let rgb = [0, 1, 2]
+                    .map(|ch| light.intensity[ch] * fall * std::f64::consts::PI * f[ch] * cos_i);
                 if channels == 1 {
                     planes[0].data_mut()[i] =
                         (0..3).map(|ch| GREY_WEIGHTS[ch] * rgb[ch] as f32).sum();
@@ -317,11 +318,22 @@ pub fn render_near(
                     }
                 }
             }
+            if let Some(ambient) = &ambient_light {
+                for (plane, a) in planes.iter_mut().zip(ambient) {
+                    for (v, a) in plane.data_mut().iter_mut().zip(a.data()) {
+                        *v += a;
+                    }
+                }
+            }
             apply_camera(&mut planes, &truth.mask, &mut saturated, options, k);
             (planes, attached, cast, saturated)
         })
         .collect();
-    Ok(Rendering::assemble(truth, channels, per_light))
+    let ambient =
+        crate::synth::render::ambient_frame(scene, &truth, channels, options, lights.len());
+    let mut out = Rendering::assemble(truth, channels, per_light);
+    out.ambient = ambient;
+    Ok(out)
 }
 
 /// What each pixel's ray meets first: depth along the optical axis, normal, albedo, object;

@@ -203,6 +203,10 @@ pub struct Rendering {
     pub cast: Vec<Mask>,
     /// Per light: pixels clipped at the saturation level in some channel.
     pub saturated: Vec<Mask>,
+    /// With an ambient term ([`RenderOptions::ambient`] > 0): the scene with every lamp off,
+    /// its channel planes, through the same camera (noise seeded as a light after the last,
+    /// clipping): what a rig's ambient frame records, to be subtracted from every image.
+    pub ambient: Option<Vec<ScalarMap>>,
 }
 
 impl Rendering {
@@ -449,7 +453,58 @@ pub fn render(scene: &Scene, lights: &Lights, options: &RenderOptions) -> Result
             Ok((planes, attached, cast, saturated))
         })
         .collect::<Result<Vec<LightImages>>>()?;
-    Ok(Rendering::assemble(hf, channels, per_light))
+    let ambient = ambient_frame(scene, &hf, channels, options, lights.len());
+    let mut out = Rendering::assemble(hf, channels, per_light);
+    out.ambient = ambient;
+    Ok(out)
+}
+
+/// The ambient frame of a rendering of `truth` (of `scene`): [`ambient_light`] through the
+/// camera of `options` as image `count` (after the `count` lit ones) would be; `None` without
+/// an ambient term.
+pub(crate) fn ambient_frame(
+    scene: &Scene,
+    truth: &HeightField,
+    channels: usize,
+    options: &RenderOptions,
+    count: usize,
+) -> Option<Vec<ScalarMap>> {
+    let mut planes = ambient_light(scene, truth, channels, options.ambient)?;
+    let mut clipped = Grid::new(truth.mask.width(), truth.mask.height(), false);
+    apply_camera(&mut planes, &truth.mask, &mut clipped, options, count);
+    Some(planes)
+}
+
+/// The ambient light of a rendering of `truth` (of `scene`), before the camera:
+/// ambient·ρ·(diffuse colour) at every surface pixel (grey-mixed for one channel), 0
+/// elsewhere; `None` without an ambient term.
+pub(crate) fn ambient_light(
+    scene: &Scene,
+    truth: &HeightField,
+    channels: usize,
+    ambient: f32,
+) -> Option<Vec<ScalarMap>> {
+    if ambient <= 0.0 {
+        return None;
+    }
+    let (w, h) = (truth.mask.width(), truth.mask.height());
+    let mut planes = vec![Grid::new(w, h, 0f32); channels];
+    for i in 0..w * h {
+        if !truth.mask.data()[i] {
+            continue;
+        }
+        let mat = &scene.objects[truth.object.data()[i] as usize].material;
+        let rho = f64::from(truth.albedo.data()[i]);
+        let rgb = [0, 1, 2].map(|ch| f64::from(ambient) * rho * mat.diffuse_color[ch]);
+        if channels == 1 {
+            planes[0].data_mut()[i] = (0..3).map(|ch| GREY_WEIGHTS[ch] * rgb[ch] as f32).sum();
+        } else {
+            for (plane, v) in planes.iter_mut().zip(rgb) {
+                plane.data_mut()[i] = v as f32;
+            }
+        }
+    }
+    Some(planes)
 }
 
 /// Per light: its channel planes, attached-shadow, cast-shadow and saturation masks.
@@ -469,6 +524,7 @@ impl Rendering {
             attached: Vec::with_capacity(per_light.len()),
             cast: Vec::with_capacity(per_light.len()),
             saturated: Vec::with_capacity(per_light.len()),
+            ambient: None,
         };
         for (i, a, c, s) in per_light {
             out.images.push(i);

@@ -38,6 +38,11 @@ pub const SHADOW_ATTACHED: u8 = 128;
 /// Value in `gt/shadow_NNN.png` of a pixel in cast shadow (facing the light, but blocked).
 pub const SHADOW_CAST: u8 = 255;
 
+/// File stem of a synthetic data set's ambient frame (the scene with every lamp off, written
+/// when the rendering has an ambient term), in the images' format: `ambient.exr` or
+/// `ambient.png`, for the main command's `--ambient`.
+pub const AMBIENT_STEM: &str = "ambient";
+
 /// Sub-folder of a synthetic data set that holds its ground truth.
 pub const GROUND_TRUTH_DIR: &str = "gt";
 
@@ -47,7 +52,8 @@ pub const GROUND_TRUTH_DIR: &str = "gt";
 /// the ground truth in [`GROUND_TRUTH_DIR`]: `normal_gt.exr` (R, G, B), `depth_gt.exr`
 /// (Z, pixel units), `albedo_gt.exr` (Y) and per-light shadow masks `shadow_NNN.png`
 /// ([`SHADOW_ATTACHED`] where n·l ≤ 0, [`SHADOW_CAST`] where the light is blocked, 0 where lit),
-/// and `saturated_NNN.png` (255 where clipped) for images that clip. Returns the files written.
+/// and `saturated_NNN.png` (255 where clipped) for images that clip; with an ambient term, the
+/// frame with every lamp off as [`AMBIENT_STEM`]. Returns the files written.
 ///
 /// # Errors
 /// [`crate::Error::Io`] or [`crate::Error::Encode`] when writing fails (nothing is left half-written).
@@ -81,7 +87,13 @@ pub fn write_synthetic_with_camera(
         .map(|k| format!("img_{k:03}.{}", format.extension()))
         .collect();
     let ch = rendering.channels;
-    for (name, planes) in names.iter().zip(&rendering.images) {
+    // The ambient frame, when the rendering has one, is written as the images are.
+    let ambient_name = format!("{AMBIENT_STEM}.{}", format.extension());
+    let frames = names
+        .iter()
+        .zip(&rendering.images)
+        .chain(rendering.ambient.iter().map(|a| (&ambient_name, a)));
+    for (name, planes) in frames {
         // Interleaved samples, clipped to [0, 1] for integer formats.
         let interleaved = |f: &dyn Fn(f32) -> f32| -> Vec<f32> {
             (0..w * h)

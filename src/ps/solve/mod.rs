@@ -214,6 +214,10 @@ pub fn solve_with_model(
         )?;
         sol.lobes = Some(summary);
     }
+    // On the final fits of the solved pixels (not the filled ones).
+    sol.shadow_light = Some(crate::ps::ambient::measure(
+        stack, channel, lights, mask, &sol,
+    ));
     // Last: the fill leans on the final estimates of the solved neighbours.
     if options.fill {
         crate::ps::fill::fill(&mut sol, &unsolved);

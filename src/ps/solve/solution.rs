@@ -58,6 +58,8 @@ pub struct Solution {
     /// What the refit with specular lobes did, when it ran ([`SolveOptions::lobes`],
     /// [`crate::ps::lobes`]).
     pub lobes: Option<crate::ps::lobes::LobeSummary>,
+    /// The light in attached shadows and the bias it predicts ([`crate::ps::ambient`]).
+    pub shadow_light: Option<crate::ps::ambient::ShadowLight>,
 }
 
 impl Solution {
@@ -85,6 +87,7 @@ impl Solution {
             },
             shadow_labels: None,
             lobes: None,
+            shadow_light: None,
         }
     }
 
@@ -117,6 +120,9 @@ impl Solution {
         if let Some(b) = &band.lobes {
             self.lobes.get_or_insert_default().add(b);
         }
+        if let Some(b) = &band.shadow_light {
+            self.shadow_light.get_or_insert_default().add(b);
+        }
         Ok(())
     }
 
@@ -137,6 +143,7 @@ impl Solution {
             noise: self.noise.clone(),
             shadow_labels: self.shadow_labels,
             lobes: self.lobes,
+            shadow_light: self.shadow_light.clone(),
         }
     }
 

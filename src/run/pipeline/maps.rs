@@ -17,6 +17,8 @@ pub(crate) struct InputFacts<'a> {
     pub behind: Vec<usize>,
     /// Lights given with a position (near lights), solved as distant ones.
     pub positioned: usize,
+    /// An ambient image was subtracted from the images.
+    pub ambient_subtracted: bool,
 }
 
 /// The per-pixel maps of a solve, over a whole image or a band of rows: what every pixel's
@@ -138,6 +140,8 @@ pub(crate) struct ChannelModel {
     pub shadow_labels: Option<crate::ps::shadows::ShadowSummary>,
     /// What the refit with specular lobes did, when it ran.
     pub lobes: Option<crate::ps::lobes::LobeSummary>,
+    /// The light in attached shadows ([`crate::ps::ambient`]).
+    pub shadow_light: Option<crate::ps::ambient::ShadowLight>,
 }
 
 impl ChannelModel {
@@ -150,6 +154,7 @@ impl ChannelModel {
                 noise: s.noise.clone(),
                 shadow_labels: s.shadow_labels,
                 lobes: s.lobes,
+                shadow_light: s.shadow_light.clone(),
             })
             .collect()
     }
@@ -162,6 +167,9 @@ impl ChannelModel {
         }
         if let Some(b) = &band.lobes {
             self.lobes.get_or_insert_default().add(b);
+        }
+        if let Some(b) = &band.shadow_light {
+            self.shadow_light.get_or_insert_default().add(b);
         }
     }
 }
@@ -218,6 +226,10 @@ pub(crate) fn model_summary(
         noise: models.iter().map(|m| m.noise.clone()).collect(),
         shadow_labels: models.iter().filter_map(|m| m.shadow_labels).collect(),
         lobes: models.iter().filter_map(|m| m.lobes).collect(),
+        shadow_light: models
+            .iter()
+            .filter_map(|m| m.shadow_light.clone())
+            .collect(),
     }
 }
 

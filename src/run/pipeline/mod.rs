@@ -226,6 +226,7 @@ pub fn reconstruct_normals_with_models(
         unmasked_files,
         behind: capture.lights.behind(),
         positioned: capture.lights.positioned(),
+        ambient_subtracted: capture.ambient_source.is_some(),
     };
     if near_applies(&capture.lights, config) {
         if models.is_some() {
@@ -568,6 +569,7 @@ mod tests {
             noise: s.noise.clone(),
             shadow_labels: s.shadow_labels,
             lobes: s.lobes,
+            shadow_light: s.shadow_light.clone(),
         }
     }
 
@@ -677,6 +679,7 @@ mod tests {
                     noise: vec![0.01 * f; COUNT],
                     shadow_labels: None,
                     lobes: None,
+                    shadow_light: None,
                 }
             })
             .collect()
@@ -744,6 +747,7 @@ mod tests {
             unmasked_files: false,
             behind: vec![3],
             positioned: 2,
+            ambient_subtracted: false,
         };
         let config = Config {
             albedo_normalised: true,

@@ -35,6 +35,11 @@ pub struct ModelSummary {
     /// not run).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub lobes: Vec<crate::ps::lobes::LobeSummary>,
+    /// Per channel, the light in attached shadows — ambient light, a black level,
+    /// interreflections — and the mean angle such an offset turns the normals by
+    /// ([`crate::ps::ambient`]).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub shadow_light: Vec<crate::ps::ambient::ShadowLight>,
 }
 
 /// Summary of the input, for the report.
@@ -52,6 +57,9 @@ pub struct InputSummary {
     pub lights: Option<PathBuf>,
     /// Mask file.
     pub mask: Option<PathBuf>,
+    /// The ambient image subtracted from every image, if any.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ambient: Option<PathBuf>,
     /// Condition number of the full light matrix.
     pub light_condition_number: f64,
     /// Storage format of the first image.
@@ -78,6 +86,7 @@ impl InputSummary {
             capture.mask_source.as_deref(),
             capture.stack.info(),
         );
+        s.ambient.clone_from(&capture.ambient_source);
         s.count = capture.stack.count();
         s.width = capture.stack.width();
         s.height = capture.stack.height();
@@ -105,6 +114,7 @@ impl InputSummary {
             height: 0,
             lights: lights_source.map(Path::to_path_buf),
             mask: mask_source.map(Path::to_path_buf),
+            ambient: None,
             light_condition_number: lights.condition_number(),
             format: info.first().map(|i| i.format),
             linearised_images: info.iter().filter(|i| i.linearised).count(),
