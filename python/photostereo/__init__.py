@@ -160,12 +160,28 @@ class Capture:
     intensities: np.ndarray
     mask: Optional[np.ndarray]
     files: List[str]
+    #: The frame taken with every lamp off (H x W x C, as the images), when one was given.
+    ambient: Optional[np.ndarray] = None
 
     def solve(self, **options: Any) -> "Solution":
-        """:func:`solve` on this capture (its intensities and mask)."""
+        """:func:`solve` on this capture (its intensities, mask and ambient frame)."""
+        if self.ambient is not None:
+            options.setdefault("ambient", self.ambient)
         return solve(
             self.images, self.lights, mask=self.mask, intensities=self.intensities, **options
         )
+
+
+def _with_ambient(images: np.ndarray, ambient: Any) -> np.ndarray:
+    """The images with the ambient frame appended as a last image (the native solve takes
+    it from there), after checking that it is stored as each image is."""
+    frame = np.asarray(ambient)
+    if frame.dtype != images.dtype or frame.shape != images.shape[1:]:
+        raise Error(
+            f"ambient: {frame.shape} {frame.dtype} but each image is {images.shape[1:]} "
+            f"{images.dtype}; the frame taken with every lamp off must be stored as the images are"
+        )
+    return np.concatenate([images, frame[None]])
 
 
 @dataclass
@@ -219,6 +235,7 @@ def solve(
     saturation: Optional[float] = None,
     fill: Optional[bool] = None,
     models: Optional[Sequence[Dict[str, Any]]] = None,
+    ambient: Optional[np.ndarray] = None,
 ) -> Solution:
     """Per-pixel photometric stereo: g = rho N from every image, robustly.
 
@@ -240,6 +257,11 @@ def solve(
         models: the capture-wide models to solve under (from :func:`estimate_model` on the
             whole capture) instead of estimating them from these images: for a capture
             solved in parts (see :mod:`photostereo.dask`).
+        ambient: the frame taken with every lamp off (H x W or H x W x C, stored as each
+            image: same dtype and shape), converted as each image is (transfer function,
+            intensity) and subtracted from it; without it, ``model_summary["shadow_light"]``
+            measures the light left in the attached shadows and a warning says when it bends
+            the normals.
 
     Returns:
         A :class:`Solution`.
@@ -247,7 +269,7 @@ def solve(
     images = _check_array(images, "images")
     lights = _f64_2d(lights, "lights")
     r = _native.solve(
-        images,
+        images if ambient is None else _with_ambient(images, ambient),
         lights,
         _mask(mask),
         _intensities(intensities),
@@ -257,6 +279,7 @@ def solve(
         saturation,
         fill,
         list(models) if models is not None else None,
+        ambient is not None,
     )
     for w in r["warnings"]:
         _warnings.warn(w, PhotostereoWarning, stacklevel=2)
@@ -275,6 +298,7 @@ def estimate_model(
     color: str = "grey",
     transfer: str = "auto",
     saturation: Optional[float] = None,
+    ambient: Optional[np.ndarray] = None,
 ) -> List[Dict[str, Any]]:
     """The capture-wide models (noise sigma and intensity gains per image, and ``lobe_limit``,
     the relative-residual limit of ``auto``'s refit with specular lobes) a solve of these
@@ -282,7 +306,7 @@ def estimate_model(
     and pass them to :func:`solve` for each part. Arguments as :func:`solve`."""
     images = _check_array(images, "images")
     return _native.estimate_model(
-        images,
+        images if ambient is None else _with_ambient(images, ambient),
         _f64_2d(lights, "lights"),
         _mask(mask),
         _intensities(intensities),
@@ -290,6 +314,7 @@ def estimate_model(
         color,
         transfer,
         saturation,
+        ambient is not None,
     )
 
 
@@ -619,10 +644,13 @@ def load(
     inputs: Union[PathLike, Sequence[PathLike]],
     lights: Optional[PathLike] = None,
     mask: Optional[PathLike] = None,
+    ambient: Optional[PathLike] = None,
 ) -> Capture:
     """Reads a capture as the command-line tool does: a DiLiGenT-layout folder, an image list
     (``<name>.txt``) or image files with a lights file (JSON or ``x y z`` lines, matched to
-    the images by name when it names them), with an optional mask file."""
+    the images by name when it names them), with an optional mask file and an optional
+    ambient frame (the scene taken with every lamp off, which :meth:`Capture.solve`
+    subtracts as ``--ambient`` does)."""
     if isinstance(inputs, (str, os.PathLike)):
         inputs = [inputs]
     paths = [os.fspath(p) for p in inputs]
@@ -650,7 +678,16 @@ def load(
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
         list(pool.map(read_into, range(1, len(files))))
     m = None if mask_path is None else read_mask(mask_path)
-    return Capture(stack, directions, intensities, m, [str(f) for f in files])
+    frame = None
+    if ambient is not None:
+        frame = read_image(ambient)
+        if frame.shape != first.shape or frame.dtype != first.dtype:
+            raise Error(
+                f"ambient image {os.fspath(ambient)}: {frame.shape} {frame.dtype} but image 0 "
+                f"({files[0]}) is {first.shape} {first.dtype}; it must be taken and stored as "
+                "the images are"
+            )
+    return Capture(stack, directions, intensities, m, [str(f) for f in files], frame)
 
 
 def read_exr(path: PathLike) -> Dict[str, np.ndarray]:

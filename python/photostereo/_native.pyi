@@ -20,6 +20,7 @@ def solve(
     saturation: Optional[float],
     fill: bool,
     models: Optional[List[Dict[str, Any]]],
+    ambient_last: bool = False,
 ) -> Dict[str, Any]: ...
 def estimate_model(
     images: np.ndarray,
@@ -30,6 +31,7 @@ def estimate_model(
     color: str,
     transfer: str,
     saturation: Optional[float],
+    ambient_last: bool = False,
 ) -> List[Dict[str, Any]]: ...
 def convert(
     images: np.ndarray,

@@ -188,15 +188,35 @@ fn four_d<S>(images: ArrayViewD<'_, S>) -> photostereo::Result<ndarray::ArrayVie
 
 /// `images`, `lights` and `mask` as a capture (storing the part the mask spans).
 /// `part`: the images are a part (a tile) of a larger capture solved under its models, so an
-/// image dark or saturated in this part alone is kept.
+/// image dark or saturated in this part alone is kept. `ambient_last`: the last image is the
+/// ambient frame (taken with every lamp off), subtracted from the others.
 fn capture_of<S: Sample>(
     images: ArrayViewD<'_, S>,
     lights: Lights,
     mask: Option<ArrayView2<'_, bool>>,
     options: &LoadOptions,
     part: bool,
+    ambient_last: bool,
 ) -> photostereo::Result<Capture> {
     let images = four_d(images)?;
+    if ambient_last {
+        let n = images.len_of(ndarray::Axis(0));
+        if n < 2 {
+            return Err(LibError::param(
+                "ambient",
+                "no image besides the ambient frame",
+            ));
+        }
+        let (lit, frame) = (
+            images.slice_axis(ndarray::Axis(0), ndarray::Slice::from(0..n - 1)),
+            images.index_axis(ndarray::Axis(0), n - 1),
+        );
+        return if part {
+            Capture::from_arrays_part_with_ambient(lit, frame, lights, mask, options)
+        } else {
+            Capture::from_arrays_channels_with_ambient(lit, frame, lights, mask, options)
+        };
+    }
     if part {
         Capture::from_arrays_part(images, lights, mask, options)
     } else {
@@ -448,7 +468,7 @@ fn json<T: serde::Serialize>(v: &T) -> PyRes<String> {
 
 /// Solve: images, lights, mask → the per-pixel maps, summaries as JSON text.
 #[pyfunction]
-#[pyo3(signature = (images, lights, mask=None, intensities=None, method="auto", color="grey", transfer="auto", saturation=None, fill=None, models=None))]
+#[pyo3(signature = (images, lights, mask=None, intensities=None, method="auto", color="grey", transfer="auto", saturation=None, fill=None, models=None, ambient_last=false))]
 #[allow(clippy::too_many_arguments)]
 fn solve<'py>(
     py: Python<'py>,
@@ -462,6 +482,7 @@ fn solve<'py>(
     saturation: Option<f32>,
     fill: Option<bool>,
     models: Option<&Bound<'py, PyList>>,
+    ambient_last: bool,
 ) -> PyRes<Bound<'py, PyDict>> {
     let samples = Samples::images(images, "images")?;
     let lights = lights_arg(lights, intensities)?;
@@ -481,7 +502,7 @@ fn solve<'py>(
     };
     let views = samples.views();
     let recon = py.detach(|| {
-        let capture = with_view!(views, v => capture_of(v, lights, mask.as_ref().map(|m| m.view()), &load, part))?;
+        let capture = with_view!(views, v => capture_of(v, lights, mask.as_ref().map(|m| m.view()), &load, part, ambient_last))?;
         // The models are estimated here, once, as the solve itself would (so that the caller
         // gets the ones the solve used, without a second estimate).
         let models = match models {
@@ -540,7 +561,7 @@ fn solve<'py>(
 
 /// The capture-wide models a solve of these images would estimate.
 #[pyfunction]
-#[pyo3(signature = (images, lights, mask=None, intensities=None, method="auto", color="grey", transfer="auto", saturation=None))]
+#[pyo3(signature = (images, lights, mask=None, intensities=None, method="auto", color="grey", transfer="auto", saturation=None, ambient_last=false))]
 #[allow(clippy::too_many_arguments)]
 fn estimate_model<'py>(
     py: Python<'py>,
@@ -552,6 +573,7 @@ fn estimate_model<'py>(
     color: &str,
     transfer: &str,
     saturation: Option<f32>,
+    ambient_last: bool,
 ) -> PyRes<Bound<'py, PyList>> {
     let samples = Samples::images(images, "images")?;
     let lights = lights_arg(lights, intensities)?;
@@ -560,7 +582,7 @@ fn estimate_model<'py>(
     let config = solve_config(method, color_solve, true)?;
     let views = samples.views();
     let models = py.detach(|| {
-        let capture = with_view!(views, v => capture_of(v, lights, mask.as_ref().map(|m| m.view()), &load, false))?;
+        let capture = with_view!(views, v => capture_of(v, lights, mask.as_ref().map(|m| m.view()), &load, false, ambient_last))?;
         estimate_models(&capture, &config)
     });
     let list = PyList::empty(py);

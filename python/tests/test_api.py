@@ -61,6 +61,48 @@ def test_room_light_is_measured_and_its_frame_subtracted():
     assert not any("attached shadow" in w for w in removed.warnings), removed.warnings
 
 
+def test_an_ambient_frame_is_subtracted_after_decoding(tmp_path):
+    # 8-bit sRGB images with room light: subtracting the frame's codes in numpy is wrong (the
+    # codes are not linear); solve(ambient=...) decodes both first and gets the dark room's
+    # normals back. load(ambient=...) carries the frame to Capture.solve.
+    lights = np.vstack([ps.light_ring(8, 30.0), ps.light_ring(8, 60.0, 20.0)])
+    lit = ps.render("sphere", 96, lights, noise=0.003, ambient=0.08, seed=4)
+    m = lit["mask"]
+
+    def srgb8(x):
+        x = np.clip(x, 0.0, 1.0)
+        y = np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+        return np.round(255 * y).astype(np.uint8)
+
+    dark = ps.render("sphere", 96, lights, noise=0.003, seed=4)
+    images, frame = srgb8(lit["images"]), srgb8(lit["ambient"])
+
+    def err(r):
+        return angles(r.normals, lit["normals"], m).mean()
+
+    base = err(ps.solve(srgb8(dark["images"]), lights, mask=m))
+    with_frame = err(ps.solve(images, lights, mask=m, ambient=frame))
+    codes = np.clip(images.astype(int) - frame[None], 0, 255).astype(np.uint8)
+    wrong = err(ps.solve(codes, lights, mask=m))
+    left = err(ps.solve(images, lights, mask=m))
+    assert with_frame < base + 0.15, (with_frame, base)
+    assert wrong > base + 1.0 and left > base + 1.0, (wrong, left, base)
+    with pytest.raises(ps.Error, match="stored as the images are"):
+        ps.solve(images, lights, mask=m, ambient=frame.astype(np.uint16))
+    # From files (float EXR): the frame is read and used by Capture.solve.
+    names = []
+    for k, img in enumerate(lit["images"]):
+        names.append(str(tmp_path / f"img_{k:02d}.exr"))
+        ps.write_exr(names[-1], {"Y": img})
+    ps.write_exr(tmp_path / "ambient.exr", {"Y": lit["ambient"]})
+    np.savetxt(tmp_path / "lights.txt", lights)
+    cap = ps.load(names, tmp_path / "lights.txt", ambient=tmp_path / "ambient.exr")
+    assert cap.ambient is not None and cap.ambient.shape == cap.images.shape[1:]
+    r = cap.solve()
+    assert angles(r.normals, lit["normals"], m).mean() < base + 0.15
+    assert not any("attached shadow" in w for w in r.warnings), r.warnings
+
+
 def test_sample_types_give_the_same_normals(scene):
     s, lights = scene
     img = s["images"]

@@ -103,6 +103,103 @@ enum Extent {
     Part,
 }
 
+/// The name an in-memory ambient frame goes by in messages.
+const AMBIENT_NAME: &str = "<array ambient frame>";
+
+/// What converting the images of an array keeps from one image to the next.
+struct ArrayConversion<'a> {
+    window: Window,
+    width: usize,
+    height: usize,
+    /// Values per pixel on the last axis.
+    stride: usize,
+    /// Output planes.
+    channels: usize,
+    linearise: bool,
+    /// Saturation level.
+    level: f32,
+    lut: &'a [f32; 256],
+}
+
+impl ArrayConversion<'_> {
+    /// Converts `image` (`H×W×C`) into `out` (the stack's planes of one image), dividing by
+    /// `coef`: its saturation flags and tallies.
+    fn run<S: Sample>(
+        &self,
+        image: ArrayView3<'_, S>,
+        coef: [f32; 3],
+        out: &mut [f32],
+    ) -> Converted {
+        let (window, width, stride, level, lut) =
+            (self.window, self.width, self.stride, self.level, self.lut);
+        let (linearise, channels, n) = (self.linearise, self.channels, self.window.len());
+        let height = self.height;
+        let mut c = Converted {
+            bits: vec![0u64; (width * height).div_ceil(64)],
+            saturated: 0,
+            non_finite: 0,
+        };
+        let ww = window.width();
+        let mut stored = vec![0f32; ww * stride];
+        let mut linear = vec![0f32; if linearise { stored.len() } else { 0 }];
+        for y in window.y0..window.y1 {
+            let row = image.index_axis(Axis(0), y);
+            let row = row.slice(ndarray::s![window.x0..window.x1, ..]);
+            match row.as_slice() {
+                Some(s) => {
+                    for (d, v) in stored.iter_mut().zip(s) {
+                        *d = v.stored();
+                    }
+                }
+                None => {
+                    for (d, v) in stored.iter_mut().zip(row.iter()) {
+                        *d = v.stored();
+                    }
+                }
+            }
+            if linearise {
+                if S::FORMAT == SampleFormat::U8 {
+                    for (d, v) in linear.iter_mut().zip(&stored) {
+                        *d = lut[(v * 255.0).round() as usize];
+                    }
+                } else {
+                    for (d, v) in linear.iter_mut().zip(&stored) {
+                        *d = srgb_to_linear(v.clamp(0.0, 1.0));
+                    }
+                }
+            }
+            // Integer rows are finite, and saturated only if their largest value reaches
+            // the level; float rows are checked per pixel.
+            let (row_max, check_finite) = if S::FORMAT.is_integer() {
+                // The largest code, as a level the way the file reader makes it.
+                let top = row.iter().copied().reduce(|a, b| if b > a { b } else { a });
+                (top.map_or(0.0, Sample::level), false)
+            } else {
+                (level, true)
+            };
+            let lin: &[f32] = if linearise { &linear } else { &stored };
+            let place = RowPlace {
+                out_channels: channels,
+                n,
+                offset: (y - window.y0) * ww,
+                pixel: y * width + window.x0,
+            };
+            combine_any(
+                stride,
+                &stored,
+                lin,
+                (coef, level),
+                out,
+                &place,
+                row_max,
+                check_finite,
+                &mut c,
+            );
+        }
+        c
+    }
+}
+
 /// The name an in-memory image goes by in messages and [`ImageInfo::path`].
 fn array_name(index: usize) -> PathBuf {
     PathBuf::from(format!("<array image {index}>"))
@@ -138,7 +235,24 @@ impl ImageStack {
         lights: &Lights,
         options: &LoadOptions,
     ) -> Result<ImageStack> {
-        ImageStack::convert_array(images, lights, options, Extent::Whole)
+        ImageStack::convert_array(images, None, lights, options, Extent::Whole)
+    }
+
+    /// [`ImageStack::from_array_channels`] with an ambient frame subtracted: `ambient`
+    /// (`H×W×C`, as each image), the scene taken with every lamp off, converted as each image
+    /// is and subtracted from it, as [`crate::capture::stack::load_stack_with_ambient`] does
+    /// for files.
+    ///
+    /// # Errors
+    /// As [`ImageStack::from_array_channels`]; [`Error::Ambient`] when the frame's shape
+    /// differs from an image's or it holds a non-finite value.
+    pub fn from_array_channels_with_ambient<S: Sample>(
+        images: ArrayView4<'_, S>,
+        ambient: ArrayView3<'_, S>,
+        lights: &Lights,
+        options: &LoadOptions,
+    ) -> Result<ImageStack> {
+        ImageStack::convert_array(images, Some(ambient), lights, options, Extent::Whole)
     }
 
     /// [`ImageStack::from_array_channels`] for a part of a larger capture (a tile of it): an
@@ -152,16 +266,28 @@ impl ImageStack {
         lights: &Lights,
         options: &LoadOptions,
     ) -> Result<ImageStack> {
-        ImageStack::convert_array(images, lights, options, Extent::Part)
+        ImageStack::convert_array(images, None, lights, options, Extent::Part)
     }
 
     fn convert_array<S: Sample>(
         images: ArrayView4<'_, S>,
+        ambient: Option<ArrayView3<'_, S>>,
         lights: &Lights,
         options: &LoadOptions,
         extent: Extent,
     ) -> Result<ImageStack> {
         let (count, height, width, stride) = images.dim();
+        if let Some(a) = &ambient
+            && a.dim() != (height, width, stride)
+        {
+            let (h, w, c) = a.dim();
+            return Err(Error::Ambient {
+                path: AMBIENT_NAME.into(),
+                reason: format!(
+                    "shape {h}×{w}×{c} differs from each image's {height}×{width}×{stride}"
+                ),
+            });
+        }
         if count != lights.len() {
             return Err(Error::LightsMismatch {
                 reason: format!("{count} images for {} lights", lights.len()),
@@ -234,6 +360,16 @@ impl ImageStack {
         }
         drop(probe);
         let lut = srgb_lut();
+        let conversion = ArrayConversion {
+            window,
+            width,
+            height,
+            stride,
+            channels,
+            linearise,
+            level,
+            lut: &lut,
+        };
         let mut data = crate::buffer::zeroed_f32(total);
         let results: Vec<Result<(Option<Vec<u64>>, ImageInfo)>> = data
             .par_chunks_mut(channels * n)
@@ -242,67 +378,28 @@ impl ImageStack {
                 let image = images.index_axis(Axis(0), index);
                 let intensity = lights.lights()[index].intensity.map(|v| v as f32);
                 let coef = coefficients(channels_in, channels, intensity);
-                let mut c = Converted {
-                    bits: vec![0u64; (width * height).div_ceil(64)],
-                    saturated: 0,
-                    non_finite: 0,
-                };
-                let ww = window.width();
-                let mut stored = vec![0f32; ww * stride];
-                let mut linear = vec![0f32; if linearise { stored.len() } else { 0 }];
-                for y in window.y0..window.y1 {
-                    let row = image.index_axis(Axis(0), y);
-                    let row = row.slice(ndarray::s![window.x0..window.x1, ..]);
-                    match row.as_slice() {
-                        Some(s) => {
-                            for (d, v) in stored.iter_mut().zip(s) {
-                                *d = v.stored();
-                            }
-                        }
-                        None => {
-                            for (d, v) in stored.iter_mut().zip(row.iter()) {
-                                *d = v.stored();
-                            }
-                        }
+                let mut c = conversion.run(image, coef, out);
+                if let Some(frame) = &ambient {
+                    let mut light = vec![0f32; out.len()];
+                    let a = conversion.run(frame.view(), coef, &mut light);
+                    if a.non_finite > 0 {
+                        return Err(Error::Ambient {
+                            path: AMBIENT_NAME.into(),
+                            reason: format!(
+                                "{} pixel(s) hold NaN or infinite values; an ambient frame must be finite where the images are solved",
+                                a.non_finite
+                            ),
+                        });
                     }
-                    if linearise {
-                        if S::FORMAT == SampleFormat::U8 {
-                            for (d, v) in linear.iter_mut().zip(&stored) {
-                                *d = lut[(v * 255.0).round() as usize];
-                            }
-                        } else {
-                            for (d, v) in linear.iter_mut().zip(&stored) {
-                                *d = srgb_to_linear(v.clamp(0.0, 1.0));
-                            }
-                        }
+                    for (o, l) in out.iter_mut().zip(&light) {
+                        *o -= l;
                     }
-                    // Integer rows are finite, and saturated only if their largest value reaches
-                    // the level; float rows are checked per pixel.
-                    let (row_max, check_finite) = if S::FORMAT.is_integer() {
-                        // The largest code, as a level the way the file reader makes it.
-                        let top = row.iter().copied().reduce(|a, b| if b > a { b } else { a });
-                        (top.map_or(0.0, Sample::level), false)
-                    } else {
-                        (level, true)
-                    };
-                    let lin: &[f32] = if linearise { &linear } else { &stored };
-                    let place = RowPlace {
-                        out_channels: channels,
-                        n,
-                        offset: (y - window.y0) * ww,
-                        pixel: y * width + window.x0,
-                    };
-                    combine_any(
-                        stride,
-                        &stored,
-                        lin,
-                        (coef, level),
-                        out,
-                        &place,
-                        row_max,
-                        check_finite,
-                        &mut c,
-                    );
+                    if a.saturated > 0 {
+                        for (m, b) in c.bits.iter_mut().zip(&a.bits) {
+                            *m |= b;
+                        }
+                        c.saturated = c.bits.iter().map(|w| w.count_ones() as usize).sum();
+                    }
                 }
                 let path = array_name(index);
                 let where_ = || {
@@ -472,7 +569,24 @@ impl Capture {
         mask: Option<ArrayView2<'_, bool>>,
         options: &LoadOptions,
     ) -> Result<Capture> {
-        Capture::from_array_views(images, lights, mask, options, Extent::Whole)
+        Capture::from_array_views(images, None, lights, mask, options, Extent::Whole)
+    }
+
+    /// [`Capture::from_arrays_channels`] with an ambient frame (`H×W×C`: the scene taken
+    /// with every lamp off) subtracted from every image
+    /// ([`ImageStack::from_array_channels_with_ambient`]).
+    ///
+    /// # Errors
+    /// As [`Capture::from_arrays_channels`] and
+    /// [`ImageStack::from_array_channels_with_ambient`].
+    pub fn from_arrays_channels_with_ambient<S: Sample>(
+        images: ArrayView4<'_, S>,
+        ambient: ArrayView3<'_, S>,
+        lights: Lights,
+        mask: Option<ArrayView2<'_, bool>>,
+        options: &LoadOptions,
+    ) -> Result<Capture> {
+        Capture::from_array_views(images, Some(ambient), lights, mask, options, Extent::Whole)
     }
 
     /// [`Capture::from_arrays_channels`] for a part of a larger capture (a tile), to be solved
@@ -488,11 +602,28 @@ impl Capture {
         mask: Option<ArrayView2<'_, bool>>,
         options: &LoadOptions,
     ) -> Result<Capture> {
-        Capture::from_array_views(images, lights, mask, options, Extent::Part)
+        Capture::from_array_views(images, None, lights, mask, options, Extent::Part)
+    }
+
+    /// [`Capture::from_arrays_part`] with the part of an ambient frame (`H×W×C`) subtracted
+    /// ([`Capture::from_arrays_channels_with_ambient`]).
+    ///
+    /// # Errors
+    /// As [`Capture::from_arrays_part`] and
+    /// [`ImageStack::from_array_channels_with_ambient`].
+    pub fn from_arrays_part_with_ambient<S: Sample>(
+        images: ArrayView4<'_, S>,
+        ambient: ArrayView3<'_, S>,
+        lights: Lights,
+        mask: Option<ArrayView2<'_, bool>>,
+        options: &LoadOptions,
+    ) -> Result<Capture> {
+        Capture::from_array_views(images, Some(ambient), lights, mask, options, Extent::Part)
     }
 
     fn from_array_views<S: Sample>(
         images: ArrayView4<'_, S>,
+        ambient: Option<ArrayView3<'_, S>>,
         lights: Lights,
         mask: Option<ArrayView2<'_, bool>>,
         options: &LoadOptions,
@@ -527,7 +658,7 @@ impl Capture {
             window: options.window.or(window),
             ..*options
         };
-        let stack = ImageStack::convert_array(images, &lights, &options, extent)?;
+        let stack = ImageStack::convert_array(images, ambient, &lights, &options, extent)?;
         Capture::from_stack(stack, lights, mask)
     }
 }
@@ -594,6 +725,65 @@ mod tests {
         assert!(stack.is_saturated(2, 6));
         assert_eq!(stack.info()[2].saturated, 1);
         assert_eq!(stack.info()[0].saturated, 0);
+    }
+
+    /// An ambient frame is converted as each image is (8-bit sRGB decoded, divided by that
+    /// image's per-channel intensities, grey-mixed) and subtracted; its saturated pixel counts
+    /// in every image; a frame of another shape is refused.
+    #[test]
+    fn an_ambient_frame_is_subtracted_as_each_image_is_converted() {
+        let lights = lights4();
+        let imgs = Array4::from_shape_fn((4, 2, 3, 3), |(k, y, x, c)| {
+            (40 * k + 30 * y + 9 * x + 5 * c + 60) as u8
+        });
+        let frame = Array3::from_shape_fn((2, 3, 3), |(y, x, c)| {
+            if (y, x, c) == (1, 2, 0) {
+                255
+            } else {
+                (3 * y + 2 * x + c + 10) as u8
+            }
+        });
+        let stack = ImageStack::from_array_channels_with_ambient(
+            imgs.view(),
+            frame.view(),
+            &lights,
+            &LoadOptions::default(),
+        )
+        .unwrap();
+        let lin = |v: u8| f64::from(crate::io::decode::srgb_to_linear(f32::from(v) / 255.0));
+        for k in 0..4 {
+            let i = lights.lights()[k].intensity;
+            for y in 0..2 {
+                for x in 0..3 {
+                    let want: f64 = (0..3)
+                        .map(|c| {
+                            f64::from(GREY_WEIGHTS[c])
+                                * (lin(imgs[[k, y, x, c]]) - lin(frame[[y, x, c]]))
+                                / i[c]
+                        })
+                        .sum();
+                    let got = f64::from(stack.value(k, 0, y * 3 + x));
+                    assert!(
+                        (got - want).abs() < 1e-6,
+                        "image {k} ({x}, {y}): {got} vs {want}"
+                    );
+                }
+            }
+            assert!(stack.is_saturated(k, 5), "image {k}");
+            assert_eq!(stack.info()[k].saturated, 1);
+        }
+        let wrong = Array3::<u8>::zeros((2, 2, 3));
+        let e = ImageStack::from_array_channels_with_ambient(
+            imgs.view(),
+            wrong.view(),
+            &lights,
+            &LoadOptions::default(),
+        )
+        .unwrap_err();
+        assert!(
+            matches!(e, Error::Ambient { .. }) && e.to_string().contains("2×2×3"),
+            "{e}"
+        );
     }
 
     /// A strided (non-contiguous) view gives the same stack as a contiguous copy of it.
