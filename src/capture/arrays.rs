@@ -37,7 +37,7 @@ use crate::capture::dataset::Capture;
 use crate::capture::lights::{Light, Lights};
 use crate::capture::stack::{
     ColorMode, Converted, ImageInfo, ImageStack, LoadOptions, RowPlace, Transfer, check_usable,
-    coefficients, combine_any, srgb_lut, stored_window,
+    coefficients, combine_any, mark_frame_saturation, srgb_lut, stored_window, take_off_frame,
 };
 use crate::error::{Error, Result};
 use crate::grid::{Grid, Mask, NormalMap, Window};
@@ -45,7 +45,7 @@ use crate::io::decode::{MAX_IMAGE_SAMPLES, SampleFormat, srgb_to_linear};
 use nalgebra::Vector3;
 use ndarray::{Array2, Array3, ArrayView2, ArrayView3, ArrayView4, Axis};
 use rayon::prelude::*;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// A sample type images can be given in: how it is stored and scaled to [0, 1].
 pub trait Sample: Copy + PartialOrd + Send + Sync + 'static {
@@ -382,23 +382,9 @@ impl ImageStack {
                 if let Some(frame) = &ambient {
                     let mut light = vec![0f32; out.len()];
                     let a = conversion.run(frame.view(), coef, &mut light);
-                    if a.non_finite > 0 {
-                        return Err(Error::Ambient {
-                            path: AMBIENT_NAME.into(),
-                            reason: format!(
-                                "{} pixel(s) hold NaN or infinite values; an ambient frame must be finite where the images are solved",
-                                a.non_finite
-                            ),
-                        });
-                    }
-                    for (o, l) in out.iter_mut().zip(&light) {
-                        *o -= l;
-                    }
+                    take_off_frame(out, &light, Path::new(AMBIENT_NAME), a.non_finite)?;
                     if a.saturated > 0 {
-                        for (m, b) in c.bits.iter_mut().zip(&a.bits) {
-                            *m |= b;
-                        }
-                        c.saturated = c.bits.iter().map(|w| w.count_ones() as usize).sum();
+                        c.saturated = mark_frame_saturation(&mut c.bits, &a.bits);
                     }
                 }
                 let path = array_name(index);

@@ -596,23 +596,44 @@ pub(crate) fn subtract_ambient(
     }
     let mut light = vec![0f32; out.len()];
     let (abits, ainfo) = convert_into(ambient, cv, &mut light, path, window);
-    if ainfo.non_finite > 0 {
-        return Err(refuse(format!(
-            "{} pixel(s) hold NaN or infinite values; an ambient image must be finite where the images are solved",
-            ainfo.non_finite
-        )));
-    }
-    for (o, a) in out.iter_mut().zip(&light) {
-        *o -= a;
-    }
+    take_off_frame(out, &light, path, ainfo.non_finite)?;
     if let Some(abits) = abits {
         let merged = bits.get_or_insert_with(|| vec![0u64; abits.len()]);
-        for (m, a) in merged.iter_mut().zip(&abits) {
-            *m |= a;
-        }
-        info.saturated = merged.iter().map(|w| w.count_ones() as usize).sum();
+        info.saturated = mark_frame_saturation(merged, &abits);
     }
     Ok(())
+}
+
+/// Takes an ambient frame, converted as the image was (`light`), off that image's converted
+/// planes `out`; a frame with `non_finite` pixels holding NaN or infinite values is refused
+/// (`path` names it). The files' and the arrays' loads both subtract through it.
+pub(crate) fn take_off_frame(
+    out: &mut [f32],
+    light: &[f32],
+    path: &Path,
+    non_finite: usize,
+) -> Result<()> {
+    if non_finite > 0 {
+        return Err(Error::Ambient {
+            path: path.to_path_buf(),
+            reason: format!(
+                "{non_finite} pixel(s) hold NaN or infinite values; an ambient image must be finite where the images are solved"
+            ),
+        });
+    }
+    for (o, l) in out.iter_mut().zip(light) {
+        *o -= l;
+    }
+    Ok(())
+}
+
+/// Marks the pixels saturated in an ambient frame (`frame`, its flags) as saturated in an
+/// image (`bits`, its flags, over the same pixels); returns the image's saturated pixels.
+pub(crate) fn mark_frame_saturation(bits: &mut [u64], frame: &[u64]) -> usize {
+    for (m, f) in bits.iter_mut().zip(frame) {
+        *m |= f;
+    }
+    bits.iter().map(|w| w.count_ones() as usize).sum()
 }
 
 /// The part of `width`×`height` images a load stores: `window` clamped to them (refused when
