@@ -73,15 +73,18 @@ def estimate_model(
     mask: Any = None,
     *,
     max_rows: int = MAX_SAMPLE_ROWS,
+    ambient: Any = None,
     **options: Any,
 ) -> List[Dict[str, Any]]:
     """The capture-wide models, estimated from at most ``max_rows`` rows of the capture (in
     blocks of :data:`SAMPLE_BLOCK_ROWS` spread evenly over it; every row of a smaller one).
-    Only those rows are computed. ``options`` as :func:`photostereo.solve` (``method``,
-    ``color``, ``intensities``, ``transfer``, ``saturation``)."""
+    Only those rows are computed (of the images, the mask and the ``ambient`` frame, H x W or
+    H x W x C, numpy or Dask, subtracted as :func:`photostereo.solve` subtracts it).
+    ``options`` as :func:`photostereo.solve` (``method``, ``color``, ``intensities``,
+    ``transfer``, ``saturation``)."""
     images = _as_dask(images, "images")
+    frame = None if ambient is None else _as_dask(ambient, "ambient")
     rows = _sample_rows(images.shape[1], max_rows)
-    sample = np.asarray(images[:, rows].compute())
     m = None
     if mask is not None:
         m = _ps._mask(np.asarray(_as_dask(mask, "mask")[rows].compute()))
@@ -89,22 +92,25 @@ def estimate_model(
             # No object pixel in the sample: fall back to the whole mask's rows.
             full = _ps._mask(np.asarray(_as_dask(mask, "mask").compute()))
             rows = np.flatnonzero(full.any(axis=1))[:max_rows]
-            sample = np.asarray(images[:, rows].compute())
             m = full[rows]
+    sample = np.asarray(images[:, rows].compute())
+    if frame is not None:
+        options["ambient"] = np.asarray(frame[rows].compute())
     return _ps.estimate_model(sample, lights, m, **options)
 
 
 def _solve_tile(
     block: np.ndarray,
     mask_block: Optional[np.ndarray],
+    ambient_block: Optional[np.ndarray],
     *,
     lights: np.ndarray,
     models: List[Dict[str, Any]],
     albedo_channels: int,
     options: Dict[str, Any],
 ) -> np.ndarray:
-    """One tile: N x h x w[ x C] images (and an h x w mask) -> h x w x K float32 planes:
-    normals (3), albedo (1 or 3), then _SCALARS."""
+    """One tile: N x h x w[ x C] images (and an h x w mask, an h x w[ x C] ambient frame) ->
+    h x w x K float32 planes: normals (3), albedo (1 or 3), then _SCALARS."""
     h, w = block.shape[1], block.shape[2]
     base = 3 + albedo_channels
     # Outside the mask, as the library's maps: NaN normals, albedo, residual and condition;
@@ -120,7 +126,10 @@ def _solve_tile(
     with warnings.catch_warnings():
         # Tile-level warnings (counts of one tile) say nothing about the capture.
         warnings.simplefilter("ignore", _ps.PhotostereoWarning)
-        r = _ps.solve(block, lights, mask_block, fill=False, models=models, **options)
+        r = _ps.solve(
+            block, lights, mask_block, fill=False, models=models, ambient=ambient_block,
+            **options,
+        )
     out[..., 0:3] = r.normals
     alb = r.albedo if r.albedo.ndim == 3 else r.albedo[..., None]
     out[..., 3 : 3 + albedo_channels] = alb
@@ -141,6 +150,7 @@ def solve(
     color: str = "grey",
     transfer: str = "auto",
     saturation: Optional[float] = None,
+    ambient: Any = None,
 ) -> Dict[str, "da.Array"]:
     """Photometric stereo over ``chunks`` x ``chunks`` tiles of a Dask (or numpy) array.
 
@@ -151,6 +161,10 @@ def solve(
         chunks: tile side in pixels.
         models: the capture-wide models; default :func:`estimate_model` on a sample of rows.
         intensities, method, color, transfer, saturation: as :func:`photostereo.solve`.
+        ambient: the frame taken with every lamp off (H x W or H x W x C, numpy or Dask,
+            stored as each image is), tiled as the images are and subtracted in each tile as
+            :func:`photostereo.solve` subtracts it. The light left in the attached shadows,
+            which a whole-capture solve measures and warns about, is not measured per tile.
 
     Returns:
         Lazy arrays: ``normals`` (H x W x 3), ``albedo`` (H x W, or H x W x 3 for a colour
@@ -182,8 +196,18 @@ def solve(
             raise ValueError(f"mask: shape {mask_d.shape} differs from the images' {(h, w)}")
         # Numbers > 0 are set, as photostereo.solve reads a mask.
         mask_d = (mask_d if mask_d.dtype == bool else mask_d > 0).rechunk(spatial)
+    frame_d = None
+    if ambient is not None:
+        frame_d = _as_dask(ambient, "ambient")
+        if frame_d.shape != images.shape[1:] or frame_d.dtype != images.dtype:
+            raise ValueError(
+                f"ambient: {frame_d.shape} {frame_d.dtype} but each image is "
+                f"{images.shape[1:]} {images.dtype}; the frame taken with every lamp off must be "
+                "stored as the images are"
+            )
+        frame_d = frame_d.rechunk(spatial + ((images.shape[3],) if images.ndim == 4 else ()))
     if models is None:
-        models = estimate_model(images, lights, mask_d, **options)
+        models = estimate_model(images, lights, mask_d, ambient=frame_d, **options)
     models = list(models)
     albedo_channels = 1 if color in ("grey", "gray") or images.ndim == 3 else 3
     planes = 3 + albedo_channels + len(_SCALARS)
@@ -191,10 +215,14 @@ def solve(
     # each, are contracted into the tile function's input.
     kwargs = dict(lights=lights, models=models, albedo_channels=albedo_channels, options=options)
     mask_arg = (mask_d, "yx") if mask_d is not None else (None, None)
+    frame_arg = (
+        (frame_d, "yxc" if images.ndim == 4 else "yx") if frame_d is not None else (None, None)
+    )
     packed = da.blockwise(
         _solve_tile, "yxp",
         images, "nyxc" if images.ndim == 4 else "nyx",
         *mask_arg,
+        *frame_arg,
         new_axes={"p": planes}, concatenate=True, dtype=np.float32, **kwargs,
     )
     a0 = 3

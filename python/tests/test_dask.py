@@ -102,3 +102,35 @@ def test_tiles_dark_under_a_light_and_outside_the_object(client):
     masked = psd.solve(s["images"], lights, mask=s["mask"], chunks=32)
     res = masked["residual"].compute()
     assert np.isnan(res[~s["mask"]]).all() and np.isfinite(res[s["mask"]]).all()
+
+
+def test_tiles_subtract_an_ambient_frame(client):
+    # Room light (8% of a lamp) in every image: tiles given the frame taken with every lamp off
+    # subtract it as the single-process solve does (grey and RGB stacks, numpy and Dask
+    # frames), and get the dark room's normals back; without it the normals flatten.
+    lights = np.vstack([ps.light_ring(8, 30.0), ps.light_ring(8, 60.0, 20.0)])
+    lit = ps.render("sphere", 96, lights, noise=0.003, ambient=0.08, seed=5)
+    m = lit["mask"]
+
+    def err(n):
+        return np.degrees(np.arccos(np.clip(np.sum(n[m] * lit["normals"][m], -1), -1, 1))).mean()
+
+    images, frame = lit["images"], lit["ambient"]
+    rgb = (np.repeat(images[..., None], 3, 3), np.repeat(frame[..., None], 3, 2))
+    for imgs, frm in ((images, frame), rgb):
+        for f in (frm, da.from_array(frm, chunks=40)):
+            stack = da.from_array(imgs, chunks=(16, 48, 48) + imgs.shape[3:])
+            maps = psd.solve(stack, lights, mask=m, chunks=32, ambient=f)
+            normals = maps["normals"].compute()
+            single = ps.solve(imgs, lights, mask=m, fill=False, models=maps["models"], ambient=frm)
+            both = ~np.isnan(single.normals[..., 0])
+            assert np.array_equal(both, ~np.isnan(normals[..., 0]))
+            assert np.abs(normals[both] - single.normals[both]).max() <= 1e-6
+        with_frame = err(normals)
+    left = err(psd.solve(images, lights, mask=m, chunks=32)["normals"].compute())
+    assert with_frame < 0.6 and left > with_frame + 1.0, (with_frame, left)
+    with pytest.raises(ValueError, match="stored as the images are"):
+        psd.solve(images, lights, mask=m, chunks=32, ambient=frame[:-1])
+    with pytest.raises(ValueError, match="stored as the images are"):
+        psd.solve(images, lights, mask=m, chunks=32, ambient=frame.astype(np.float64))
+    print(f"\ndask tiles, room light 8%: {left:.2f}° left in, {with_frame:.2f}° with its frame")
