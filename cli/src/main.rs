@@ -1017,6 +1017,9 @@ fn flag_hint(w: &photostereo::run::Warning) -> &'static str {
             " (the near-light model needs every light's position, --camera K.txt and depth; --distant-lights turns it off)"
         }
         Warning::NearNotConverged { .. } => " (--near-iterations raises the cap)",
+        Warning::LightsDisagree { .. } => {
+            " (`photostereo calibrate --from-object` recovers the lights from the images themselves)"
+        }
         _ => "",
     }
 }

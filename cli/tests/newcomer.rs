@@ -424,3 +424,57 @@ fn room_light_is_measured_and_an_ambient_frame_removes_it() {
         assert!(left_report["inputs"].get("ambient").is_none());
     }
 }
+
+/// A row of the lights file turned by 10° (a typo, a lamp moved after the calibration) gives
+/// normals that look fine; the run names the image whose brightness disagrees with its light,
+/// with the direction the other images give it, and `report.json` holds the check. Under the
+/// right lights nothing is named.
+#[test]
+fn a_wrong_row_of_the_lights_file_is_named() {
+    use nalgebra::{Rotation3, Unit, Vector3};
+    use photostereo::capture::lights::{Light, Lights};
+    let tmp = tempfile::tempdir().unwrap();
+    let (dir, images, lights) = numbered_dataset(tmp.path());
+    let mask = dir.join("mask.png");
+    let truth = Lights::fibonacci(10, 30.0).unwrap().directions();
+    let mut turned = truth.clone();
+    let axis = Unit::new_normalize(turned[6].cross(&Vector3::z()));
+    turned[6] = Rotation3::from_axis_angle(&axis, 10f64.to_radians()) * turned[6];
+    let wrong = dir.join("wrong.txt");
+    common::write_plain_lights(
+        &wrong,
+        &Lights::new(turned.into_iter().map(Light::new).collect()).unwrap(),
+    );
+    let run_with = |lights: &Path, out: &Path| {
+        let mut a = common::main_args(&images, lights, &["--integrate", "none"], out);
+        a.extend(args(&[&"--mask", &mask]));
+        let (_, err) = ok(&a);
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
+                .unwrap();
+        (err, report["model"]["light_agreement"][0].clone())
+    };
+    let (err, right) = run_with(&lights, &tmp.path().join("right"));
+    assert!(!err.contains("disagrees with the light given"), "{err}");
+    assert_eq!(right["disagreeing"], serde_json::json!([]), "{right}");
+    let (err, check) = run_with(&wrong, &tmp.path().join("wrong"));
+    assert!(
+        err.contains("the brightness of 1 image(s) (numbered from 1")
+            && err.contains(": 7 (")
+            && err.contains("calibrate --from-object"),
+        "{err}"
+    );
+    assert_eq!(check["disagreeing"], serde_json::json!([6]), "{check}");
+    let d = &check["lights"][6]["direction"];
+    let found = Vector3::new(
+        d[0].as_f64().unwrap(),
+        d[1].as_f64().unwrap(),
+        d[2].as_f64().unwrap(),
+    );
+    let off = found.dot(&truth[6]).clamp(-1.0, 1.0).acos().to_degrees();
+    println!(
+        "light 7 turned by 10°: {:.2}° from the given, {off:.2}° from the truth",
+        check["lights"][6]["disagreement_deg"].as_f64().unwrap()
+    );
+    assert!(off < 2.5, "{check}");
+}

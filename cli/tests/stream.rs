@@ -708,6 +708,9 @@ fn bands_subtract_the_ambient_frame_as_the_whole_load_does() {
     let e = angular_errors(&s.recon.maps.normals, &whole.maps.normals, &capture.mask).unwrap();
     assert!(e.mean_deg < 1e-4 && e.missing == 0, "{e:?}");
     assert_eq!(s.recon.model.shadow_light, whole.model.shadow_light);
+    // Bands of 7 rows check the lights as the whole does, bit for bit.
+    assert!(!whole.model.light_agreement.is_empty());
+    assert_eq!(s.recon.model.light_agreement, whole.model.light_agreement);
     assert_eq!(s.summary.ambient, Some(dir.path().join("ambient.png")));
     // Without the frame the same bands see the ambient light in the shadows.
     let left = streamed(&plain, &load, &config, Some(7));

@@ -61,6 +61,30 @@ def test_room_light_is_measured_and_its_frame_subtracted():
     assert not any("attached shadow" in w for w in removed.warnings), removed.warnings
 
 
+def test_a_wrong_light_is_named():
+    # One row of the lights turned by 10° about the axis across it and the view: the solve
+    # names that light, with the direction the other images give it (back where it was
+    # rendered), in a warning and in model_summary; under the rendered lights it names none.
+    lights = np.vstack([ps.light_ring(8, 30.0), ps.light_ring(8, 60.0, 20.0)])
+    s = ps.render("sphere", 96, lights, noise=0.003, seed=6)
+    unit = lights / np.linalg.norm(lights, axis=1, keepdims=True)
+    l = unit[5]
+    axis = np.cross(l, [0.0, 0.0, 1.0])
+    axis /= np.linalg.norm(axis)
+    t = np.radians(10.0)
+    wrong = unit.copy()
+    wrong[5] = l * np.cos(t) + np.cross(axis, l) * np.sin(t) + axis * (axis @ l) * (1 - np.cos(t))
+    right = ps.solve(s["images"], lights, mask=s["mask"])
+    assert right.model_summary["light_agreement"][0]["disagreeing"] == []
+    assert not any("disagrees with the light given" in w for w in right.warnings)
+    with pytest.warns(ps.PhotostereoWarning, match="disagrees with the light given"):
+        r = ps.solve(s["images"], wrong, mask=s["mask"])
+    check = r.model_summary["light_agreement"][0]
+    assert check["disagreeing"] == [5], check
+    found = np.array(check["lights"][5]["direction"])
+    assert np.degrees(np.arccos(np.clip(found @ l, -1.0, 1.0))) < 2.5, found
+
+
 def test_an_ambient_frame_is_subtracted_after_decoding(tmp_path):
     # 8-bit sRGB images with room light: subtracting the frame's codes in numpy is wrong (the
     # codes are not linear); solve(ambient=...) decodes both first and gets the dark room's

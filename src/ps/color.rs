@@ -257,6 +257,9 @@ fn fit_shared(
     // albedo (before the fill, as the grey solve measures it).
     for (c, sol) in out.iter_mut().enumerate() {
         sol.shadow_light = Some(crate::ps::ambient::measure(stack, c, lights, mask, sol));
+        sol.light_agreement = Some(crate::ps::light_agreement::measure(
+            stack, c, lights, mask, sol,
+        ));
     }
     if options.fill {
         // Each channel from its solved neighbours only: the grey fit's weights that would

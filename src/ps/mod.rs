@@ -16,6 +16,8 @@
 //!   Lambert's law does not explain, kept where it explains them ([`solve::SolveOptions::lobes`]).
 //! - [`ambient`]: the light in attached shadows (ambient light, a black level,
 //!   interreflections), measured after the solve, and how far it bends the normals.
+//! - [`light_agreement`]: each light checked against the others — the direction the other
+//!   images' normals give each image's brightness, and the lights that disagree beyond chance.
 //! - [`shadows`]: spatially coherent shadow/inlier labels per image (graph cuts) and the refit
 //!   from them (opt-in: [`solve::SolveOptions::shadow_labels`]).
 
@@ -24,6 +26,7 @@ pub mod color;
 pub mod fill;
 pub mod intensities;
 pub mod interreflection;
+pub mod light_agreement;
 pub mod lobes;
 pub mod near;
 pub mod noise;

@@ -106,6 +106,18 @@ pub enum Warning {
         /// An ambient image was subtracted already.
         ambient_subtracted: bool,
     },
+    /// Images whose brightness the other images' normals explain by a light direction far
+    /// from the given one, beyond what chance gives the other lights
+    /// ([`crate::ps::light_agreement`]).
+    LightsDisagree {
+        /// Per light (numbered from 0): its disagreement (degrees) and the unit direction that
+        /// explains its image best.
+        lights: Vec<(usize, f64, [f64; 3])>,
+        /// The median disagreement over the lights, degrees.
+        median_deg: f64,
+        /// The disagreement beyond which a light is named, degrees.
+        threshold_deg: f64,
+    },
     /// The median |curl| of the gradient field is above [`POOR_CURL`].
     PoorIntegrability {
         /// Median |curl| per pixel.
@@ -380,6 +392,32 @@ impl fmt::Display for Warning {
                     ""
                 }
             ),
+            Warning::LightsDisagree {
+                lights,
+                median_deg,
+                threshold_deg,
+            } => {
+                let list: Vec<String> = lights
+                    .iter()
+                    .take(LISTED_IMAGES)
+                    .map(|(k, deg, d)| {
+                        format!(
+                            "{} ({deg:.1}° off: ({:.3}, {:.3}, {:.3}))",
+                            k + 1,
+                            d[0],
+                            d[1],
+                            d[2]
+                        )
+                    })
+                    .collect();
+                write!(
+                    f,
+                    "the brightness of {} image(s) (numbered from 1, with the light direction that explains each best given the normals of the other images: {}{}) disagrees with the light given for it, where the other lights agree within {median_deg:.1}° (median; beyond {threshold_deg:.1}° is more than chance): that light's direction may be wrong (a typo, two rows swapped, a lamp moved after the calibration) or the image may not belong to this capture",
+                    lights.len(),
+                    list.join(", "),
+                    if lights.len() > LISTED_IMAGES { ", …" } else { "" }
+                )
+            }
             Warning::PoorIntegrability { median_abs_curl } => write!(
                 f,
                 "poor integrability: median |curl| {median_abs_curl:.3} per pixel (above {POOR_CURL}): the normals are noisy or the surface has discontinuities, so depth from them will be distorted; more or better-spread lights help, and bilateral integration keeps discontinuities"
@@ -527,6 +565,34 @@ pub(crate) fn warnings(
             ambient_subtracted: facts.ambient_subtracted,
         });
     }
+    // The channel with the most disagreeing lights (the first of equals).
+    let mut most: Option<&crate::ps::light_agreement::LightAgreement> = None;
+    for a in models.iter().filter_map(|m| m.light_agreement.as_ref()) {
+        if !a.disagreeing.is_empty()
+            && most.is_none_or(|b| a.disagreeing.len() > b.disagreeing.len())
+        {
+            most = Some(a);
+        }
+    }
+    if let Some(a) = most
+        && let (Some(median_deg), Some(threshold_deg)) = (a.median_deg, a.threshold_deg)
+    {
+        let mut lights: Vec<(usize, f64, [f64; 3])> = a
+            .disagreeing
+            .iter()
+            .filter_map(|&k| {
+                a.lights[k]
+                    .as_ref()
+                    .map(|f| (k, f.disagreement_deg, f.direction))
+            })
+            .collect();
+        lights.sort_by(|x, y| y.1.total_cmp(&x.1));
+        warnings.push(Warning::LightsDisagree {
+            lights,
+            median_deg,
+            threshold_deg,
+        });
+    }
     if integrability.pixels > 0 && integrability.median_abs_curl > POOR_CURL {
         warnings.push(Warning::PoorIntegrability {
             median_abs_curl: integrability.median_abs_curl,
@@ -619,6 +685,24 @@ mod tests {
                 vec!["3 image(s)", "1, 5, 14)", "1.37"],
             ),
             (Warning::IntensitiesNotApplied, vec!["estimated_gains"]),
+            (
+                Warning::LightsDisagree {
+                    lights: vec![
+                        (40, 8.912, [0.1234, -0.5, 0.857]),
+                        (7, 3.04, [0.0, 0.0, 1.0]),
+                    ],
+                    median_deg: 0.634,
+                    threshold_deg: 2.546,
+                },
+                vec![
+                    "2 image(s)",
+                    "41 (8.9° off: (0.123, -0.500, 0.857))",
+                    "8 (3.0° off",
+                    "within 0.6°",
+                    "beyond 2.5°",
+                    "two rows swapped",
+                ],
+            ),
             (
                 Warning::PoorIntegrability {
                     median_abs_curl: 0.0734,

@@ -218,6 +218,9 @@ pub fn solve_with_model(
     sol.shadow_light = Some(crate::ps::ambient::measure(
         stack, channel, lights, mask, &sol,
     ));
+    sol.light_agreement = Some(crate::ps::light_agreement::measure(
+        stack, channel, lights, mask, &sol,
+    ));
     // Last: the fill leans on the final estimates of the solved neighbours.
     if options.fill {
         crate::ps::fill::fill(&mut sol, &unsolved);

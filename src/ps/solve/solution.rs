@@ -60,6 +60,8 @@ pub struct Solution {
     pub lobes: Option<crate::ps::lobes::LobeSummary>,
     /// The light in attached shadows and the bias it predicts ([`crate::ps::ambient`]).
     pub shadow_light: Option<crate::ps::ambient::ShadowLight>,
+    /// Each light checked against the others ([`crate::ps::light_agreement`]).
+    pub light_agreement: Option<crate::ps::light_agreement::LightAgreement>,
 }
 
 impl Solution {
@@ -88,6 +90,7 @@ impl Solution {
             shadow_labels: None,
             lobes: None,
             shadow_light: None,
+            light_agreement: None,
         }
     }
 
@@ -123,6 +126,9 @@ impl Solution {
         if let Some(b) = &band.shadow_light {
             self.shadow_light.get_or_insert_default().add(b);
         }
+        if let Some(b) = &band.light_agreement {
+            self.light_agreement.get_or_insert_default().add(b);
+        }
         Ok(())
     }
 
@@ -144,6 +150,7 @@ impl Solution {
             shadow_labels: self.shadow_labels,
             lobes: self.lobes,
             shadow_light: self.shadow_light.clone(),
+            light_agreement: self.light_agreement.clone(),
         }
     }
 

@@ -142,6 +142,8 @@ pub(crate) struct ChannelModel {
     pub lobes: Option<crate::ps::lobes::LobeSummary>,
     /// The light in attached shadows ([`crate::ps::ambient`]).
     pub shadow_light: Option<crate::ps::ambient::ShadowLight>,
+    /// Each light checked against the others ([`crate::ps::light_agreement`]).
+    pub light_agreement: Option<crate::ps::light_agreement::LightAgreement>,
 }
 
 impl ChannelModel {
@@ -155,6 +157,7 @@ impl ChannelModel {
                 shadow_labels: s.shadow_labels,
                 lobes: s.lobes,
                 shadow_light: s.shadow_light.clone(),
+                light_agreement: s.light_agreement.clone(),
             })
             .collect()
     }
@@ -170,6 +173,9 @@ impl ChannelModel {
         }
         if let Some(b) = &band.shadow_light {
             self.shadow_light.get_or_insert_default().add(b);
+        }
+        if let Some(b) = &band.light_agreement {
+            self.light_agreement.get_or_insert_default().add(b);
         }
     }
 }
@@ -229,6 +235,10 @@ pub(crate) fn model_summary(
         shadow_light: models
             .iter()
             .filter_map(|m| m.shadow_light.clone())
+            .collect(),
+        light_agreement: models
+            .iter()
+            .filter_map(|m| m.light_agreement.clone())
             .collect(),
     }
 }

@@ -570,6 +570,7 @@ mod tests {
             shadow_labels: s.shadow_labels,
             lobes: s.lobes,
             shadow_light: s.shadow_light.clone(),
+            light_agreement: s.light_agreement.clone(),
         }
     }
 
@@ -680,6 +681,7 @@ mod tests {
                     shadow_labels: None,
                     lobes: None,
                     shadow_light: None,
+                    light_agreement: None,
                 }
             })
             .collect()

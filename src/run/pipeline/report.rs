@@ -40,6 +40,11 @@ pub struct ModelSummary {
     /// ([`crate::ps::ambient`]).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub shadow_light: Vec<crate::ps::ambient::ShadowLight>,
+    /// Per channel, each light checked against the others: the direction the other images
+    /// give it, its angle from the given one, and the lights that disagree beyond chance
+    /// ([`crate::ps::light_agreement`]).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub light_agreement: Vec<crate::ps::light_agreement::LightAgreement>,
 }
 
 /// Summary of the input, for the report.
