@@ -37,7 +37,7 @@
 use crate::capture::lights::Lights;
 use crate::capture::stack::ImageStack;
 use crate::grid::Mask;
-use crate::ps::solve::{PixelStatus, Solution};
+use crate::ps::solve::Solution;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -212,18 +212,9 @@ pub(crate) fn measure(
             let mut shadowed: Vec<f64> = Vec::with_capacity(dirs.len());
             for x in 0..width {
                 let p = y * width + x;
-                if !mask.data()[p] || sol.status.data()[p] != PixelStatus::Solved {
-                    continue;
-                }
-                let Some(local) = stack.local(p) else {
+                let Some((local, rho, n)) = sol.solved_pixel(stack, mask, p) else {
                     continue;
                 };
-                let g = sol.g.data()[p].cast::<f64>();
-                let rho = g.norm();
-                if !(rho.is_finite() && rho > 0.0) {
-                    continue;
-                }
-                let n = g / rho;
                 shadowed.clear();
                 let mut m = Matrix3::zeros();
                 let mut v = Vector3::zeros();
@@ -288,10 +279,9 @@ pub(crate) fn measure(
 mod tests {
     use super::*;
     use crate::eval::metrics::angular_errors;
-    use crate::progress::Silent;
-    use crate::ps::solve::{SolveOptions, solve};
+    use crate::ps::test_support::{band, rendered_and_solved};
     use crate::synth::reflectance::Material;
-    use crate::synth::render::{RenderOptions, render};
+    use crate::synth::render::RenderOptions;
     use crate::synth::scene::{Albedo, SceneKind};
 
     /// Renders `kind` at 96² under 16 lights with ambient term `ambient` and 0.5% noise,
@@ -300,22 +290,14 @@ mod tests {
     fn measured(kind: SceneKind, ambient: f32) -> (ShadowLight, f64) {
         let scene = kind.build(96, Albedo::Constant(0.7), Material::lambertian());
         let lights = Lights::fibonacci(16, 25.0).unwrap();
-        let r = render(
-            &scene,
-            &lights,
-            &RenderOptions {
-                noise_sigma: 0.005,
-                ambient,
-                seed: 5,
-                ..RenderOptions::default()
-            },
-        )
-        .unwrap();
-        let stack = r
-            .to_stack(&lights, crate::capture::stack::ColorMode::Grey)
-            .unwrap();
+        let options = RenderOptions {
+            noise_sigma: 0.005,
+            ambient,
+            seed: 5,
+            ..RenderOptions::default()
+        };
+        let (r, _, sol) = rendered_and_solved(&scene, &lights, &lights, &options);
         let mask = &r.truth.mask;
-        let sol = solve(&stack, 0, &lights, mask, &SolveOptions::default(), &Silent).unwrap();
         let normals = crate::ps::normals::albedo_and_normals(&sol).1;
         let error = angular_errors(&normals, &r.truth.normals, mask)
             .unwrap()
@@ -368,18 +350,10 @@ mod tests {
             ambient: 0.05,
             ..RenderOptions::default()
         };
-        let r = render(&scene, &lights, &options).unwrap();
-        let stack = r
-            .to_stack(&lights, crate::capture::stack::ColorMode::Grey)
-            .unwrap();
+        let (r, stack, sol) = rendered_and_solved(&scene, &lights, &lights, &options);
         let mask = &r.truth.mask;
-        let sol = solve(&stack, 0, &lights, mask, &SolveOptions::default(), &Silent).unwrap();
         let whole = measure(&stack, 0, &lights, mask, &sol);
-        let split = |y0: usize, y1: usize| {
-            let band =
-                crate::grid::Grid::from_fn(64, 64, |x, y| *mask.at(x, y) && (y0..y1).contains(&y));
-            measure(&stack, 0, &lights, &band, &sol)
-        };
+        let split = |y0, y1| measure(&stack, 0, &lights, &band(mask, y0, y1), &sol);
         let (top, bottom) = (split(0, 30), split(30, 64));
         assert!(top.pixels > 0 && bottom.pixels > 0);
         let mut sum = top.clone();

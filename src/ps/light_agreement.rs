@@ -51,7 +51,7 @@
 use crate::capture::lights::Lights;
 use crate::capture::stack::ImageStack;
 use crate::grid::Mask;
-use crate::ps::solve::{PixelStatus, Solution};
+use crate::ps::solve::Solution;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -242,18 +242,9 @@ pub(crate) fn measure(
             let mut scratch: Vec<f64> = Vec::with_capacity(count);
             for x in (0..width).step_by(STRIDE) {
                 let p = y * width + x;
-                if !mask.data()[p] || sol.status.data()[p] != PixelStatus::Solved {
-                    continue;
-                }
-                let Some(local) = stack.local(p) else {
+                let Some((local, rho, n)) = sol.solved_pixel(stack, mask, p) else {
                     continue;
                 };
-                let g = sol.g.data()[p].cast::<f64>();
-                let rho = g.norm();
-                if !(rho.is_finite() && rho > 0.0) {
-                    continue;
-                }
-                let n = g / rho;
                 used.clear();
                 for (k, l) in dirs.iter().enumerate() {
                     if n.dot(l) <= LIT || stack.is_saturated(k, p) {
@@ -389,10 +380,9 @@ fn robust_fit(
 mod tests {
     use super::*;
     use crate::capture::lights::Light;
-    use crate::progress::Silent;
-    use crate::ps::solve::{SolveOptions, solve};
+    use crate::ps::test_support::{band, rendered_and_solved};
     use crate::synth::reflectance::{BlinnPhong, Material, Specular};
-    use crate::synth::render::{RenderOptions, render};
+    use crate::synth::render::RenderOptions;
     use crate::synth::scene::{Albedo, SceneKind};
 
     /// `l` turned by `deg` about the axis across it and the view.
@@ -412,23 +402,14 @@ mod tests {
     ) -> (LightAgreement, Vec<Vector3<f64>>) {
         let scene = kind.build(96, Albedo::Constant(0.7), material);
         let lights = Lights::fibonacci(count, 25.0).unwrap();
-        let r = render(
-            &scene,
-            &lights,
-            &RenderOptions {
-                noise_sigma: 0.005,
-                seed: 9,
-                ..RenderOptions::default()
-            },
-        )
-        .unwrap();
         let truth = lights.directions();
         let used = Lights::new(given(&truth).into_iter().map(Light::new).collect()).unwrap();
-        let stack = r
-            .to_stack(&used, crate::capture::stack::ColorMode::Grey)
-            .unwrap();
-        let mask = &r.truth.mask;
-        let sol = solve(&stack, 0, &used, mask, &SolveOptions::default(), &Silent).unwrap();
+        let options = RenderOptions {
+            noise_sigma: 0.005,
+            seed: 9,
+            ..RenderOptions::default()
+        };
+        let (_, _, sol) = rendered_and_solved(&scene, &lights, &used, &options);
         (sol.light_agreement.clone().unwrap(), truth)
     }
 
@@ -514,30 +495,18 @@ mod tests {
             noise_sigma: 0.005,
             ..RenderOptions::default()
         };
-        let r = render(&scene, &lights, &options).unwrap();
-        let stack = r
-            .to_stack(&lights, crate::capture::stack::ColorMode::Grey)
-            .unwrap();
+        let (r, stack, sol) = rendered_and_solved(&scene, &lights, &lights, &options);
         let mask = &r.truth.mask;
-        let sol = solve(&stack, 0, &lights, mask, &SolveOptions::default(), &Silent).unwrap();
         let whole = measure(&stack, 0, &lights, mask, &sol);
-        let band = |y0: usize, y1: usize| {
-            let m =
-                crate::grid::Grid::from_fn(64, 64, |x, y| *mask.at(x, y) && (y0..y1).contains(&y));
-            measure(&stack, 0, &lights, &m, &sol)
-        };
+        let split = |y0, y1| measure(&stack, 0, &lights, &band(mask, y0, y1), &sol);
         let mut sum = LightAgreement::default();
-        sum.add(&band(0, 27));
-        sum.add(&band(27, 64));
+        sum.add(&split(0, 27));
+        sum.add(&split(27, 64));
         assert_eq!(sum, whole);
         assert!(whole.threshold_deg.is_some());
 
         let five = Lights::fibonacci(5, 25.0).unwrap();
-        let r = render(&scene, &five, &options).unwrap();
-        let stack = r
-            .to_stack(&five, crate::capture::stack::ColorMode::Grey)
-            .unwrap();
-        let sol = solve(&stack, 0, &five, mask, &SolveOptions::default(), &Silent).unwrap();
+        let (_, stack, sol) = rendered_and_solved(&scene, &five, &five, &options);
         let few = measure(&stack, 0, &five, mask, &sol);
         assert!(
             few.threshold_deg.is_none() && few.disagreeing.is_empty(),

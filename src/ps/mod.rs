@@ -37,3 +37,44 @@ pub mod solve;
 
 pub use color::ColorSolve;
 pub use solve::{ImageModel, Method, PixelStatus, Solution, SolveOptions};
+
+/// Scenes rendered and solved, for the tests of the passes that run after a solve.
+#[cfg(test)]
+pub(crate) mod test_support {
+    use crate::capture::lights::Lights;
+    use crate::capture::stack::{ColorMode, ImageStack};
+    use crate::progress::Silent;
+    use crate::ps::solve::{Solution, SolveOptions, solve};
+    use crate::synth::render::{RenderOptions, Rendering, render};
+    use crate::synth::scene::Scene;
+
+    /// `scene` rendered under `rendered` with `options`, as a grey stack, solved with the
+    /// default options under `given` (the rendered lights, or a set with a wrong row) over the
+    /// rendered mask.
+    pub(crate) fn rendered_and_solved(
+        scene: &Scene,
+        rendered: &Lights,
+        given: &Lights,
+        options: &RenderOptions,
+    ) -> (Rendering, ImageStack, Solution) {
+        let r = render(scene, rendered, options).unwrap();
+        let stack = r.to_stack(given, ColorMode::Grey).unwrap();
+        let sol = solve(
+            &stack,
+            0,
+            given,
+            &r.truth.mask,
+            &SolveOptions::default(),
+            &Silent,
+        )
+        .unwrap();
+        (r, stack, sol)
+    }
+
+    /// The pixels of `mask` in rows `y0..y1`: a band of a streamed run, on the whole grid.
+    pub(crate) fn band(mask: &crate::grid::Mask, y0: usize, y1: usize) -> crate::grid::Mask {
+        crate::grid::Grid::from_fn(mask.width(), mask.height(), |x, y| {
+            *mask.at(x, y) && (y0..y1).contains(&y)
+        })
+    }
+}

@@ -154,6 +154,24 @@ impl Solution {
         }
     }
 
+    /// Pixel `p` (row-major index) when it is inside `mask` and solved, with a finite g ≠ 0:
+    /// its index in `stack`'s window, its albedo ρ = |g| and its unit normal g/ρ (as the
+    /// passes that run after a solve read it).
+    pub(crate) fn solved_pixel(
+        &self,
+        stack: &crate::capture::stack::ImageStack,
+        mask: &crate::grid::Mask,
+        p: usize,
+    ) -> Option<(usize, f64, Vector3<f64>)> {
+        if !mask.data()[p] || self.status.data()[p] != PixelStatus::Solved {
+            return None;
+        }
+        let local = stack.local(p)?;
+        let g = self.g.data()[p].cast::<f64>();
+        let rho = g.norm();
+        (rho.is_finite() && rho > 0.0).then(|| (local, rho, g / rho))
+    }
+
     /// Records the outcome `px` of pixel `p` (row-major index).
     pub(crate) fn record(&mut self, p: usize, px: &PixelSolution) {
         self.g.data_mut()[p] = px.g.map(|v| v as f32);
