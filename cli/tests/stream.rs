@@ -189,6 +189,10 @@ fn colour_captures_stream_per_channel() {
         assert_eq!(s.recon.maps.albedo.len(), 3);
         let e = angular_errors(&s.recon.maps.normals, &whole.maps.normals, &capture.mask).unwrap();
         assert!(e.mean_deg < 1e-4, "{color:?}: {e:?}");
+        // Each channel's lights checked in bands of 5 rows as in the whole, bit for bit.
+        let channels = whole.model.light_agreement.len();
+        assert!(channels == 3 || channels == 1, "{color:?}: {channels}");
+        assert_eq!(s.recon.model.light_agreement, whole.model.light_agreement);
     }
 }
 

@@ -31,18 +31,23 @@
 //! quartile rather than the median, because lights near the view are explained better than
 //! grazing ones, and the spread that matters is the grazing ones'), and a light whose
 //! disagreement exceeds σ√(2 ln(K/α)) is one the others would reach by chance with probability
-//! α over all K lights, α = [`FALSE_ALARM`] (0.1%, the rate of `auto`'s fit test).
+//! α over all K lights, α = [`FALSE_ALARM`] (0.1%, the rate of `auto`'s fit test; nominal:
+//! σ rests on one order statistic, so with few lights the rate is several times that where the
+//! floor below does not bind).
 //! Such a light is named, with what the images say, only when its disagreement is also at least
 //! [`WRONG_LIGHT_DEG`]: the calibration's own line between an accepted light and a wrong one
 //! ([`crate::calibrate`]). Measured (`docs/photometric-stereo.md`): on DiLiGenT cat, bear and
-//! reading with their lights the largest disagreements are 1.5–3.7°, none named; a light of cat
-//! turned by 5°, 10° or 20° is named at 3.9°, 8.9° and 18.6°, and two swapped rows at 27°.
+//! reading with their lights the largest disagreements are 1.8°, 1.7° and 3.8°, none named; a
+//! row of cat's lights turned by 5° or 10° is named at 3.5° and 8.6°, two swapped rows at
+//! 26–27°.
 //!
 //! **Where it breaks.** It compares the lights with each other: an error that all of them share
 //! (a rotation of the whole set, a wrong camera axis) moves the normals and leaves no
 //! disagreement. With few lights each one's error spreads into the normals the others give, and
 //! with lights near the viewer highlights sit inside the cap over much of the object, so the
-//! disagreements grow (the classic 12-light set: 0.5–2.6° typical, up to 6°).
+//! disagreements grow (the classic 12-light set: medians 0.6–2.0°, up to 7°). Two swapped rows
+//! among fewer than about 8 lights can both sit in the upper quartile σ is taken from, and then
+//! neither is named.
 //!
 //! Each row's sums are taken in floating point and added to the totals in fixed point, so
 //! that the row bands of a streamed run add up to the whole exactly and the result does not
@@ -64,12 +69,12 @@ pub const DARK: f64 = 0.02;
 /// allows a surface facing its light (cos θ ≤ 1), with a margin for noise: a highlight.
 pub const BRIGHTEST: f64 = 1.05;
 /// A pixel's leave-one-out system counts where a lower bound of its smallest eigenvalue (of
-/// Σ l lᵀ over the remaining lights; 4 det / trace²) is at least this.
+/// Σ w l lᵀ over the remaining lights, w their Tukey weights; 4 det / trace²) is at least this.
 pub const MIN_EIGEN: f64 = 0.02;
 /// The check reads every `STRIDE`-th column of the image's grid (every row: a band of rows
 /// then reads the pixels the whole reads). Against every pixel (47 ms on DiLiGenT cat), a
 /// quarter of them moved the disagreements of cat, bear and reading by at most 0.06°, 0.07°
-/// and 0.36° (against thresholds of 2.1–5.7°).
+/// and 0.36° (against thresholds of 2.3–5.4°).
 const STRIDE: usize = 4;
 /// Fewest pixels from which a light's direction is fitted.
 pub const MIN_PIXELS: usize = 50;
@@ -78,8 +83,8 @@ pub const FALSE_ALARM: f64 = 1e-3;
 /// A light is named as disagreeing only from this many degrees: the calibration's line between
 /// an accepted light and a wrong one (no accepted light more than 2° off).
 pub const WRONG_LIGHT_DEG: f64 = 2.0;
-/// Fewest lights for the test: with fewer, the median of the disagreements says little about
-/// their spread.
+/// Fewest lights for the test: with fewer, the upper quartile of the disagreements says little
+/// about their spread.
 pub const MIN_LIGHTS: usize = 6;
 
 /// Totals in fixed point, units of 2⁻⁴⁰ (a row's sums: of order its pixel count at most).

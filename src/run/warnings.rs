@@ -117,6 +117,9 @@ pub enum Warning {
         median_deg: f64,
         /// The disagreement beyond which a light is named, degrees.
         threshold_deg: f64,
+        /// The colour channel (from 0) and the channels solved, when each channel was solved on
+        /// its own and more than one is: the channel with the most lights named.
+        channel: Option<(usize, usize)>,
     },
     /// The median |curl| of the gradient field is above [`POOR_CURL`].
     PoorIntegrability {
@@ -396,6 +399,7 @@ impl fmt::Display for Warning {
                 lights,
                 median_deg,
                 threshold_deg,
+                channel,
             } => {
                 let list: Vec<String> = lights
                     .iter()
@@ -412,8 +416,12 @@ impl fmt::Display for Warning {
                     .collect();
                 write!(
                     f,
-                    "the brightness of {} image(s) (numbered from 1, with the light direction that explains each best given the normals of the other images: {}{}) disagrees with the light given for it, where the other lights agree within {median_deg:.1}° (median; beyond {threshold_deg:.1}° is more than chance): that light's direction may be wrong (a typo, two rows swapped, a lamp moved after the calibration) or the image may not belong to this capture",
+                    "the brightness of {} image(s){} (numbered from 1, with the light direction that explains each best given the normals of the other images: {}{}) disagrees with the light given for it: the median light disagrees by {median_deg:.1}°, and beyond {threshold_deg:.1}° is more than chance; that light's direction may be wrong (a typo, two rows swapped, a lamp moved after the calibration) or the image may not belong to this capture",
                     lights.len(),
+                    match channel {
+                        Some((c, n)) => format!(" in colour channel {} of {n}", c + 1),
+                        None => String::new(),
+                    },
                     list.join(", "),
                     if lights.len() > LISTED_IMAGES { ", …" } else { "" }
                 )
@@ -565,16 +573,21 @@ pub(crate) fn warnings(
             ambient_subtracted: facts.ambient_subtracted,
         });
     }
-    // The channel with the most disagreeing lights (the first of equals).
-    let mut most: Option<&crate::ps::light_agreement::LightAgreement> = None;
-    for a in models.iter().filter_map(|m| m.light_agreement.as_ref()) {
+    // The channel with the most disagreeing lights (the first of equals), named when there are
+    // several.
+    let checked: Vec<&crate::ps::light_agreement::LightAgreement> = models
+        .iter()
+        .filter_map(|m| m.light_agreement.as_ref())
+        .collect();
+    let mut most: Option<(usize, &crate::ps::light_agreement::LightAgreement)> = None;
+    for (c, a) in checked.iter().enumerate() {
         if !a.disagreeing.is_empty()
-            && most.is_none_or(|b| a.disagreeing.len() > b.disagreeing.len())
+            && most.is_none_or(|(_, b)| a.disagreeing.len() > b.disagreeing.len())
         {
-            most = Some(a);
+            most = Some((c, a));
         }
     }
-    if let Some(a) = most
+    if let Some((c, a)) = most
         && let (Some(median_deg), Some(threshold_deg)) = (a.median_deg, a.threshold_deg)
     {
         let mut lights: Vec<(usize, f64, [f64; 3])> = a
@@ -591,6 +604,7 @@ pub(crate) fn warnings(
             lights,
             median_deg,
             threshold_deg,
+            channel: (checked.len() > 1).then_some((c, checked.len())),
         });
     }
     if integrability.pixels > 0 && integrability.median_abs_curl > POOR_CURL {
@@ -693,15 +707,25 @@ mod tests {
                     ],
                     median_deg: 0.634,
                     threshold_deg: 2.546,
+                    channel: None,
                 },
                 vec![
-                    "2 image(s)",
+                    "2 image(s) (numbered",
                     "41 (8.9° off: (0.123, -0.500, 0.857))",
                     "8 (3.0° off",
-                    "within 0.6°",
+                    "median light disagrees by 0.6°",
                     "beyond 2.5°",
                     "two rows swapped",
                 ],
+            ),
+            (
+                Warning::LightsDisagree {
+                    lights: vec![(3, 5.54, [0.0, 0.6, 0.8])],
+                    median_deg: 1.2,
+                    threshold_deg: 4.0,
+                    channel: Some((2, 3)),
+                },
+                vec!["1 image(s) in colour channel 3 of 3", "4 (5.5° off"],
             ),
             (
                 Warning::PoorIntegrability {
