@@ -322,7 +322,7 @@ pub(crate) fn measure(
         });
     let mut out = LightAgreement {
         sums,
-        given: dirs.clone(),
+        given: dirs,
         ..LightAgreement::default()
     };
     out.finish();
