@@ -218,6 +218,10 @@ class Solution:
     warnings: List[str] = field(default_factory=list)
     #: Wall time of the solve and the normals, seconds.
     solve_seconds: float = 0.0
+    #: The capture-wide checks (shadow light, each light against the others) as counts and
+    #: sums that add up over the parts of a capture (JSON text; :mod:`photostereo.dask` adds
+    #: its tiles' and judges them as one).
+    checks: str = ""
 
     def __getitem__(self, key: str) -> Any:
         return getattr(self, key)

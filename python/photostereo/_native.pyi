@@ -22,6 +22,7 @@ def solve(
     models: Optional[List[Dict[str, Any]]],
     ambient_last: bool = False,
 ) -> Dict[str, Any]: ...
+def add_checks(parts: List[str], ambient_subtracted: bool = False) -> Dict[str, Any]: ...
 def estimate_model(
     images: np.ndarray,
     lights: np.ndarray,

@@ -19,11 +19,24 @@ What needs neighbours across tiles is not done per tile: hole filling (``fill``)
 (the integrability check) are left to the assembled maps (:func:`photostereo.integrate`
 integrates them with the library's solver); pixels a tile could not solve keep their status
 (``photostereo.STATUS``) and NaN normals.
+
+What is judged over the whole capture is judged over all the tiles: the light left in the
+attached shadows and each light against the others (a wrong row of the lights). Each tile
+returns its counts and sums, which add up to the whole's; ``maps["checks"]`` adds them, and
+:func:`compute` computes the maps and the checks in one pass over the tiles and warns as
+:func:`photostereo.solve` does:
+
+    >>> out = psd.compute(maps)                          # numpy arrays, model_summary, warnings
+    >>> # or, writing the maps elsewhere, in the same pass over the tiles:
+    >>> stored = maps["normals"].to_zarr("n.zarr", compute=False)
+    >>> _, checks = dask.compute(stored, maps["checks"])   # checks[0, 0]: the dict
 """
 
 from __future__ import annotations
 
+import json
 import numbers
+import warnings as _warnings
 from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
@@ -31,13 +44,14 @@ import numpy as np
 import photostereo as _ps
 
 try:
+    import dask
     import dask.array as da
 except ImportError as e:  # pragma: no cover - exercised only without dask
     raise ImportError(
         "photostereo.dask needs dask: pip install 'photostereo[dask]' (or dask[array])"
     ) from e
 
-__all__ = ["solve", "estimate_model", "integrate", "SAMPLE_BLOCK_ROWS"]
+__all__ = ["solve", "compute", "estimate_model", "integrate", "SAMPLE_BLOCK_ROWS"]
 
 #: Rows per block of the sample the capture-wide model is estimated from.
 SAMPLE_BLOCK_ROWS = 64
@@ -110,7 +124,9 @@ def _solve_tile(
     options: Dict[str, Any],
 ) -> np.ndarray:
     """One tile: N x h x w[ x C] images (and an h x w mask, an h x w[ x C] ambient frame) ->
-    h x w x K float32 planes: normals (3), albedo (1 or 3), then _SCALARS."""
+    a 1 x 1 object array holding the pair (h x w x K float32 planes: normals (3), albedo (1 or
+    3), then _SCALARS; the tile's checks as text, or None where nothing was solved)."""
+    cell = np.empty((1, 1), dtype=object)
     h, w = block.shape[1], block.shape[2]
     base = 3 + albedo_channels
     # Outside the mask, as the library's maps: NaN normals, albedo, residual and condition;
@@ -120,12 +136,12 @@ def _solve_tile(
         if key not in _NAN_OUTSIDE:
             out[..., base + i] = 0.0
     if mask_block is not None and not mask_block.any():
-        return out
-    import warnings
-
-    with warnings.catch_warnings():
-        # Tile-level warnings (counts of one tile) say nothing about the capture.
-        warnings.simplefilter("ignore", _ps.PhotostereoWarning)
+        cell[0, 0] = (out, None)
+        return cell
+    with _warnings.catch_warnings():
+        # Tile-level warnings (counts of one tile) say nothing about the capture; the checks
+        # that do are added over the tiles (_add_checks).
+        _warnings.simplefilter("ignore", _ps.PhotostereoWarning)
         r = _ps.solve(
             block, lights, mask_block, fill=False, models=models, ambient=ambient_block,
             **options,
@@ -135,6 +151,31 @@ def _solve_tile(
     out[..., 3 : 3 + albedo_channels] = alb
     for i, key in enumerate(_SCALARS):
         out[..., 3 + albedo_channels + i] = getattr(r, key)
+    cell[0, 0] = (out, r.checks)
+    return cell
+
+
+def _planes_of(cell: np.ndarray) -> np.ndarray:
+    return cell[0, 0][0]
+
+
+def _checks_of(cell: np.ndarray) -> np.ndarray:
+    text = np.empty((1, 1), dtype=object)
+    text[0, 0] = cell[0, 0][1]
+    return text
+
+
+def _add_checks(texts: np.ndarray, ambient_subtracted: bool) -> np.ndarray:
+    """Every tile's checks (an object array of texts, None where a tile solved nothing) added:
+    a 1 x 1 object array holding what the whole capture's solve would say of them."""
+    parts = [t for t in texts.ravel() if t]
+    r = _ps._native.add_checks(parts, ambient_subtracted)
+    out = np.empty((1, 1), dtype=object)
+    out[0, 0] = {
+        "shadow_light": json.loads(r["shadow_light"]),
+        "light_agreement": json.loads(r["light_agreement"]),
+        "warnings": list(r["warnings"]),
+    }
     return out
 
 
@@ -169,7 +210,12 @@ def solve(
     Returns:
         Lazy arrays: ``normals`` (H x W x 3), ``albedo`` (H x W, or H x W x 3 for a colour
         solve), ``residual``, ``samples``, ``condition``, ``status`` (uint8), ``robust``
-        (bool), ``solved`` (bool); and ``models`` (the models used, a list of dicts).
+        (bool), ``solved`` (bool); ``models`` (the models used, a list of dicts); and
+        ``checks``, a 1 x 1 object array whose element is the capture-wide checks added over
+        the tiles: a dict with ``shadow_light`` and ``light_agreement`` (as
+        ``model_summary``'s of :func:`photostereo.solve`) and ``warnings`` (their sentences).
+        Compute it in the same call as the maps (:func:`compute`, or ``dask.compute`` of the
+        arrays), or the tiles are solved twice.
     """
     images = _as_dask(images, "images")
     if images.ndim not in (3, 4):
@@ -218,12 +264,26 @@ def solve(
     frame_arg = (
         (frame_d, "yxc" if images.ndim == 4 else "yx") if frame_d is not None else (None, None)
     )
-    packed = da.blockwise(
-        _solve_tile, "yxp",
+    # One object per tile (a 1 x 1 block): its planes and its checks, taken apart below so
+    # that a tile's planes are freed once written, whatever the checks still wait for.
+    tiles = da.blockwise(
+        _solve_tile, "yx",
         images, "nyxc" if images.ndim == 4 else "nyx",
         *mask_arg,
         *frame_arg,
-        new_axes={"p": planes}, concatenate=True, dtype=np.float32, **kwargs,
+        adjust_chunks={"y": 1, "x": 1}, concatenate=True, dtype=object,
+        meta=np.empty((0, 0), dtype=object), **kwargs,
+    )
+    packed = tiles.map_blocks(
+        _planes_of, chunks=(images.chunks[1], images.chunks[2], (planes,)), new_axis=2,
+        dtype=np.float32, meta=np.empty((0, 0, 0), dtype=np.float32),
+    )
+    # The checks stay a Dask array (one 1 x 1 block), so that computed with the maps in one
+    # call the tiles are one graph's shared tasks and are solved once.
+    parts = tiles.map_blocks(_checks_of, dtype=object, meta=np.empty((0, 0), dtype=object))
+    checks = parts.rechunk(parts.numblocks).map_blocks(
+        _add_checks, frame_d is not None, chunks=((1,), (1,)), dtype=object,
+        meta=np.empty((0, 0), dtype=object),
     )
     a0 = 3
     out: Dict[str, Any] = {
@@ -238,6 +298,31 @@ def solve(
     out["robust"] = out["robust"] > 0
     out["solved"] = (out["status"] == 1) | (out["status"] == 5)
     out["models"] = models
+    out["checks"] = checks
+    return out
+
+
+def compute(maps: Dict[str, Any], **kwargs: Any) -> Dict[str, Any]:
+    """Computes every map of :func:`solve` and its capture-wide checks in one pass over the
+    tiles (``kwargs`` go to ``dask.compute``), and issues the checks' warnings as
+    :class:`photostereo.PhotostereoWarning`, as :func:`photostereo.solve` does.
+
+    Returns:
+        The maps as numpy arrays, ``models``, ``model_summary`` (``shadow_light`` and
+        ``light_agreement``, as :func:`photostereo.solve`'s) and ``warnings``.
+    """
+    keys = [k for k, v in maps.items() if isinstance(v, da.Array) and k != "checks"]
+    *values, checks = dask.compute(*[maps[k] for k in keys], maps["checks"], **kwargs)
+    checks = checks[0, 0]
+    out: Dict[str, Any] = dict(zip(keys, values))
+    out["models"] = maps.get("models")
+    out["model_summary"] = {
+        "shadow_light": checks["shadow_light"],
+        "light_agreement": checks["light_agreement"],
+    }
+    out["warnings"] = checks["warnings"]
+    for w in checks["warnings"]:
+        _warnings.warn(w, _ps.PhotostereoWarning, stacklevel=2)
     return out
 
 

@@ -25,8 +25,8 @@ use photostereo::progress::Silent;
 use photostereo::ps::color::ColorSolve;
 use photostereo::ps::intensities::GainEstimate;
 use photostereo::ps::solve::{ImageModel, Method, PixelStatus};
-use photostereo::run::Warning;
 use photostereo::run::pipeline::{Config, estimate_models, reconstruct_normals_with_models};
+use photostereo::run::{CaptureChecks, Warning};
 use photostereo::sfs::reflectance_map::ReflectanceMap;
 use photostereo::synth::reflectance::{
     BlinnPhong, Diffuse, Material, Mirror, Phong, Specular, TorranceSparrow, Ward,
@@ -466,6 +466,35 @@ fn json<T: serde::Serialize>(v: &T) -> PyRes<String> {
     serde_json::to_string(v).map_err(|e| PyValueError::new_err(e.to_string()))
 }
 
+/// The capture-wide checks of the parts of one solve (each a solve's `checks` text), added:
+/// the shadow light and the lights' agreement as JSON text, and the warnings they give.
+#[pyfunction]
+#[pyo3(signature = (parts, ambient_subtracted=false))]
+fn add_checks<'py>(
+    py: Python<'py>,
+    parts: Vec<String>,
+    ambient_subtracted: bool,
+) -> PyRes<Bound<'py, PyDict>> {
+    let mut total = CaptureChecks::default();
+    for (i, text) in parts.iter().enumerate() {
+        let part =
+            CaptureChecks::from_json(text).map_err(|e| Error::new_err(format!("part {i}: {e}")))?;
+        total
+            .add(&part)
+            .map_err(|e| Error::new_err(format!("part {i}: {e}")))?;
+    }
+    let out = PyDict::new(py);
+    out.set_item("shadow_light", json(&total.shadow_light)?)?;
+    out.set_item("light_agreement", json(&total.light_agreement)?)?;
+    let warnings: Vec<String> = total
+        .warnings(ambient_subtracted)
+        .iter()
+        .map(|w| w.to_string())
+        .collect();
+    out.set_item("warnings", warnings)?;
+    Ok(out)
+}
+
 /// Solve: images, lights, mask → the per-pixel maps, summaries as JSON text.
 #[pyfunction]
 #[pyo3(signature = (images, lights, mask=None, intensities=None, method="auto", color="grey", transfer="auto", saturation=None, fill=None, models=None, ambient_last=false))]
@@ -548,6 +577,7 @@ fn solve<'py>(
     out.set_item("counts", json(&recon.counts)?)?;
     out.set_item("integrability", json(&recon.integrability)?)?;
     out.set_item("model_summary", json(&recon.model)?)?;
+    out.set_item("checks", CaptureChecks::of(&recon.model).to_json())?;
     let warnings: Vec<String> = recon.warnings.iter().map(|w| w.to_string()).collect();
     out.set_item("warnings", warnings)?;
     let list = PyList::empty(py);
@@ -1568,6 +1598,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("Error", m.py().get_type::<Error>())?;
     m.add_function(wrap_pyfunction!(solve, m)?)?;
     m.add_function(wrap_pyfunction!(estimate_model, m)?)?;
+    m.add_function(wrap_pyfunction!(add_checks, m)?)?;
     m.add_function(wrap_pyfunction!(convert, m)?)?;
     m.add_function(wrap_pyfunction!(integrate, m)?)?;
     m.add_function(wrap_pyfunction!(render, m)?)?;

@@ -4,6 +4,7 @@ import os
 import pathlib
 import subprocess
 
+import numpy as np
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
@@ -28,3 +29,16 @@ def cli():
             ["cargo", "build", "--release", "--bin", "photostereo"], cwd=ROOT, check=True
         )
     return exe
+
+
+def turned(lights, k, deg):
+    """Unit copies of `lights` (N x 3) with row `k` turned by `deg` degrees about the axis
+    across it and the view (a wrong row of a lights file), and the original unit row."""
+    unit = lights / np.linalg.norm(lights, axis=1, keepdims=True)
+    l = unit[k]
+    axis = np.cross(l, [0.0, 0.0, 1.0])
+    axis /= np.linalg.norm(axis)
+    t = np.radians(deg)
+    wrong = unit.copy()
+    wrong[k] = l * np.cos(t) + np.cross(axis, l) * np.sin(t) + axis * (axis @ l) * (1 - np.cos(t))
+    return wrong, l

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import photostereo as ps
+from conftest import turned
 
 
 def angles(a, b, mask):
@@ -67,13 +68,7 @@ def test_a_wrong_light_is_named():
     # rendered), in a warning and in model_summary; under the rendered lights it names none.
     lights = np.vstack([ps.light_ring(8, 30.0), ps.light_ring(8, 60.0, 20.0)])
     s = ps.render("sphere", 96, lights, noise=0.003, seed=6)
-    unit = lights / np.linalg.norm(lights, axis=1, keepdims=True)
-    l = unit[5]
-    axis = np.cross(l, [0.0, 0.0, 1.0])
-    axis /= np.linalg.norm(axis)
-    t = np.radians(10.0)
-    wrong = unit.copy()
-    wrong[5] = l * np.cos(t) + np.cross(axis, l) * np.sin(t) + axis * (axis @ l) * (1 - np.cos(t))
+    wrong, l = turned(lights, 5, 10.0)
     right = ps.solve(s["images"], lights, mask=s["mask"])
     assert right.model_summary["light_agreement"][0]["disagreeing"] == []
     assert not any("disagrees with the light given" in w for w in right.warnings)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import photostereo as ps
+from conftest import turned
 
 dask = pytest.importorskip("dask")
 distributed = pytest.importorskip("distributed")
@@ -134,3 +135,77 @@ def test_tiles_subtract_an_ambient_frame(client):
     with pytest.raises(ValueError, match="stored as the images are"):
         psd.solve(images, lights, mask=m, chunks=32, ambient=frame.astype(np.float64))
     print(f"\ndask tiles, room light 8%: {left:.2f}° left in, {with_frame:.2f}° with its frame")
+
+
+def test_tiles_judge_the_capture_wide_checks_as_one(client):
+    # Room light (8% of a lamp, no frame) and one row of the lights turned by 10°: every tile
+    # sees a part of the object, none could judge the lights or the shadows' light alone; their
+    # counts and sums added say what the single-process solve says (the same light named, the
+    # same directions, the same shadow level), and compute() warns as photostereo.solve does.
+    lights = np.vstack([ps.light_ring(8, 30.0), ps.light_ring(8, 60.0, 20.0)])
+    s = ps.render("sphere", 96, lights, noise=0.003, ambient=0.08, seed=6)
+    wrong, l = turned(lights, 5, 10.0)
+    m = s["mask"]
+    maps = psd.solve(da.from_array(s["images"], chunks=(16, 40, 40)), wrong, mask=m, chunks=32)
+    with pytest.warns(ps.PhotostereoWarning) as caught:
+        out = psd.compute(maps)
+    said = [str(w.message) for w in caught]
+    with pytest.warns(ps.PhotostereoWarning):
+        single = ps.solve(s["images"], wrong, mask=m, fill=False, models=maps["models"])
+    assert np.array_equal(out["normals"], single.normals, equal_nan=True)
+    whole = single.model_summary
+    tiles = out["model_summary"]
+    a, b = tiles["light_agreement"][0], whole["light_agreement"][0]
+    assert a["disagreeing"] == b["disagreeing"] == [5], (a, b)
+    for x, y in zip(a["lights"], b["lights"]):
+        assert x["pixels"] == y["pixels"]
+        assert abs(x["disagreement_deg"] - y["disagreement_deg"]) < 1e-9
+    assert tiles["shadow_light"] == whole["shadow_light"]
+    assert whole["shadow_light"][0]["predicted_bias_deg"] > 1.0
+    for kind in ("disagrees with the light given", "in attached shadow"):
+        mine = [w for w in said if kind in w]
+        theirs = [w for w in single.warnings if kind in w]
+        assert len(mine) == 1 and mine == theirs, (kind, said, single.warnings)
+    assert out["warnings"] == said
+    print(
+        f"\ndask tiles of 32², light 6 turned 10°: named at {a['lights'][5]['disagreement_deg']:.2f}° "
+        f"(whole {b['lights'][5]['disagreement_deg']:.2f}°, threshold {a['threshold_deg']:.2f}°); "
+        f"room light {tiles['shadow_light'][0]['level']:.4f} of a lit surface, "
+        f"{tiles['shadow_light'][0]['predicted_bias_deg']:.2f}° (whole {whole['shadow_light'][0]['level']:.4f})"
+    )
+    # Under the rendered lights with the room light's frame: nothing to say.
+    maps = psd.solve(s["images"], lights, mask=m, chunks=32, ambient=s["ambient"])
+    with _no_photostereo_warning():
+        clean = psd.compute(maps)
+    assert clean["warnings"] == [] and clean["model_summary"]["light_agreement"][0]["disagreeing"] == []
+    # The checks computed with one map in one call: the same as compute()'s, and every tile
+    # solved once (the checks' graph shares the maps' tiles).
+    calls = []
+    solve_tile = psd._solve_tile
+    psd._solve_tile = lambda *a, **k: calls.append(1) or solve_tile(*a, **k)
+    try:
+        maps = psd.solve(s["images"], lights, mask=m, chunks=32, ambient=s["ambient"])
+        n, checks = dask.compute(maps["normals"], maps["checks"], scheduler="threads")
+        assert len(calls) == 9, len(calls)
+        # Stored elsewhere (as to_zarr stores) in the same call: once too.
+        target = np.zeros(n.shape, np.float32)
+        stored = da.store(maps["normals"], target, compute=False, lock=False)
+        dask.compute(stored, maps["checks"], scheduler="threads")
+        assert len(calls) == 18, len(calls)
+    finally:
+        psd._solve_tile = solve_tile
+    assert np.array_equal(n, clean["normals"], equal_nan=True)
+    assert np.array_equal(target, n, equal_nan=True)
+    assert checks[0, 0]["light_agreement"] == clean["model_summary"]["light_agreement"]
+
+
+class _no_photostereo_warning:
+    def __enter__(self):
+        import warnings
+
+        self._c = warnings.catch_warnings()
+        self._c.__enter__()
+        warnings.simplefilter("error", ps.PhotostereoWarning)
+
+    def __exit__(self, *exc):
+        return self._c.__exit__(*exc)

@@ -40,7 +40,7 @@ use crate::grid::Mask;
 use crate::ps::solve::Solution;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// A sample counts as in attached shadow where n·l < −`ATTACHED_MARGIN` (about 11.5° beyond
 /// the terminator).
@@ -117,7 +117,40 @@ impl Default for ShadowLight {
     }
 }
 
+/// The counts a [`ShadowLight`] is judged from, which add up over the parts of a capture (for
+/// [`crate::run::checks`]).
+#[derive(Serialize, Deserialize)]
+pub(crate) struct ShadowLightCounts {
+    pixels: usize,
+    histogram: Vec<u32>,
+    lever: (u128, usize),
+}
+
 impl ShadowLight {
+    /// Its counts, to be added to another part's.
+    pub(crate) fn counts(&self) -> ShadowLightCounts {
+        ShadowLightCounts {
+            pixels: self.pixels,
+            histogram: self.histogram.clone(),
+            lever: self.lever,
+        }
+    }
+
+    /// The measurement the counts give; `None` when they are not of this build's histogram.
+    pub(crate) fn from_counts(counts: ShadowLightCounts) -> Option<ShadowLight> {
+        if counts.histogram.len() != BINS {
+            return None;
+        }
+        let mut out = ShadowLight {
+            pixels: counts.pixels,
+            histogram: counts.histogram,
+            lever: counts.lever,
+            ..ShadowLight::default()
+        };
+        out.finish();
+        Some(out)
+    }
+
     /// Adds another band's counts and updates the level and bias.
     pub(crate) fn add(&mut self, other: &ShadowLight) {
         self.pixels += other.pixels;

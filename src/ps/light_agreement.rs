@@ -59,7 +59,7 @@ use crate::grid::Mask;
 use crate::ps::solve::Solution;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// A sample counts for its light where the solved normal faces it by more than this (n·l).
 pub const LIT: f64 = 0.1;
@@ -136,7 +136,57 @@ impl std::fmt::Debug for LightAgreement {
     }
 }
 
+/// The sums a [`LightAgreement`] is judged from, which add up over the parts of a capture (for
+/// [`crate::run::checks`]).
+#[derive(Serialize, Deserialize)]
+pub(crate) struct LightAgreementSums {
+    sums: Vec<([i128; 9], usize)>,
+    /// The given directions' bits (text keeps every bit of an integer, not of every float).
+    given: Vec<[u64; 3]>,
+}
+
 impl LightAgreement {
+    /// Its sums, to be added to another part's.
+    pub(crate) fn sums(&self) -> LightAgreementSums {
+        LightAgreementSums {
+            sums: self.sums.clone(),
+            given: self
+                .given
+                .iter()
+                .map(|l| [l.x.to_bits(), l.y.to_bits(), l.z.to_bits()])
+                .collect(),
+        }
+    }
+
+    /// The check the sums give; `None` when they do not hold one sum per given light.
+    pub(crate) fn from_sums(sums: LightAgreementSums) -> Option<LightAgreement> {
+        if sums.sums.len() != sums.given.len() {
+            return None;
+        }
+        let mut out = LightAgreement {
+            sums: sums.sums,
+            given: sums
+                .given
+                .iter()
+                .map(|l| {
+                    Vector3::new(
+                        f64::from_bits(l[0]),
+                        f64::from_bits(l[1]),
+                        f64::from_bits(l[2]),
+                    )
+                })
+                .collect(),
+            ..LightAgreement::default()
+        };
+        out.finish();
+        Some(out)
+    }
+
+    /// The given directions the check was made against.
+    pub(crate) fn given(&self) -> &[Vector3<f64>] {
+        &self.given
+    }
+
     /// Adds another band's sums and updates the fits.
     pub(crate) fn add(&mut self, other: &LightAgreement) {
         if self.sums.is_empty() {

@@ -9,15 +9,19 @@
 //! - `bands` (private): the band loop both kinds of run go through — a source of bands (the
 //!   whole stack, or bands decoded from the files), the solve under one image model, a sink.
 //! - [`warnings`]: what the user should know about a finished run, as data.
+//! - [`checks`]: the capture-wide checks of a solve (shadow light, each light against the
+//!   others) in a form that adds up over the parts of a capture solved elsewhere.
 //! - [`html`]: `report.html`, the run's outputs and figures on one self-contained page.
 
 pub(crate) mod band_output;
 pub(crate) mod bands;
+pub mod checks;
 pub mod html;
 pub mod pipeline;
 pub mod stream;
 pub mod warnings;
 
+pub use checks::CaptureChecks;
 pub use pipeline::{Config, Reconstruction, Report, reconstruct, reconstruct_and_write};
 pub use stream::{StreamOptions, StreamPlan};
 pub use warnings::Warning;

@@ -7,6 +7,8 @@
 //! command-line tool names the flag (`--linear`, `--mask`, …), a notebook would name the
 //! argument.
 
+use crate::ps::ambient::ShadowLight;
+use crate::ps::light_agreement::LightAgreement;
 use crate::ps::normals::IntegrabilitySummary;
 use crate::ps::solve::Method;
 use crate::run::pipeline::{ChannelModel, Config, GAIN_WARNING, InputFacts, POOR_CURL, Tallies};
@@ -549,11 +551,38 @@ pub(crate) fn warnings(
             warnings.push(Warning::IntensitiesNotApplied);
         }
     }
+    warnings.extend(of_checks(
+        models.iter().filter_map(|m| m.shadow_light.as_ref()),
+        models.iter().filter_map(|m| m.light_agreement.as_ref()),
+        facts.ambient_subtracted,
+    ));
+    if integrability.pixels > 0 && integrability.median_abs_curl > POOR_CURL {
+        warnings.push(Warning::PoorIntegrability {
+            median_abs_curl: integrability.median_abs_curl,
+        });
+    }
+    if config.albedo_normalised && tallies.albedo_above_one > 0 {
+        warnings.push(Warning::AlbedoAboveOne {
+            pixels: tallies.albedo_above_one,
+        });
+    }
+    warnings
+}
+
+/// The warnings of the capture-wide checks of a solve: the light in attached shadows (the
+/// channel whose shadows bend the normals most) and each light against the others (the channel
+/// with the most lights named), one measurement a channel; `ambient_subtracted`: the frame
+/// taken with every lamp off was subtracted. Those of a whole run and of the parts of one
+/// added up ([`crate::run::checks::CaptureChecks`]).
+pub(crate) fn of_checks<'a>(
+    shadow_light: impl Iterator<Item = &'a ShadowLight>,
+    light_agreement: impl Iterator<Item = &'a LightAgreement>,
+    ambient_subtracted: bool,
+) -> Vec<Warning> {
+    let mut warnings = Vec::new();
     // The channel whose attached shadows bend the normals most, judged at the level the data
     // show at least (two standard errors nearer zero).
-    let shadow = models
-        .iter()
-        .filter_map(|m| m.shadow_light.as_ref())
+    let shadow = shadow_light
         .filter_map(|s| {
             Some((
                 s.level?,
@@ -570,16 +599,13 @@ pub(crate) fn warnings(
             level,
             pixels,
             bias_deg,
-            ambient_subtracted: facts.ambient_subtracted,
+            ambient_subtracted,
         });
     }
     // The channel with the most disagreeing lights (the first of equals), named when there are
     // several.
-    let checked: Vec<&crate::ps::light_agreement::LightAgreement> = models
-        .iter()
-        .filter_map(|m| m.light_agreement.as_ref())
-        .collect();
-    let mut most: Option<(usize, &crate::ps::light_agreement::LightAgreement)> = None;
+    let checked: Vec<&LightAgreement> = light_agreement.collect();
+    let mut most: Option<(usize, &LightAgreement)> = None;
     for (c, a) in checked.iter().enumerate() {
         if !a.disagreeing.is_empty()
             && most.is_none_or(|(_, b)| a.disagreeing.len() > b.disagreeing.len())
@@ -605,16 +631,6 @@ pub(crate) fn warnings(
             median_deg,
             threshold_deg,
             channel: (checked.len() > 1).then_some((c, checked.len())),
-        });
-    }
-    if integrability.pixels > 0 && integrability.median_abs_curl > POOR_CURL {
-        warnings.push(Warning::PoorIntegrability {
-            median_abs_curl: integrability.median_abs_curl,
-        });
-    }
-    if config.albedo_normalised && tallies.albedo_above_one > 0 {
-        warnings.push(Warning::AlbedoAboveOne {
-            pixels: tallies.albedo_above_one,
         });
     }
     warnings
