@@ -1017,9 +1017,14 @@ fn flag_hint(w: &photostereo::run::Warning) -> &'static str {
             " (the near-light model needs every light's position, --camera K.txt and depth; --distant-lights turns it off)"
         }
         Warning::NearNotConverged { .. } => " (--near-iterations raises the cap)",
-        Warning::LightsDisagree { .. } => {
+        Warning::LightsDisagree {
+            positions: false, ..
+        } => {
             " (`photostereo calibrate --from-object` recovers the lights from the images themselves)"
         }
+        Warning::LightsDisagree {
+            positions: true, ..
+        } => " (`photostereo calibrate --ball-radius` places near lights from two mirror balls)",
         _ => "",
     }
 }

@@ -44,6 +44,29 @@ fn vase_rig(dir: &Path) -> (Vec<PathBuf>, Rendering) {
     (images, r)
 }
 
+/// Runs the main command on the rig written to `data` (its mask and K.txt) with the lights
+/// file `lights`, into `out`; returns its standard error.
+fn solve_rig(images: &[PathBuf], lights: &Path, data: &Path, out: &Path) -> String {
+    let mask = data.join("mask.png");
+    let k = data.join("K.txt");
+    let o = run(&main_args(
+        images,
+        lights,
+        &[
+            "--mask",
+            mask.to_str().unwrap(),
+            "--camera",
+            k.to_str().unwrap(),
+        ],
+        out,
+    )
+    .iter()
+    .map(os)
+    .collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
 fn report(out: &Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap()
 }
@@ -57,21 +80,7 @@ fn the_near_model_runs_when_lights_have_positions_and_the_camera_is_given() {
     let k = data.join("K.txt");
     let mask = data.join("mask.png");
     let out = tmp.path().join("out");
-    let o = run(&main_args(
-        &images,
-        &lights,
-        &[
-            "--mask",
-            mask.to_str().unwrap(),
-            "--camera",
-            k.to_str().unwrap(),
-        ],
-        &out,
-    )
-    .iter()
-    .map(os)
-    .collect::<Vec<_>>());
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    solve_rig(&images, &lights, &data, &out);
     let r = report(&out);
     let near = &r["near"];
     assert_eq!(near["converged"], true, "{near}");
@@ -97,6 +106,17 @@ fn the_near_model_runs_when_lights_have_positions_and_the_camera_is_given() {
     assert!(units.contains("absolute depth"), "{units}");
     let warnings = r["warnings"].to_string();
     assert!(!warnings.contains("near lights"), "{warnings}");
+    // Every position is checked against the other images; none is named.
+    assert_eq!(
+        r["model"]["light_agreement"][0]["disagreeing"],
+        serde_json::json!([]),
+        "{}",
+        r["model"]["light_agreement"]
+    );
+    assert!(
+        !warnings.contains("disagrees with the light given"),
+        "{warnings}"
+    );
 
     // --distant-lights: the old model, with its warning.
     let distant = tmp.path().join("distant");
@@ -142,4 +162,54 @@ fn the_near_model_runs_when_lights_have_positions_and_the_camera_is_given() {
         "{}",
         r["warnings"]
     );
+}
+
+/// A lights file whose fifth position is turned by 10° about the object: the near solve names
+/// that light, with the position the other images give it (within 2.5° of where it was, seen
+/// from the object), in a warning, the command's hint and the report.
+#[test]
+fn a_misplaced_near_light_is_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("rig");
+    let (images, _) = vase_rig(&data);
+    let lights = data.join("lights.json");
+    let mut file: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&lights).unwrap()).unwrap();
+    let entry = &mut file["lights"][4]["position"];
+    let truth = Vector3::new(
+        entry[0].as_f64().unwrap(),
+        entry[1].as_f64().unwrap(),
+        entry[2].as_f64().unwrap(),
+    );
+    let target = Vector3::new(0.0, 0.0, -3.0 * 96.0);
+    let axis = photostereo::nalgebra::Unit::new_normalize((truth - target).cross(&Vector3::z()));
+    let turned = target
+        + photostereo::nalgebra::Rotation3::from_axis_angle(&axis, 10f64.to_radians())
+            * (truth - target);
+    *entry = serde_json::json!([turned.x, turned.y, turned.z]);
+    let wrong = data.join("wrong.json");
+    std::fs::write(&wrong, file.to_string()).unwrap();
+    let out = tmp.path().join("out");
+    let stderr = solve_rig(&images, &wrong, &data, &out);
+    assert!(
+        stderr.contains("light position that explains each best")
+            && stderr.contains("5 (")
+            && stderr.contains("--ball-radius"),
+        "{stderr}"
+    );
+    let r = report(&out);
+    let check = &r["model"]["light_agreement"][0];
+    assert_eq!(check["disagreeing"], serde_json::json!([4]), "{check}");
+    let p = &check["lights"][4]["position"];
+    let found = Vector3::new(
+        p[0].as_f64().unwrap(),
+        p[1].as_f64().unwrap(),
+        p[2].as_f64().unwrap(),
+    );
+    let back = (found - target).angle(&(truth - target)).to_degrees();
+    println!(
+        "light 5 turned 10°: named at {:.2}°, its position {back:.2}° from the truth",
+        check["lights"][4]["disagreement_deg"]
+    );
+    assert!(back < 2.5, "{back}° from the truth");
 }

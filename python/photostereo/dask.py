@@ -22,7 +22,9 @@ integrates them with the library's solver); pixels a tile could not solve keep t
 
 What is judged over the whole capture is judged over all the tiles: the light left in the
 attached shadows and each light against the others (a wrong row of the lights). Each tile
-returns its counts and sums, which add up to the whole's; ``maps["checks"]`` adds them, and
+returns its counts and sums, which add up to the whole's (the lights' check reads every
+fourth column of a tile: the whole's columns where the tile side is a multiple of 4, as the
+default is); ``maps["checks"]`` adds them, and
 :func:`compute` computes the maps and the checks in one pass over the tiles and warns as
 :func:`photostereo.solve` does:
 
@@ -46,6 +48,7 @@ import photostereo as _ps
 try:
     import dask
     import dask.array as da
+    from dask.sizeof import sizeof as _sizeof
 except ImportError as e:  # pragma: no cover - exercised only without dask
     raise ImportError(
         "photostereo.dask needs dask: pip install 'photostereo[dask]' (or dask[array])"
@@ -113,6 +116,22 @@ def estimate_model(
     return _ps.estimate_model(sample, lights, m, **options)
 
 
+class _Tile:
+    """A solved tile: its planes and its checks' text (None where nothing was solved). The
+    block of the internal tiles array; its size is what Dask's memory accounting sees."""
+
+    __slots__ = ("planes", "checks")
+
+    def __init__(self, planes: np.ndarray, checks: Optional[str]) -> None:
+        self.planes = planes
+        self.checks = checks
+
+
+@_sizeof.register(_Tile)
+def _sizeof_tile(t: _Tile) -> int:
+    return int(t.planes.nbytes) + len(t.checks or "")
+
+
 def _solve_tile(
     block: np.ndarray,
     mask_block: Optional[np.ndarray],
@@ -122,11 +141,10 @@ def _solve_tile(
     models: List[Dict[str, Any]],
     albedo_channels: int,
     options: Dict[str, Any],
-) -> np.ndarray:
+) -> _Tile:
     """One tile: N x h x w[ x C] images (and an h x w mask, an h x w[ x C] ambient frame) ->
-    a 1 x 1 object array holding the pair (h x w x K float32 planes: normals (3), albedo (1 or
-    3), then _SCALARS; the tile's checks as text, or None where nothing was solved)."""
-    cell = np.empty((1, 1), dtype=object)
+    its h x w x K float32 planes (normals (3), albedo (1 or 3), then _SCALARS) and its checks
+    as text (None where nothing was solved)."""
     h, w = block.shape[1], block.shape[2]
     base = 3 + albedo_channels
     # Outside the mask, as the library's maps: NaN normals, albedo, residual and condition;
@@ -136,8 +154,7 @@ def _solve_tile(
         if key not in _NAN_OUTSIDE:
             out[..., base + i] = 0.0
     if mask_block is not None and not mask_block.any():
-        cell[0, 0] = (out, None)
-        return cell
+        return _Tile(out, None)
     with _warnings.catch_warnings():
         # Tile-level warnings (counts of one tile) say nothing about the capture; the checks
         # that do are added over the tiles (_add_checks).
@@ -151,17 +168,16 @@ def _solve_tile(
     out[..., 3 : 3 + albedo_channels] = alb
     for i, key in enumerate(_SCALARS):
         out[..., 3 + albedo_channels + i] = getattr(r, key)
-    cell[0, 0] = (out, r.checks)
-    return cell
+    return _Tile(out, r.checks)
 
 
-def _planes_of(cell: np.ndarray) -> np.ndarray:
-    return cell[0, 0][0]
+def _planes_of(tile: _Tile) -> np.ndarray:
+    return tile.planes
 
 
-def _checks_of(cell: np.ndarray) -> np.ndarray:
+def _checks_of(tile: _Tile) -> np.ndarray:
     text = np.empty((1, 1), dtype=object)
-    text[0, 0] = cell[0, 0][1]
+    text[0, 0] = tile.checks
     return text
 
 
@@ -204,8 +220,8 @@ def solve(
         intensities, method, color, transfer, saturation: as :func:`photostereo.solve`.
         ambient: the frame taken with every lamp off (H x W or H x W x C, numpy or Dask,
             stored as each image is), tiled as the images are and subtracted in each tile as
-            :func:`photostereo.solve` subtracts it. The light left in the attached shadows,
-            which a whole-capture solve measures and warns about, is not measured per tile.
+            :func:`photostereo.solve` subtracts it. Without it, ``checks`` measures the light
+            left in the attached shadows over all the tiles, as a whole-capture solve does.
 
     Returns:
         Lazy arrays: ``normals`` (H x W x 3), ``albedo`` (H x W, or H x W x 3 for a colour
@@ -264,8 +280,8 @@ def solve(
     frame_arg = (
         (frame_d, "yxc" if images.ndim == 4 else "yx") if frame_d is not None else (None, None)
     )
-    # One object per tile (a 1 x 1 block): its planes and its checks, taken apart below so
-    # that a tile's planes are freed once written, whatever the checks still wait for.
+    # One _Tile per 1 x 1 block: a tile's planes and its checks, taken apart below so that the
+    # planes are freed once used, whatever the checks still wait for.
     tiles = da.blockwise(
         _solve_tile, "yx",
         images, "nyxc" if images.ndim == 4 else "nyx",

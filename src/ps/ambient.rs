@@ -117,6 +117,9 @@ impl Default for ShadowLight {
     }
 }
 
+/// Most pixels a part's counts may hold ([`ShadowLight::from_counts`]).
+const PART_LIMIT: usize = 1 << 48;
+
 /// The counts a [`ShadowLight`] is judged from, which add up over the parts of a capture (for
 /// [`crate::run::checks`]).
 #[derive(Serialize, Deserialize)]
@@ -136,9 +139,17 @@ impl ShadowLight {
         }
     }
 
-    /// The measurement the counts give; `None` when they are not of this build's histogram.
+    /// The measurement the counts give; `None` when they are not of this build's histogram,
+    /// or not the counts of a measurement (the pixels are the histogram's total; a part holds
+    /// at most 2⁴⁸ pixels, so that any number of parts a machine can hold adds up in range).
     pub(crate) fn from_counts(counts: ShadowLightCounts) -> Option<ShadowLight> {
-        if counts.histogram.len() != BINS {
+        let total: u64 = counts.histogram.iter().map(|&c| u64::from(c)).sum();
+        if counts.histogram.len() != BINS
+            || total != counts.pixels as u64
+            || counts.pixels > PART_LIMIT
+            || counts.lever.1 > PART_LIMIT
+            || counts.lever.0 > (PART_LIMIT as u128) << 40
+        {
             return None;
         }
         let mut out = ShadowLight {
@@ -149,6 +160,27 @@ impl ShadowLight {
         };
         out.finish();
         Some(out)
+    }
+
+    /// Adds another part's counts, `None` (and nothing added) where a count would overflow.
+    pub(crate) fn try_add(&mut self, other: &ShadowLight) -> Option<()> {
+        let pixels = self.pixels.checked_add(other.pixels)?;
+        let histogram = self
+            .histogram
+            .iter()
+            .zip(&other.histogram)
+            .map(|(a, b)| a.checked_add(*b))
+            .collect::<Option<Vec<u32>>>()?;
+        let lever = (
+            self.lever.0.checked_add(other.lever.0)?,
+            self.lever.1.checked_add(other.lever.1)?,
+        );
+        pixels.checked_mul(3)?;
+        self.pixels = pixels;
+        self.histogram = histogram;
+        self.lever = lever;
+        self.finish();
+        Some(())
     }
 
     /// Adds another band's counts and updates the level and bias.

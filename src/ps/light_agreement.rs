@@ -49,6 +49,11 @@
 //! among fewer than about 8 lights can both sit in the upper quartile σ is taken from, and then
 //! neither is named.
 //!
+//! **Near lights** ([`measure_near`]): a positioned light's direction and irradiance change
+//! across the object, so its position is what is fitted, and the disagreement is the angle
+//! between the given and the fitted position seen from the object's centre; the same test
+//! names it.
+//!
 //! Each row's sums are taken in floating point and added to the totals in fixed point, so
 //! that the row bands of a streamed run add up to the whole exactly and the result does not
 //! depend on the threads.
@@ -99,6 +104,12 @@ pub struct LightFit {
     pub disagreement_deg: f64,
     /// Pixels whose samples of this light entered the fit.
     pub pixels: usize,
+    /// For a near light ([`measure_near`]): the position that best explains the light's image
+    /// (camera frame, the units of the given positions); `direction` is then the direction to
+    /// it from the object's centre, and the disagreement the angle there between the given
+    /// position and this one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub position: Option<[f64; 3]>,
 }
 
 /// Each light of a solve checked against the others ([`crate::ps::light_agreement`]), summable
@@ -158,9 +169,19 @@ impl LightAgreement {
         }
     }
 
-    /// The check the sums give; `None` when they do not hold one sum per given light.
+    /// The check the sums give; `None` when they do not hold one sum per given light, or not
+    /// the sums of a check: a part holds at most 2⁴⁸ pixels a light, and each of its sums at
+    /// most 2¹⁰ a pixel (a pixel's terms are products of a unit-scale fit and a sample of at
+    /// most [`BRIGHTEST`]), in units of 2⁻⁴⁰ — so that 2²⁹ parts add up in range.
     pub(crate) fn from_sums(sums: LightAgreementSums) -> Option<LightAgreement> {
-        if sums.sums.len() != sums.given.len() {
+        const LIMIT: usize = 1 << 48;
+        let bound = |n: usize| (n.max(1) as i128) << 50;
+        if sums.sums.len() != sums.given.len()
+            || sums
+                .sums
+                .iter()
+                .any(|(s, n)| *n > LIMIT || s.iter().any(|v| v.unsigned_abs() > bound(*n) as u128))
+        {
             return None;
         }
         let mut out = LightAgreement {
@@ -180,6 +201,30 @@ impl LightAgreement {
         };
         out.finish();
         Some(out)
+    }
+
+    /// Adds another part's sums (checked against the same lights), `None` (and nothing
+    /// added) where a sum would overflow.
+    pub(crate) fn try_add(&mut self, other: &LightAgreement) -> Option<()> {
+        if self.sums.is_empty() {
+            self.clone_from(other);
+            return Some(());
+        }
+        let sums = self
+            .sums
+            .iter()
+            .zip(&other.sums)
+            .map(|(a, b)| {
+                let mut out = [0i128; 9];
+                for (o, (x, y)) in out.iter_mut().zip(a.0.iter().zip(&b.0)) {
+                    *o = x.checked_add(*y)?;
+                }
+                Some((out, a.1.checked_add(b.1)?))
+            })
+            .collect::<Option<Vec<_>>>()?;
+        self.sums = sums;
+        self.finish();
+        Some(())
     }
 
     /// The given directions the check was made against.
@@ -202,7 +247,7 @@ impl LightAgreement {
         self.finish();
     }
 
-    /// The fits, the median and the threshold from the sums.
+    /// The fits from the sums, then the median, the threshold and the lights named.
     fn finish(&mut self) {
         self.lights = self
             .sums
@@ -225,9 +270,15 @@ impl LightAgreement {
                     direction: [d.x, d.y, d.z],
                     disagreement_deg: d.dot(l).clamp(-1.0, 1.0).acos().to_degrees(),
                     pixels: *pixels,
+                    position: None,
                 })
             })
             .collect();
+        self.judge();
+    }
+
+    /// The median, the threshold and the lights named, from the fits.
+    fn judge(&mut self) {
         let mut angles: Vec<f64> = self
             .lights
             .iter()
@@ -322,21 +373,9 @@ pub(crate) fn measure(
                 };
                 let det = m.determinant();
                 for &(k, rel, w) in &used {
-                    let l = &dirs[k];
-                    // Leaving sample k out (Sherman–Morrison): g₋ₖ = g − M⁻¹l w r/(1 − w h),
-                    // with the leverage h = lᵀM⁻¹l and the residual r = y − lᵀg. The remaining
-                    // system's determinant is det M (1 − w h), and for a 3×3 positive definite
-                    // matrix λ_min ≥ 4 det / trace², a cheap bound on its conditioning.
-                    let ml = inv * l;
-                    let free = 1.0 - w * l.dot(&ml);
-                    let trace = m.trace() - w;
-                    if !(free > 0.0 && 4.0 * det * free >= MIN_EIGEN * trace * trace) {
+                    let Some(gk) = leave_out(&m, &inv, &fit, det, &dirs[k], rel, w) else {
                         continue;
-                    }
-                    let gk = fit - ml * (w * (rel - l.dot(&fit)) / free);
-                    if !gk.iter().all(|v| v.is_finite()) || gk.dot(l) <= LIT * gk.norm() {
-                        continue;
-                    }
+                    };
                     let s = &mut row[k];
                     s.0[0] += gk.x * gk.x;
                     s.0[1] += gk.x * gk.y;
@@ -377,6 +416,272 @@ pub(crate) fn measure(
     };
     out.finish();
     out
+}
+
+/// Most Gauss–Newton passes of [`measure_near`]'s position fits.
+const NEAR_PASSES: usize = 4;
+/// [`measure_near`] stops once no light's last step turned it, seen from the object's centre,
+/// by more than this fraction of [`WRONG_LIGHT_DEG`]: a step that small cannot change which
+/// lights are named. (Under the right positions one pass does.)
+const NEAR_SETTLED: f64 = 0.01;
+
+/// Checks each near light of a near-light solve against the others (see the module
+/// documentation for the distant case): `sol` is the solve of channel `channel` of `stack` at
+/// the absolute depth `depth` seen through `camera`, under `lights` (each with a position, as
+/// the near solve requires). A pixel's samples are taken relative to the irradiance the given
+/// light sends to its point X (y / (a_k(X) ρ), with the unit directions l_k(X) of
+/// [`crate::synth::near::near_light_at`]); each sample's leave-one-out prediction g₋ₖ then
+/// depends on light k only through its position P_k, and the position and a relative intensity
+/// (1 + ε) that best explain image k over all pixels, Σ ((1 + ε) a_k(X; P) l_k(X; P)·g₋ₖ /
+/// a_k(X; P_k) − y)², are found by Gauss–Newton from the given position (at most
+/// [`NEAR_PASSES`] passes, until no light moves by [`NEAR_SETTLED`] of the naming line; each
+/// step at most half the light's distance from the object's centre; the derivatives by central
+/// differences; every [`STRIDE`]-th row and column). The light's disagreement is the angle, seen from the
+/// object's centre (the mean of the sampled points), between the given position and the fitted
+/// one — what a distant light's disagreement is, so that the same test names it.
+pub(crate) fn measure_near(
+    stack: &ImageStack,
+    channel: usize,
+    lights: &[crate::capture::lights::Light],
+    mask: &Mask,
+    sol: &Solution,
+    depth: &crate::grid::ScalarMap,
+    camera: &crate::camera::Intrinsics,
+) -> LightAgreement {
+    use crate::synth::near::near_light_at;
+    use nalgebra::{Matrix4, Vector4};
+    let count = lights.len();
+    let width = mask.width();
+    let given: Vec<Option<Vector3<f64>>> = lights.iter().map(|l| l.position).collect();
+    // One pass over the sampled pixels at the positions `at` (and intensities 1 + `scale`):
+    // per light, the Gauss–Newton system (4×4 and right-hand side) and its pixels, and the sum
+    // of the sampled points and their count.
+    type Sums = (Vec<([f64; 14], usize)>, Vector3<f64>, usize);
+    let pass = |at: &[Option<Vector3<f64>>], scale: &[f64]| -> Sums {
+        // Every STRIDE-th row and column: a near run is solved whole, and the positions are
+        // fitted in several passes over the samples.
+        let rows: Vec<Sums> = (0..mask.height())
+            .into_par_iter()
+            .step_by(STRIDE)
+            .map(|y| {
+                let mut row = vec![([0f64; 14], 0usize); count];
+                let mut centre = (Vector3::zeros(), 0usize);
+                let mut dirs = vec![Vector3::z(); count];
+                let mut falls = vec![0f64; count];
+                let mut used: Vec<(usize, f64, f64)> = Vec::with_capacity(count);
+                let mut scratch: Vec<f64> = Vec::with_capacity(count);
+                let mut moved = lights.to_vec();
+                for x in (0..width).step_by(STRIDE) {
+                    let p = y * width + x;
+                    let Some((local, rho, n)) = sol.solved_pixel(stack, mask, p) else {
+                        continue;
+                    };
+                    let d = f64::from(depth.data()[p]);
+                    if !(d.is_finite() && d > 0.0) {
+                        continue;
+                    }
+                    let point = Vector3::from(camera.unproject(x as f64, y as f64, 1.0)) * d;
+                    used.clear();
+                    for (k, light) in lights.iter().enumerate() {
+                        let Some((fall, l)) = near_light_at(light, &point) else {
+                            continue;
+                        };
+                        dirs[k] = l;
+                        falls[k] = fall;
+                        if fall.is_nan()
+                            || fall <= 0.0
+                            || n.dot(&l) <= LIT
+                            || stack.is_saturated(k, p)
+                        {
+                            continue;
+                        }
+                        let value = f64::from(stack.plane(k, channel)[local]);
+                        let rel = value / (fall * rho);
+                        if !(rel.is_finite() && rel > DARK && rel < BRIGHTEST) {
+                            continue;
+                        }
+                        used.push((k, rel, 1.0));
+                    }
+                    if used.len() < 4 {
+                        continue;
+                    }
+                    let Some((m, inv, fit)) = robust_fit(&dirs, &mut used, &mut scratch) else {
+                        continue;
+                    };
+                    centre.0 += point;
+                    centre.1 += 1;
+                    let det = m.determinant();
+                    for &(k, rel, w) in &used {
+                        let (Some(pk), Some(p0)) = (at[k], given[k]) else {
+                            continue;
+                        };
+                        let Some(gk) = leave_out(&m, &inv, &fit, det, &dirs[k], rel, w) else {
+                            continue;
+                        };
+                        // The sample's model at position q, relative to the given light's
+                        // irradiance at the point.
+                        let light = &mut moved[k];
+                        let mut model = |q: Vector3<f64>| {
+                            light.position = Some(q);
+                            near_light_at(light, &point)
+                                .map(|(fall, l)| fall / falls[k] * l.dot(&gk))
+                        };
+                        let h = 1e-4 * (pk - point).norm();
+                        let Some(here) = model(pk) else {
+                            continue;
+                        };
+                        let mut grad = Vector3::zeros();
+                        let mut ok = true;
+                        for i in 0..3 {
+                            let mut e = Vector3::zeros();
+                            e[i] = h;
+                            match (model(pk + e), model(pk - e)) {
+                                (Some(a), Some(b)) => grad[i] = (a - b) / (2.0 * h),
+                                _ => ok = false,
+                            }
+                        }
+                        light.position = Some(p0);
+                        if !ok {
+                            continue;
+                        }
+                        let s = 1.0 + scale[k];
+                        let phi = Vector4::new(s * grad.x, s * grad.y, s * grad.z, here);
+                        let e = rel - s * here;
+                        let sums = &mut row[k];
+                        let mut i = 0;
+                        for a in 0..4 {
+                            for b in a..4 {
+                                sums.0[i] += phi[a] * phi[b];
+                                i += 1;
+                            }
+                        }
+                        for a in 0..4 {
+                            sums.0[10 + a] += phi[a] * e;
+                        }
+                        sums.1 += 1;
+                    }
+                }
+                (row, centre.0, centre.1)
+            })
+            .collect();
+        // Rows in order: the same sums whatever the threads.
+        let mut total = (vec![([0f64; 14], 0usize); count], Vector3::zeros(), 0usize);
+        for (row, c, n) in rows {
+            for (t, r) in total.0.iter_mut().zip(&row) {
+                for (a, b) in t.0.iter_mut().zip(&r.0) {
+                    *a += b;
+                }
+                t.1 += r.1;
+            }
+            total.1 += c;
+            total.2 += n;
+        }
+        total
+    };
+    let mut at = given.clone();
+    let mut scale = vec![0f64; count];
+    let mut pixels = vec![0usize; count];
+    let mut centre = None;
+    for _ in 0..NEAR_PASSES {
+        let (sums, c, n) = pass(&at, &scale);
+        if n == 0 {
+            break;
+        }
+        let c = *centre.get_or_insert(c / n as f64);
+        let mut largest = 0f64;
+        for (k, (s, used)) in sums.iter().enumerate() {
+            pixels[k] = *used;
+            let Some(pk) = at[k] else {
+                continue;
+            };
+            if *used < MIN_PIXELS {
+                at[k] = None;
+                continue;
+            }
+            let mut a = Matrix4::zeros();
+            let mut i = 0;
+            for r in 0..4 {
+                for q in r..4 {
+                    a[(r, q)] = s[i];
+                    a[(q, r)] = s[i];
+                    i += 1;
+                }
+            }
+            let b = Vector4::new(s[10], s[11], s[12], s[13]);
+            let Some(step) = a.cholesky().map(|f| f.solve(&b)) else {
+                at[k] = None;
+                continue;
+            };
+            let mut move_by = Vector3::new(step.x, step.y, step.z);
+            let limit = 0.5 * (pk - c).norm();
+            if move_by.norm() > limit {
+                move_by *= limit / move_by.norm();
+            }
+            if move_by.iter().all(|v| v.is_finite()) && step.w.is_finite() {
+                let next = pk + move_by;
+                largest = largest.max((pk - c).angle(&(next - c)).to_degrees());
+                at[k] = Some(next);
+                scale[k] += step.w;
+            } else {
+                at[k] = None;
+            }
+        }
+        if largest < NEAR_SETTLED * WRONG_LIGHT_DEG {
+            break;
+        }
+    }
+    let mut out = LightAgreement::default();
+    let Some(c) = centre else {
+        out.lights = vec![None; count];
+        out.judge();
+        return out;
+    };
+    out.lights = (0..count)
+        .map(|k| {
+            let (Some(p), Some(p0)) = (at[k], given[k]) else {
+                return None;
+            };
+            if pixels[k] < MIN_PIXELS {
+                return None;
+            }
+            let d = (p - c).try_normalize(0.0)?;
+            let d0 = (p0 - c).try_normalize(0.0)?;
+            Some(LightFit {
+                direction: [d.x, d.y, d.z],
+                disagreement_deg: d.dot(&d0).clamp(-1.0, 1.0).acos().to_degrees(),
+                pixels: pixels[k],
+                position: Some([p.x, p.y, p.z]),
+            })
+        })
+        .collect();
+    out.judge();
+    out
+}
+
+/// A pixel's fit without one of its samples (light `l`, relative brightness `rel`, weight `w`),
+/// from its weighted normal matrix `m` (determinant `det`), inverse `inv` and fit `fit`; `None`
+/// where the remaining lights barely span three dimensions or the fit does not face `l`.
+///
+/// Sherman–Morrison: g₋ₖ = g − M⁻¹l w r/(1 − w h), with the leverage h = lᵀM⁻¹l and the
+/// residual r = y − lᵀg. The remaining system's determinant is det M (1 − w h), and for a 3×3
+/// positive definite matrix λ_min ≥ 4 det / trace², a cheap bound on its conditioning.
+fn leave_out(
+    m: &Matrix3<f64>,
+    inv: &Matrix3<f64>,
+    fit: &Vector3<f64>,
+    det: f64,
+    l: &Vector3<f64>,
+    rel: f64,
+    w: f64,
+) -> Option<Vector3<f64>> {
+    let ml = inv * l;
+    let free = 1.0 - w * l.dot(&ml);
+    let trace = m.trace() - w;
+    if !(free > 0.0 && 4.0 * det * free >= MIN_EIGEN * trace * trace) {
+        return None;
+    }
+    let gk = fit - ml * (w * (rel - l.dot(fit)) / free);
+    (gk.iter().all(|v| v.is_finite()) && gk.dot(l) > LIT * gk.norm()).then_some(gk)
 }
 
 /// Tukey's biweight tuning constant (95% efficiency under Gaussian noise).

@@ -294,6 +294,11 @@ pub fn solve_near(
                     *d = f32::NAN;
                 }
             }
+            // Each light's position checked against the other images.
+            let mut solution = solution;
+            solution.light_agreement = Some(crate::ps::light_agreement::measure_near(
+                stack, channel, ctx.lights, mask, &solution, &depth, camera,
+            ));
             return Ok(NearSolve {
                 solution,
                 depth,

@@ -13,9 +13,12 @@
 //! The sums are integers (counts, and fixed-point totals of each row's floating-point sums), so
 //! the order in which the parts are added does not change the result. Row bands add up to the
 //! whole bit for bit; tiles split rows, and then each part of a row is rounded to the fixed
-//! point on its own: the directions agree with the whole's to about 10⁻¹² (the check reads every
-//! fourth column of the part, so tiles whose left edges lie on multiples of four read the
-//! pixels the whole reads).
+//! point on its own: the directions agree with the whole's to about 10⁻¹². The lights' check
+//! reads every fourth column of a part, so tiles read the pixels the whole reads only where
+//! their left edges lie on multiples of four (a tile side that is a multiple of four); other
+//! tiles read other pixels of the same capture, and the check agrees with the whole's to what
+//! such a sampling moves it (reading a quarter of the pixels instead of all moved DiLiGenT's
+//! disagreements by at most 0.06–0.36°).
 
 use crate::error::{Error, Result};
 use crate::ps::ambient::{ShadowLight, ShadowLightCounts};
@@ -111,28 +114,50 @@ impl CaptureChecks {
                 ),
             ));
         }
-        if let Some(c) = self
+        for (c, (a, b)) in self
             .light_agreement
             .iter()
             .zip(&other.light_agreement)
-            .position(|(a, b)| a.given() != b.given())
+            .enumerate()
         {
-            return Err(Error::param(
+            let (a, b) = (a.given(), b.given());
+            if a.len() != b.len() {
+                return Err(Error::param(
+                    "checks",
+                    format!(
+                        "channel {}: a part checked against {} lights added to one of {}: parts of different solves",
+                        c + 1,
+                        b.len(),
+                        a.len()
+                    ),
+                ));
+            }
+            if let Some(k) = a.iter().zip(b).position(|(x, y)| x != y) {
+                return Err(Error::param(
+                    "checks",
+                    format!(
+                        "channel {}: a part checked against other lights (light {} differs): parts of different solves",
+                        c + 1,
+                        k + 1
+                    ),
+                ));
+            }
+        }
+        // Into a copy, so that a failed addition leaves the total as it was.
+        let overflow = || {
+            Error::param(
                 "checks",
-                format!(
-                    "channel {}: a part checked against other lights ({} against {}): parts of different solves",
-                    c + 1,
-                    other.light_agreement[c].given().len(),
-                    self.light_agreement[c].given().len()
-                ),
-            ));
+                "the parts' counts overflow: more parts than one capture can have",
+            )
+        };
+        let mut sum = self.clone();
+        for (a, b) in sum.shadow_light.iter_mut().zip(&other.shadow_light) {
+            a.try_add(b).ok_or_else(overflow)?;
         }
-        for (a, b) in self.shadow_light.iter_mut().zip(&other.shadow_light) {
-            a.add(b);
+        for (a, b) in sum.light_agreement.iter_mut().zip(&other.light_agreement) {
+            a.try_add(b).ok_or_else(overflow)?;
         }
-        for (a, b) in self.light_agreement.iter_mut().zip(&other.light_agreement) {
-            a.add(b);
-        }
+        *self = sum;
         Ok(())
     }
 
@@ -220,6 +245,35 @@ mod tests {
         for text in ["", "{}", "[1, 2]"] {
             let e = CaptureChecks::from_json(text).unwrap_err().to_string();
             assert!(e.contains("checks") && e.contains("not the checks"), "{e}");
+        }
+        // Text that is not what a solve wrote: a histogram of another size, pixels that are
+        // not its total, sums for fewer lights than given, a sum out of range.
+        let text = whole.to_json();
+        let edit = |f: &dyn Fn(&mut serde_json::Value)| {
+            let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
+            f(&mut v);
+            CaptureChecks::from_json(&v.to_string())
+        };
+        assert!(edit(&|_| {}).is_ok());
+        let bad: [&dyn Fn(&mut serde_json::Value); 4] = [
+            &|v| {
+                v["shadow_light"][0]["histogram"]
+                    .as_array_mut()
+                    .unwrap()
+                    .pop();
+            },
+            &|v| v["shadow_light"][0]["pixels"] = 56.into(),
+            &|v| {
+                v["light_agreement"][0]["sums"]
+                    .as_array_mut()
+                    .unwrap()
+                    .pop();
+            },
+            &|v| v["light_agreement"][0]["sums"][0][0][0] = i64::MAX.into(),
+        ];
+        for f in bad {
+            let e = edit(f).unwrap_err().to_string();
+            assert!(e.contains("not the checks"), "{e}");
         }
     }
 }

@@ -113,8 +113,11 @@ pub enum Warning {
     /// ([`crate::ps::light_agreement`]).
     LightsDisagree {
         /// Per light (numbered from 0): its disagreement (degrees) and the unit direction that
-        /// explains its image best.
+        /// explains its image best — for near lights, the position.
         lights: Vec<(usize, f64, [f64; 3])>,
+        /// The lights are near ones, checked by their positions (the disagreement is an angle
+        /// seen from the object's centre).
+        positions: bool,
         /// The median disagreement over the lights, degrees.
         median_deg: f64,
         /// The disagreement beyond which a light is named, degrees.
@@ -399,6 +402,7 @@ impl fmt::Display for Warning {
             ),
             Warning::LightsDisagree {
                 lights,
+                positions,
                 median_deg,
                 threshold_deg,
                 channel,
@@ -407,18 +411,33 @@ impl fmt::Display for Warning {
                     .iter()
                     .take(LISTED_IMAGES)
                     .map(|(k, deg, d)| {
-                        format!(
-                            "{} ({deg:.1}° off: ({:.3}, {:.3}, {:.3}))",
-                            k + 1,
-                            d[0],
-                            d[1],
-                            d[2]
-                        )
+                        if *positions {
+                            format!(
+                                "{} ({deg:.1}° off: position ({:.4}, {:.4}, {:.4}))",
+                                k + 1,
+                                d[0],
+                                d[1],
+                                d[2]
+                            )
+                        } else {
+                            format!(
+                                "{} ({deg:.1}° off: ({:.3}, {:.3}, {:.3}))",
+                                k + 1,
+                                d[0],
+                                d[1],
+                                d[2]
+                            )
+                        }
                     })
                     .collect();
+                let (what, seen) = if *positions {
+                    ("position", ", seen from the object's centre")
+                } else {
+                    ("direction", "")
+                };
                 write!(
                     f,
-                    "the brightness of {} image(s){} (numbered from 1, with the light direction that explains each best given the normals of the other images: {}{}) disagrees with the light given for it: the median light disagrees by {median_deg:.1}°, and beyond {threshold_deg:.1}° is more than chance; that light's direction may be wrong (a typo, two rows swapped, a lamp moved after the calibration) or the image may not belong to this capture",
+                    "the brightness of {} image(s){} (numbered from 1, with the light {what} that explains each best given the normals of the other images: {}{}) disagrees with the light given for it: the median light disagrees by {median_deg:.1}°{seen}, and beyond {threshold_deg:.1}° is more than chance; that light's {what} may be wrong (a typo, two rows swapped, a lamp moved after the calibration) or the image may not belong to this capture",
                     lights.len(),
                     match channel {
                         Some((c, n)) => format!(" in colour channel {} of {n}", c + 1),
@@ -616,18 +635,21 @@ pub(crate) fn of_checks<'a>(
     if let Some((c, a)) = most
         && let (Some(median_deg), Some(threshold_deg)) = (a.median_deg, a.threshold_deg)
     {
+        let mut positions = false;
         let mut lights: Vec<(usize, f64, [f64; 3])> = a
             .disagreeing
             .iter()
             .filter_map(|&k| {
-                a.lights[k]
-                    .as_ref()
-                    .map(|f| (k, f.disagreement_deg, f.direction))
+                a.lights[k].as_ref().map(|f| {
+                    positions |= f.position.is_some();
+                    (k, f.disagreement_deg, f.position.unwrap_or(f.direction))
+                })
             })
             .collect();
         lights.sort_by(|x, y| y.1.total_cmp(&x.1));
         warnings.push(Warning::LightsDisagree {
             lights,
+            positions,
             median_deg,
             threshold_deg,
             channel: (checked.len() > 1).then_some((c, checked.len())),
@@ -721,6 +743,7 @@ mod tests {
                         (40, 8.912, [0.1234, -0.5, 0.857]),
                         (7, 3.04, [0.0, 0.0, 1.0]),
                     ],
+                    positions: false,
                     median_deg: 0.634,
                     threshold_deg: 2.546,
                     channel: None,
@@ -737,11 +760,27 @@ mod tests {
             (
                 Warning::LightsDisagree {
                     lights: vec![(3, 5.54, [0.0, 0.6, 0.8])],
+                    positions: false,
                     median_deg: 1.2,
                     threshold_deg: 4.0,
                     channel: Some((2, 3)),
                 },
                 vec!["1 image(s) in colour channel 3 of 3", "4 (5.5° off"],
+            ),
+            (
+                Warning::LightsDisagree {
+                    lights: vec![(5, 10.447, [12.5, -3.25, 40.125])],
+                    positions: true,
+                    median_deg: 0.21,
+                    threshold_deg: 2.0,
+                    channel: None,
+                },
+                vec![
+                    "light position that explains",
+                    "6 (10.4° off: position (12.5000, -3.2500, 40.1250))",
+                    "0.2°, seen from the object's centre",
+                    "light's position may be wrong",
+                ],
             ),
             (
                 Warning::PoorIntegrability {
