@@ -52,7 +52,8 @@
 //! **Near lights** ([`measure_near`]): a positioned light's direction and irradiance change
 //! across the object, so its position is what is fitted, and the disagreement is the angle
 //! between the given and the fitted position seen from the object's centre; the same test
-//! names it.
+//! names it. A near check is of a whole image (a near run is not split): it holds no sums,
+//! and is not carried by [`crate::run::CaptureChecks`].
 //!
 //! Each row's sums are taken in floating point and added to the totals in fixed point, so
 //! that the row bands of a streamed run add up to the whole exactly and the result does not
@@ -225,6 +226,11 @@ impl LightAgreement {
         self.sums = sums;
         self.finish();
         Some(())
+    }
+
+    /// Whether this is a near-light check ([`measure_near`]: positions, no sums).
+    pub(crate) fn is_near(&self) -> bool {
+        self.lights.iter().flatten().any(|f| f.position.is_some())
     }
 
     /// The given directions the check was made against.
@@ -547,6 +553,11 @@ pub(crate) fn measure_near(
                         let s = 1.0 + scale[k];
                         let phi = Vector4::new(s * grad.x, s * grad.y, s * grad.z, here);
                         let e = rel - s * here;
+                        // A sample the model cannot evaluate says nothing (and would void the
+                        // light's whole system).
+                        if !(phi.iter().all(|v| v.is_finite()) && e.is_finite()) {
+                            continue;
+                        }
                         let sums = &mut row[k];
                         let mut i = 0;
                         for a in 0..4 {
@@ -614,14 +625,18 @@ pub(crate) fn measure_near(
             };
             let mut move_by = Vector3::new(step.x, step.y, step.z);
             let limit = 0.5 * (pk - c).norm();
-            if move_by.norm() > limit {
-                move_by *= limit / move_by.norm();
-            }
+            // A capped step is shortened as a whole: its intensity change with its move.
+            let fraction = if move_by.norm() > limit {
+                limit / move_by.norm()
+            } else {
+                1.0
+            };
+            move_by *= fraction;
             if move_by.iter().all(|v| v.is_finite()) && step.w.is_finite() {
                 let next = pk + move_by;
                 largest = largest.max((pk - c).angle(&(next - c)).to_degrees());
                 at[k] = Some(next);
-                scale[k] += step.w;
+                scale[k] += fraction * step.w;
             } else {
                 at[k] = None;
             }

@@ -44,11 +44,18 @@ struct Parts {
 }
 
 impl CaptureChecks {
-    /// The checks of a finished solve (of the whole capture or of a part).
+    /// The checks of a finished solve (of the whole capture or of a part). The lights' check
+    /// of a near-light solve is of the whole image only (it holds positions fitted in
+    /// several passes, not sums) and is left out.
     pub fn of(model: &ModelSummary) -> Self {
         CaptureChecks {
             shadow_light: model.shadow_light.clone(),
-            light_agreement: model.light_agreement.clone(),
+            light_agreement: model
+                .light_agreement
+                .iter()
+                .filter(|a| !a.is_near())
+                .cloned()
+                .collect(),
         }
     }
 
