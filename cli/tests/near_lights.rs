@@ -67,6 +67,15 @@ fn solve_rig(images: &[PathBuf], lights: &Path, data: &Path, out: &Path) -> Stri
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
+/// A JSON array of three numbers as a vector.
+fn vector(v: &serde_json::Value) -> Vector3<f64> {
+    Vector3::new(
+        v[0].as_f64().unwrap(),
+        v[1].as_f64().unwrap(),
+        v[2].as_f64().unwrap(),
+    )
+}
+
 fn report(out: &Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap()
 }
@@ -177,11 +186,7 @@ fn a_misplaced_near_light_is_named() {
     let mut file: serde_json::Value =
         serde_json::from_slice(&std::fs::read(&lights).unwrap()).unwrap();
     let entry = &mut file["lights"][4]["position"];
-    let truth = Vector3::new(
-        entry[0].as_f64().unwrap(),
-        entry[1].as_f64().unwrap(),
-        entry[2].as_f64().unwrap(),
-    );
+    let truth = vector(entry);
     let target = Vector3::new(0.0, 0.0, -3.0 * 96.0);
     let axis = photostereo::nalgebra::Unit::new_normalize((truth - target).cross(&Vector3::z()));
     let turned = target
@@ -201,12 +206,7 @@ fn a_misplaced_near_light_is_named() {
     let r = report(&out);
     let check = &r["model"]["light_agreement"][0];
     assert_eq!(check["disagreeing"], serde_json::json!([4]), "{check}");
-    let p = &check["lights"][4]["position"];
-    let found = Vector3::new(
-        p[0].as_f64().unwrap(),
-        p[1].as_f64().unwrap(),
-        p[2].as_f64().unwrap(),
-    );
+    let found = vector(&check["lights"][4]["position"]);
     let back = (found - target).angle(&(truth - target)).to_degrees();
     println!(
         "light 5 turned 10°: named at {:.2}°, its position {back:.2}° from the truth",

@@ -344,7 +344,7 @@ pub(crate) fn measure(
 mod tests {
     use super::*;
     use crate::eval::metrics::angular_errors;
-    use crate::ps::test_support::{band, rendered_and_solved};
+    use crate::ps::test_support::{band, rendered_and_solved, sphere_for_bands};
     use crate::synth::reflectance::Material;
     use crate::synth::render::RenderOptions;
     use crate::synth::scene::{Albedo, SceneKind};
@@ -408,15 +408,9 @@ mod tests {
     /// level.
     #[test]
     fn bands_add_up_to_the_whole() {
-        let scene = SceneKind::Sphere.build(64, Albedo::Constant(0.7), Material::lambertian());
         let lights = Lights::fibonacci(12, 25.0).unwrap();
-        let options = RenderOptions {
-            noise_sigma: 0.005,
-            ambient: 0.05,
-            ..RenderOptions::default()
-        };
-        let (r, stack, sol) = rendered_and_solved(&scene, &lights, &lights, &options);
-        let mask = &r.truth.mask;
+        let (mask, stack, sol) = sphere_for_bands(&lights, 0.05);
+        let mask = &mask;
         let whole = measure(&stack, 0, &lights, mask, &sol);
         let split = |y0, y1| measure(&stack, 0, &lights, &band(mask, y0, y1), &sol);
         let (top, bottom) = (split(0, 30), split(30, 64));

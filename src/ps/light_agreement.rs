@@ -359,15 +359,16 @@ pub(crate) fn measure(
                 };
                 used.clear();
                 for (k, l) in dirs.iter().enumerate() {
-                    if n.dot(l) <= LIT || stack.is_saturated(k, p) {
-                        continue;
+                    let at = Sample {
+                        stack,
+                        channel,
+                        k,
+                        p,
+                        local,
+                    };
+                    if let Some(rel) = at.usable(&n, l, |v| v * f64::from(gains[k]) / rho) {
+                        used.push((k, rel, 1.0));
                     }
-                    let value = f64::from(stack.plane(k, channel)[local]) * f64::from(gains[k]);
-                    let rel = value / rho;
-                    if !(rel.is_finite() && rel > DARK && rel < BRIGHTEST) {
-                        continue;
-                    }
-                    used.push((k, rel, 1.0));
                 }
                 if used.len() < 4 {
                     continue;
@@ -494,19 +495,19 @@ pub(crate) fn measure_near(
                         };
                         dirs[k] = l;
                         falls[k] = fall;
-                        if fall.is_nan()
-                            || fall <= 0.0
-                            || n.dot(&l) <= LIT
-                            || stack.is_saturated(k, p)
-                        {
+                        if fall.is_nan() || fall <= 0.0 {
                             continue;
                         }
-                        let value = f64::from(stack.plane(k, channel)[local]);
-                        let rel = value / (fall * rho);
-                        if !(rel.is_finite() && rel > DARK && rel < BRIGHTEST) {
-                            continue;
+                        let at = Sample {
+                            stack,
+                            channel,
+                            k,
+                            p,
+                            local,
+                        };
+                        if let Some(rel) = at.usable(&n, &l, |v| v / (fall * rho)) {
+                            used.push((k, rel, 1.0));
                         }
-                        used.push((k, rel, 1.0));
                     }
                     if used.len() < 4 {
                         continue;
@@ -673,6 +674,37 @@ pub(crate) fn measure_near(
     out
 }
 
+/// Image `k`'s sample of pixel `p` (row-major; `local` its index in the stack's planes).
+struct Sample<'a> {
+    stack: &'a ImageStack,
+    channel: usize,
+    k: usize,
+    p: usize,
+    local: usize,
+}
+
+impl Sample<'_> {
+    /// The sample relative to what a unit albedo facing the light shows (`relative` of the
+    /// stored value: times the light's gain, over the pixel's albedo), where it is usable
+    /// against the solved normal `n` and the light's direction `l` (the module documentation's
+    /// usable samples): `None` where the surface faces away from the light, the sample is
+    /// saturated or not finite, or it is a cast shadow or a highlight.
+    fn usable(
+        &self,
+        n: &Vector3<f64>,
+        l: &Vector3<f64>,
+        relative: impl Fn(f64) -> f64,
+    ) -> Option<f64> {
+        if n.dot(l) <= LIT || self.stack.is_saturated(self.k, self.p) {
+            return None;
+        }
+        let rel = relative(f64::from(
+            self.stack.plane(self.k, self.channel)[self.local],
+        ));
+        (rel.is_finite() && rel > DARK && rel < BRIGHTEST).then_some(rel)
+    }
+}
+
 /// A pixel's fit without one of its samples (light `l`, relative brightness `rel`, weight `w`),
 /// from its weighted normal matrix `m` (determinant `det`), inverse `inv` and fit `fit`; `None`
 /// where the remaining lights barely span three dimensions or the fit does not face `l`.
@@ -755,7 +787,7 @@ fn robust_fit(
 mod tests {
     use super::*;
     use crate::capture::lights::Light;
-    use crate::ps::test_support::{band, rendered_and_solved};
+    use crate::ps::test_support::{band, rendered_and_solved, sphere_for_bands};
     use crate::synth::reflectance::{BlinnPhong, Material, Specular};
     use crate::synth::render::RenderOptions;
     use crate::synth::scene::{Albedo, SceneKind};
@@ -864,14 +896,9 @@ mod tests {
     /// are integers); with fewer than [`MIN_LIGHTS`] lights nothing is named.
     #[test]
     fn bands_add_up_to_the_whole_and_few_lights_name_none() {
-        let scene = SceneKind::Sphere.build(64, Albedo::Constant(0.7), Material::lambertian());
         let lights = Lights::fibonacci(12, 25.0).unwrap();
-        let options = RenderOptions {
-            noise_sigma: 0.005,
-            ..RenderOptions::default()
-        };
-        let (r, stack, sol) = rendered_and_solved(&scene, &lights, &lights, &options);
-        let mask = &r.truth.mask;
+        let (mask, stack, sol) = sphere_for_bands(&lights, 0.0);
+        let mask = &mask;
         let whole = measure(&stack, 0, &lights, mask, &sol);
         let split = |y0, y1| measure(&stack, 0, &lights, &band(mask, y0, y1), &sol);
         let mut sum = LightAgreement::default();
@@ -881,7 +908,7 @@ mod tests {
         assert!(whole.threshold_deg.is_some());
 
         let five = Lights::fibonacci(5, 25.0).unwrap();
-        let (_, stack, sol) = rendered_and_solved(&scene, &five, &five, &options);
+        let (_, stack, sol) = sphere_for_bands(&five, 0.0);
         let few = measure(&stack, 0, &five, mask, &sol);
         assert!(
             few.threshold_deg.is_none() && few.disagreeing.is_empty(),

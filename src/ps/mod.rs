@@ -71,6 +71,24 @@ pub(crate) mod test_support {
         (r, stack, sol)
     }
 
+    /// The band tests' scene: a 64² Lambertian sphere (albedo 0.7) under `lights`, noise
+    /// 0.005 and `ambient` room light, solved under those lights: its mask, stack and solution.
+    pub(crate) fn sphere_for_bands(
+        lights: &Lights,
+        ambient: f32,
+    ) -> (crate::grid::Mask, ImageStack, Solution) {
+        use crate::synth::reflectance::Material;
+        use crate::synth::scene::{Albedo, SceneKind};
+        let scene = SceneKind::Sphere.build(64, Albedo::Constant(0.7), Material::lambertian());
+        let options = RenderOptions {
+            noise_sigma: 0.005,
+            ambient,
+            ..RenderOptions::default()
+        };
+        let (r, stack, sol) = rendered_and_solved(&scene, lights, lights, &options);
+        (r.truth.mask, stack, sol)
+    }
+
     /// The pixels of `mask` in rows `y0..y1`: a band of a streamed run, on the whole grid.
     pub(crate) fn band(mask: &crate::grid::Mask, y0: usize, y1: usize) -> crate::grid::Mask {
         crate::grid::Grid::from_fn(mask.width(), mask.height(), |x, y| {
