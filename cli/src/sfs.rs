@@ -479,9 +479,20 @@ fn perspective(
     Ok(())
 }
 
-/// The line on how the normals beside the mask's outline agree with an occluding contour, when
-/// the method measured it.
+/// The lines on the mask's outline: where the image says it is no occluding contour, and how
+/// the normals beside it agree with one, when the method measured them.
 fn say_outline(rep: &photostereo::sfs::SfsReport) {
+    if let Some(t) = &rep.occluding
+        && t.contradicted > 0
+    {
+        say!(
+            "  outline test: {} of {} outline pixels brighter than an occluding contour can be \
+             ({:.0}%), left out of the convex start",
+            t.contradicted,
+            t.pixels,
+            100.0 * t.fraction
+        );
+    }
     if let Some(o) = &rep.outline {
         say!(
             "  outline: {:.0}% of {} pixels with normals more than {:.0}° from its outward \

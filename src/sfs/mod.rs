@@ -35,6 +35,7 @@ pub mod estimate;
 mod fast_marching;
 mod horn;
 mod line_search;
+pub mod occluding;
 pub mod outline_repair;
 pub mod perspective;
 pub(crate) mod pyramid;
@@ -261,6 +262,10 @@ pub struct SfsReport {
     pub outline: Option<OutlineAgreement>,
     /// What the outline repair did, when it was tried ([`outline_repair`]; Horn only).
     pub outline_repair: Option<outline_repair::OutlineRepair>,
+    /// The outline tested against the image before solving: where it is brighter than an
+    /// occluding contour can be ([`occluding`]; Horn under [`Boundary::Occluding`], when the
+    /// outline is inside the image and the image's noise could be measured).
+    pub occluding: Option<occluding::OccludingTest>,
 }
 
 /// Whether a result honours the occluding boundary it assumed: at an occluding contour the
@@ -300,13 +305,22 @@ pub(crate) fn outline_contradicted_warning(o: &OutlineAgreement, settled: &str) 
     )
 }
 
-/// [`OutlineAgreement`] of `normals` over the unknowns `u`; `None` when no unknown touches a
-/// pixel outside the mask inside the image.
-pub(crate) fn outline_agreement(u: &Unknowns, normals: &NormalMap) -> Option<OutlineAgreement> {
+/// [`OutlineAgreement`] of `normals` over the unknowns `u`, leaving out the unknowns flagged in
+/// `exclude` (per unknown, or empty: the outline's pixels that the image says are not on an
+/// occluding contour, [`occluding`]); `None` when no other unknown touches a pixel outside the
+/// mask inside the image.
+pub(crate) fn outline_agreement(
+    u: &Unknowns,
+    normals: &NormalMap,
+    exclude: &[bool],
+) -> Option<OutlineAgreement> {
     let (w, h) = (u.w, u.h);
     let inside = u.inside();
     let (mut pixels, mut sum, mut misaligned) = (0usize, 0.0, 0usize);
-    for &p in &u.pixel {
+    for (k, &p) in u.pixel.iter().enumerate() {
+        if exclude.get(k).copied().unwrap_or(false) {
+            continue;
+        }
         let (x, y) = ((p as usize % w) as i64, (p as usize / w) as i64);
         // Outward, x right and y up (rows run down).
         let (mut ox, mut oy) = (0.0f64, 0.0f64);
@@ -384,6 +398,23 @@ pub(crate) struct Shading<'a> {
     pub progress: &'a dyn crate::progress::Progress,
     /// A start surface given by the caller, per unknown (Horn only: [`shape_from_shading_from`]).
     pub start: Option<Vec<f64>>,
+    /// The margin of the test of the outline against the image ([`occluding`]), when the
+    /// method assumes the outline is an occluding contour; `None`: not tested.
+    pub occluding_tolerance: Option<f64>,
+}
+
+impl Shading<'_> {
+    /// The test of the outline against the image ([`occluding::test`]); untested (no summary,
+    /// nothing flagged) without [`Self::occluding_tolerance`].
+    pub(crate) fn outline(&self) -> occluding::Outline {
+        match self.occluding_tolerance {
+            Some(tolerance) => occluding::test(&self.u, &self.e, self.rmap, tolerance),
+            None => occluding::Outline {
+                summary: None,
+                contradicted: vec![false; self.u.len()],
+            },
+        }
+    }
 }
 
 /// What a solver returns, per unknown.
@@ -605,6 +636,13 @@ fn solve_image(
         })
         .collect();
     let shadow: Vec<bool> = e.iter().map(|&v| v <= options.shadow_level).collect();
+    // Horn's default boundary takes the outline for an occluding contour: tested against the
+    // image, three times its noise (over the albedo) above what a contour could show.
+    let occluding_tolerance = (options.method == SfsMethod::Horn
+        && options.boundary == Boundary::Occluding)
+        .then(|| crate::ps::noise::image_noise(image.data(), image.width(), mask).sigma)
+        .filter(|sigma| sigma.is_finite())
+        .map(|sigma| (3.0 * f64::from(sigma) / albedo).max(options.shadow_level));
     let shading = Shading {
         u,
         e,
@@ -613,6 +651,7 @@ fn solve_image(
         options,
         progress,
         start: z0,
+        occluding_tolerance,
     };
     let (solved, repair) = match options.method {
         SfsMethod::Horn => outline_repair::solve(&shading)?,
@@ -707,9 +746,24 @@ fn finish(
             solved.iterations
         ));
     }
+    let tested = s.outline();
+    if let Some(t) = tested.summary
+        && t.fraction > occluding::CONTRADICTED_WARN
+    {
+        warnings.push(format!(
+            "the mask's outline is not an occluding contour along {:.0}% of it ({} of {} \
+             pixels are brighter than a surface turning away from the view can be): there the \
+             mask cuts across the surface (a cut end, a foot on a table), nothing fixes the \
+             shape at that edge, and the result is probably wrong near it; the start was convex \
+             from the rest of the outline only",
+            100.0 * t.fraction,
+            t.contradicted,
+            t.pixels
+        ));
+    }
     let outline = (s.options.method == SfsMethod::Horn
         && s.options.boundary == Boundary::Occluding)
-        .then(|| outline_agreement(&s.u, &normals))
+        .then(|| outline_agreement(&s.u, &normals, &tested.contradicted))
         .flatten();
     if let Some(o) = outline
         && o.misaligned_fraction > OUTLINE_MISALIGNED_WARN
@@ -759,6 +813,7 @@ fn finish(
         refinement: None,
         outline,
         outline_repair: repair,
+        occluding: tested.summary,
     };
     Ok(SfsResult {
         depth,
@@ -774,8 +829,11 @@ fn finish(
 /// Euclidean distance from each unknown's centre to the nearest pixel centre outside the mask
 /// but inside the image (the image border is not an edge), minus ½ (the contour lies half-way):
 /// Felzenszwalb & Huttenlocher's separable exact transform ("Distance transforms of sampled
-/// functions", Theory of Computing 2012). `None` when no pixel of the image is outside the mask.
-pub(crate) fn distance_to_edge(u: &Unknowns) -> Option<Vec<f64>> {
+/// functions", Theory of Computing 2012). With unknowns flagged in `exclude` (per unknown, or
+/// empty), an outside pixel counts only when one of its eight neighbours is an unflagged
+/// unknown: the distance is to the rest of the outline (the flagged pixels are where the image
+/// says it is no occluding contour, [`occluding`]). `None` when no pixel counts.
+pub(crate) fn distance_to_edge(u: &Unknowns, exclude: &[bool]) -> Option<Vec<f64>> {
     let (w, h) = (u.w, u.h);
     let inside = u.inside();
     if inside.iter().all(|&b| b) {
@@ -783,6 +841,33 @@ pub(crate) fn distance_to_edge(u: &Unknowns) -> Option<Vec<f64>> {
     }
     const INF: f64 = 1e20;
     let mut f: Vec<f64> = inside.iter().map(|&b| if b { INF } else { 0.0 }).collect();
+    if exclude.iter().any(|&b| b) {
+        let mut kept = vec![false; w * h];
+        for (k, &p) in u.pixel.iter().enumerate() {
+            kept[p as usize] = !exclude[k];
+        }
+        let (wi, hi) = (w as i64, h as i64);
+        for y in 0..hi {
+            for x in 0..wi {
+                let q = (y * wi + x) as usize;
+                if inside[q] {
+                    continue;
+                }
+                let next_to_kept = (-1..=1).any(|dy: i64| {
+                    (-1..=1).any(|dx: i64| {
+                        let (a, b) = (x + dx, y + dy);
+                        (0..wi).contains(&a) && (0..hi).contains(&b) && kept[(b * wi + a) as usize]
+                    })
+                });
+                if !next_to_kept {
+                    f[q] = INF;
+                }
+            }
+        }
+        if f.iter().all(|&v| v == INF) {
+            return None;
+        }
+    }
     let mut column = vec![0.0; h];
     for x in 0..w {
         for y in 0..h {
@@ -940,17 +1025,20 @@ mod outline_tests {
     #[test]
     fn a_spheres_outline_agrees_and_a_turned_one_does_not() {
         let (u, n) = disc(sphere);
-        let a = outline_agreement(&u, &n).unwrap();
+        let a = outline_agreement(&u, &n, &[]).unwrap();
         assert!(a.pixels > 40, "{a:?}");
         assert_eq!(a.misaligned_fraction, 0.0, "{a:?}");
         assert!(a.mean_angle_deg < 15.0, "{a:?}");
         let (u, n) = disc(|x, y| sphere(-y, x));
-        let turned = outline_agreement(&u, &n).unwrap();
+        let turned = outline_agreement(&u, &n, &[]).unwrap();
         assert_eq!(turned.pixels, a.pixels);
         assert!(turned.misaligned_fraction > 0.95, "{turned:?}");
         assert!((turned.mean_angle_deg - 90.0).abs() < 15.0, "{turned:?}");
         let (u, n) = disc(|_, _| Vector3::z());
-        assert_eq!(outline_agreement(&u, &n).unwrap().misaligned_fraction, 1.0);
+        assert_eq!(
+            outline_agreement(&u, &n, &[]).unwrap().misaligned_fraction,
+            1.0
+        );
     }
 
     /// A mask that fills the image has no outline inside it: nothing is judged.
@@ -958,6 +1046,6 @@ mod outline_tests {
     fn the_image_border_is_not_an_outline() {
         let mask = Grid::new(20, 10, true);
         let normals = Grid::new(20, 10, Vector3::new(0.0f32, 0.0, 1.0));
-        assert!(outline_agreement(&Unknowns::new(&mask), &normals).is_none());
+        assert!(outline_agreement(&Unknowns::new(&mask), &normals, &[]).is_none());
     }
 }

@@ -59,10 +59,14 @@ pub struct OutlineRepair {
 }
 
 /// The outline agreement of a solver's result over the unknowns `u`.
-pub(crate) fn agreement(u: &Unknowns, solved: &Solved) -> Option<OutlineAgreement> {
+pub(crate) fn agreement(
+    u: &Unknowns,
+    solved: &Solved,
+    exclude: &[bool],
+) -> Option<OutlineAgreement> {
     match &solved.normals {
-        Some(v) => agreement_of(u, |k| v[k]),
-        None => agreement_of_gradients(u, &solved.p, &solved.q),
+        Some(v) => agreement_of(u, |k| v[k], exclude),
+        None => agreement_of_gradients(u, &solved.p, &solved.q, exclude),
     }
 }
 
@@ -71,17 +75,22 @@ pub(crate) fn agreement_of_gradients(
     u: &Unknowns,
     p: &[f64],
     q: &[f64],
+    exclude: &[bool],
 ) -> Option<OutlineAgreement> {
-    agreement_of(u, |k| normal_from_gradient(p[k], q[k]))
+    agreement_of(u, |k| normal_from_gradient(p[k], q[k]), exclude)
 }
 
 /// The outline agreement of the normals `normal(k)` of the unknowns `u`.
-fn agreement_of(u: &Unknowns, normal: impl Fn(usize) -> Vector3<f64>) -> Option<OutlineAgreement> {
+fn agreement_of(
+    u: &Unknowns,
+    normal: impl Fn(usize) -> Vector3<f64>,
+    exclude: &[bool],
+) -> Option<OutlineAgreement> {
     let mut normals: NormalMap = Grid::new(u.w, u.h, Vector3::repeat(f32::NAN));
     for (k, &pix) in u.pixel.iter().enumerate() {
         normals.data_mut()[pix as usize] = normal(k).cast::<f32>();
     }
-    outline_agreement(u, &normals)
+    outline_agreement(u, &normals, exclude)
 }
 
 /// Horn's result for `s`, repaired when it contradicts the occluding boundary (see the module
@@ -92,7 +101,8 @@ fn agreement_of(u: &Unknowns, normal: impl Fn(usize) -> Vector3<f64>) -> Option<
 pub(crate) fn solve(s: &Shading) -> Result<(Solved, Option<OutlineRepair>)> {
     let first = horn::solve(s)?;
     let occluding = s.options.boundary == super::Boundary::Occluding;
-    let Some(before) = agreement(&s.u, &first).filter(|_| occluding) else {
+    let cut = s.outline().contradicted;
+    let Some(before) = agreement(&s.u, &first, &cut).filter(|_| occluding) else {
         return Ok((first, None));
     };
     if before.misaligned_fraction <= super::OUTLINE_MISALIGNED_WARN
@@ -114,6 +124,7 @@ pub(crate) fn solve(s: &Shading) -> Result<(Solved, Option<OutlineRepair>)> {
         options: s.options,
         progress: s.progress,
         start: None,
+        occluding_tolerance: s.occluding_tolerance,
     };
     let Ok(second) = horn::solve(&shading) else {
         return Ok((
@@ -128,7 +139,7 @@ pub(crate) fn solve(s: &Shading) -> Result<(Solved, Option<OutlineRepair>)> {
         ));
     };
     let back = downsampled(s, &shading.u, &second);
-    let after = agreement(&s.u, &back);
+    let after = agreement(&s.u, &back, &cut);
     let kept = second.converged
         && after.is_some_and(|a| a.misaligned_fraction <= super::OUTLINE_MISALIGNED_WARN);
     let repair = OutlineRepair {

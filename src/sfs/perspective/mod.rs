@@ -1243,7 +1243,7 @@ fn solve_swept(
     // that took another branch turns them (the vase 40° off the axis: 18–70% misaligned at
     // 64²–128², over a quarter on 9 of 15, while every solution within 5° and 5% stayed at or
     // under 13%; the threshold is Horn's, chosen on its own solves).
-    let outline = outline_agreement(&all, &normals);
+    let outline = outline_agreement(&all, &normals, &[]);
     if let Some(o) = outline.filter(|o| o.misaligned_fraction > OUTLINE_MISALIGNED_WARN) {
         // From about 20° off the axis the rendered shapes begin to fail (2–4 of 25 at 20°,
         // 3–17 at 30°, 15–21 at 40°: docs/shape-from-shading.md), so the light is named then.
@@ -1282,6 +1282,7 @@ fn solve_swept(
         refinement,
         outline,
         outline_repair: None,
+        occluding: None,
     };
     let swept_size = coarse.unwrap_or((w, h));
     Ok((
