@@ -487,7 +487,7 @@ fn say_outline(rep: &photostereo::sfs::SfsReport) {
     {
         say!(
             "  outline test: {} of {} outline pixels brighter than an occluding contour can be \
-             ({:.0}%), left out of the convex start",
+             ({:.0}%)",
             t.contradicted,
             t.pixels,
             100.0 * t.fraction

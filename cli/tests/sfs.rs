@@ -416,9 +416,10 @@ fn bad_inputs_are_refused_with_the_parameter_named() {
 
 /// Horn's default boundary takes the mask's outline for an occluding contour. The image says
 /// where it is not one: on the vase, whose cut ends face the camera, the outline pixels brighter
-/// than an edge-on surface could be are counted (more than 5% of the outline, at least half the
-/// outline pixels whose true normal is more than 60° from edge-on, and none where it could be a
-/// silhouette's rim: no more than those more than 72.5° from it), the start leaves them
+/// than an edge-on surface could be are counted (more than 5% of the outline; in number at
+/// least half the outline pixels whose true normal is more than 60° from edge-on, and no more
+/// than those more than 72.5° from it, which no silhouette pixel here is: the report gives
+/// counts, not pixels), the start leaves them
 /// out, and the result warns; the silhouettes of the sphere and the bust contradict in at most
 /// 1% of their outline, and do not warn. A frame-filling surface under an oblique light has no
 /// contour at all, and says so; the `sfs` command prints the test.
@@ -1028,9 +1029,9 @@ fn horn_repeats_its_continuation_where_that_lowers_the_energy() {
 /// (Oren–Nayar σ = 0.4) surface or a small image it can settle on a surface that explains the
 /// image as well as the right one (its residual is as low) but turns the normals beside the
 /// outline away from it. Every solve more than 12° off must carry the warning (or, on the vase,
-/// the one that its outline is partly no occluding contour), and none within 6° of the truth
-/// the first; both kinds must occur, so the test cannot pass on one alone. A frame-filling
-/// surface has no outline inside the image, and is not judged.
+/// the one that its outline is partly no occluding contour, which no other shape may carry),
+/// and none within 6° of the truth the first; both kinds must occur, so the test cannot pass on
+/// one alone. A frame-filling surface has no outline inside the image, and is not judged.
 #[test]
 fn horn_warns_when_its_result_contradicts_the_occluding_boundary() {
     let rough = Material {
@@ -1094,6 +1095,14 @@ fn horn_warns_when_its_result_contradicts_the_occluding_boundary() {
                         .warnings
                         .iter()
                         .any(|w| w.contains("the mask's outline is not an occluding contour"));
+                    // The silhouettes of the other shapes (small, rough) are never taken for
+                    // cut ends.
+                    assert!(
+                        kind == SceneKind::Vase || !cut,
+                        "{} {size}²: {:?}",
+                        kind.name(),
+                        result.report.warnings
+                    );
                     if e > 12.0 {
                         wrong += 1;
                         assert!(

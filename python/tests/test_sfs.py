@@ -47,6 +47,22 @@ def test_a_sphere_under_an_oblique_light(sphere):
     assert r["light_source"] == "given" and r["albedo_source"] == "given"
 
 
+def test_horn_tells_a_cut_outline_from_a_silhouette(sphere):
+    # The report's "occluding" is the outline tested against the image before the solve: the
+    # sphere's silhouette contradicts an occluding contour nowhere; the vase's cut ends, which
+    # face the camera, do, and the solve warns (as the command does).
+    r = ps.sfs(sphere["images"][0], sphere["mask"], light=LIGHT, albedo=ALBEDO)
+    test = r["report"]["occluding"]
+    assert test["pixels"] > 100 and test["contradicted"] == 0
+    assert not any("not an occluding contour" in w for w in r["warnings"])
+    vase = ps.render("vase", SIZE, LIGHT[None, :], albedo=ALBEDO)
+    with pytest.warns(ps.PhotostereoWarning, match="not an occluding contour"):
+        r = ps.sfs(vase["images"][0], vase["mask"], light=LIGHT, albedo=ALBEDO)
+    test = r["report"]["occluding"]
+    print(f"vase: {test['contradicted']} of {test['pixels']} outline pixels contradicted")
+    assert test["fraction"] > 0.05
+
+
 def test_horn_coarse_to_fine_can_be_turned_off():
     # 192 px: the sphere keeps over 3000 pixels at half resolution, so by default Horn solves
     # it there first; coarse_to_fine=False solves at full resolution only. Both are accurate.

@@ -754,8 +754,7 @@ fn finish(
             "the mask's outline is not an occluding contour along {:.0}% of it ({} of {} \
              pixels are brighter than a surface turning away from the view can be): there the \
              mask cuts across the surface (a cut end, a foot on a table), nothing fixes the \
-             shape at that edge, and the result is probably wrong near it; the start was convex \
-             from the rest of the outline only",
+             shape at that edge, and the result is probably wrong near it",
             100.0 * t.fraction,
             t.contradicted,
             t.pixels
@@ -832,7 +831,9 @@ fn finish(
 /// functions", Theory of Computing 2012). With unknowns flagged in `exclude` (per unknown, or
 /// empty), an outside pixel counts only when one of its eight neighbours is an unflagged
 /// unknown: the distance is to the rest of the outline (the flagged pixels are where the image
-/// says it is no occluding contour, [`occluding`]). `None` when no pixel counts.
+/// says it is no occluding contour, [`occluding`]); a part of the mask whose whole outline is
+/// flagged then takes its distances from another part's, across the background. `None` when
+/// no pixel counts.
 pub(crate) fn distance_to_edge(u: &Unknowns, exclude: &[bool]) -> Option<Vec<f64>> {
     let (w, h) = (u.w, u.h);
     let inside = u.inside();
@@ -1047,5 +1048,44 @@ mod outline_tests {
         let mask = Grid::new(20, 10, true);
         let normals = Grid::new(20, 10, Vector3::new(0.0f32, 0.0, 1.0));
         assert!(outline_agreement(&Unknowns::new(&mask), &normals, &[]).is_none());
+    }
+}
+
+#[cfg(test)]
+mod distance_tests {
+    use super::*;
+
+    /// The distance to the mask's edge, and to the rest of it when part of the outline is
+    /// left out: a rectangle whose top row is excluded takes its distances from the sides and
+    /// the bottom (the top row's middle is then as far as the rectangle's half-width allows),
+    /// nothing excluded is the plain transform, and an outline wholly excluded leaves none.
+    #[test]
+    fn distance_to_the_rest_of_the_outline() {
+        let (w, h) = (14, 12);
+        let mut mask = Grid::new(w, h, false);
+        for y in 2..10 {
+            for x in 2..12 {
+                mask.data_mut()[y * w + x] = true;
+            }
+        }
+        let u = Unknowns::new(&mask);
+        let at = |d: &[f64], x: usize, y: usize| {
+            d[u.pixel
+                .iter()
+                .position(|&p| p as usize == y * w + x)
+                .unwrap()]
+        };
+        let plain = distance_to_edge(&u, &[]).unwrap();
+        assert_eq!(plain, distance_to_edge(&u, &vec![false; u.len()]).unwrap());
+        assert_eq!(at(&plain, 6, 2), 0.5);
+        assert_eq!(at(&plain, 6, 5), 3.5);
+        let top: Vec<bool> = u.pixel.iter().map(|&p| p as usize / w == 2).collect();
+        let rest = distance_to_edge(&u, &top).unwrap();
+        // Column 6 of the top row: 5 from column 1 (outside, next to the kept left side), 6
+        // from column 12, 8 from row 10, less ½; not ½ from row 1 above it.
+        assert_eq!(at(&rest, 6, 2), 4.5);
+        assert_eq!(at(&rest, 6, 9), 0.5);
+        assert_eq!(at(&rest, 2, 5), 0.5);
+        assert!(distance_to_edge(&u, &vec![true; u.len()]).is_none());
     }
 }

@@ -6,14 +6,15 @@
 //! mask was cut across the surface: the cut ends of a vase, an object's foot standing on a
 //! table, a region drawn by hand. There the convex start is wrong, and nothing else tells the
 //! solver so: on the rendered vase of `bench sfs` every Horn solve at 128² was more than 5° or
-//! 5% off the truth, and none warned (docs/shape-from-shading.md, "Is the outline an occluding
-//! contour?").
+//! 5% off the truth, and 2 of the 11 warned (docs/shape-from-shading.md, "Is the outline an
+//! occluding contour?").
 //!
 //! The image can say where the assumption fails. At an occluding contour the normal lies in the
 //! image plane, along the outline's outward direction m: n = (m, 0). A pixel of the outline
 //! lies within about a pixel of the contour, so its normal is n(t) = (√(1 − t²) m, t) for a
 //! small t = n_z: at a distance δ inside a contour of curvature radius r (pixels),
-//! t ≈ √(2δ/r), at most [`MAX_RIM_NZ`] = ½ for δ ≤ 1 wherever r ≥ 8 px. A surface turning
+//! t ≈ √(2δ/r), at most [`MAX_RIM_NZ`] = ½ for δ ≤ √2 (a pixel whose only outside neighbour
+//! is diagonal) wherever r ≥ 8δ ≈ 11 px. A surface turning
 //! away from the view therefore cannot make an outline pixel brighter than the largest
 //! R(n(t)) over t ≤ ½. An outline pixel brighter than that, by more than the image's noise
 //! allows, contradicts the occluding contour: the surface there faces the camera more than 60°
@@ -21,15 +22,21 @@
 //! is also what an albedo set too high gives, while a brighter one needs an albedo more than
 //! 20% too low before a silhouette fails it (measured below).
 //!
-//! Measured on rendered scenes (128², Lambertian, albedo 0.8, lights at the view and 20°–30° off
-//! it at five azimuths; the outward direction from the outside pixels within two pixels): the
+//! Measured with a prototype of this test on rendered scenes (128², Lambertian, albedo 0.8,
+//! seven lights: at the view, and 20°–30° off it at azimuths 26.6°–300°; the outward direction
+//! from the outside pixels within two pixels): the
 //! silhouettes of the sphere, ellipsoid and bust contradict in no pixel, with the albedo given
 //! or set 10% off either way, with noise σ = 0 or 0.02; with the albedo 20% too low the bust
 //! reaches 4.5% of its outline. The vase's cut ends, a quarter of its outline, contradict in
 //! 6–24% of it (fewest under a light from below, where the cut ends are darker). So a result is
 //! reported as resting on a wrong boundary above [`CONTRADICTED_WARN`] (5%) of the outline.
 //!
-//! Fails where: a contour of curvature radius under 8 px (a rod thinner than 16 px) may
+//! Not tested: Horn's lower-resolution levels and the outline repair's upsampled image (their
+//! outline pixels lie further inside the contour, or blend brighter pixels), which use the
+//! full-resolution result; an outline pixel whose offsets to the outside cancel (a one-pixel
+//! spur) has no outward direction and counts as a contour.
+//!
+//! Fails where: a contour of curvature radius under about 11 px (a rod thinner than 22 px) may
 //! contradict it; a cut end that happens to be no brighter than a contour (lit from below, or
 //! by a very oblique light) passes it; the albedo must be known within about 20%.
 
@@ -46,7 +53,8 @@ pub const MAX_RIM_NZ: f64 = 0.5;
 pub const CONTRADICTED_WARN: f64 = 0.05;
 
 /// Radius (pixels) of the window whose outside pixels give an outline pixel's outward
-/// direction: one pixel's eight neighbours resolve directions 45° apart, and a wrong direction
+/// direction (the offsets with dx² + dy² ≤ 6: the 5×5 square without its corners): one pixel's
+/// eight neighbours resolve directions 45° apart, and a wrong direction
 /// lowers the brightest edge-on normal the test allows (2 px: the silhouettes above contradict
 /// in at most 3.6% of their outline with the albedo 12% too high and the eight neighbours, in
 /// none with this window).
