@@ -1369,7 +1369,8 @@ impl From<SfsMethodArg> for photostereo::sfs::SfsMethod {
 /// What the mask's edge is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum BoundaryArg {
-    /// An occluding contour.
+    /// An occluding contour, except where the image shows it is none (brighter than a surface
+    /// turning away can be: a cut end, a foot on a table), which is reported
     Occluding,
     /// No information.
     Free,

@@ -520,7 +520,9 @@ def sfs(
     ``albedo`` the surface's; either one left out is estimated from the image (Zheng and
     Chellappa 1991: a Lambertian surface with sphere-like normals assumed), and a reflectance
     other than Lambert's needs both. ``boundary``: ``"occluding"`` (the mask's edge is an
-    occluding contour) or ``"free"``; ``smoothness``: Horn's final weight (1e-4);
+    occluding contour, except where the image shows it is none: brighter than a surface turning
+    away can be, as at a cut end; the report's "occluding" counts those pixels, and above 5% of
+    the outline a warning says so) or ``"free"``; ``smoothness``: Horn's final weight (1e-4);
     ``shadow_level``: pixels darker than this fraction of the albedo are in shadow (0.01);
     ``coarse_to_fine``: ``"horn"`` first solves the image's 2 x 2 block means where the mask
     keeps 3000 pixels at half resolution (the command's ``--single-resolution`` is

@@ -160,7 +160,9 @@ impl SfsMethod {
 #[serde(rename_all = "kebab-case")]
 pub enum Boundary {
     /// The mask's edge is an occluding contour (the surface turns away from the camera there):
-    /// Horn's method starts from a convex surface over the mask, rising steeply from its edge.
+    /// Horn's method starts from a convex surface over the mask, rising steeply from its edge;
+    /// where the image shows that the edge is none (brighter than an edge-on surface can be,
+    /// [`occluding`]), the start rises from the rest of it, and the result warns.
     #[default]
     Occluding,
     /// No information: the surface simply continues beyond the mask; Horn's method starts from
