@@ -311,12 +311,7 @@ fn a_misplaced_near_light_is_named_and_the_right_ones_are_not() {
             let centre_angle =
                 |a: Vector3<f64>, b: Vector3<f64>| (a - target).angle(&(b - target)).to_degrees();
             let back = centre_angle(Vector3::new(p[0], p[1], p[2]), truth);
-            let worst = right
-                .lights
-                .iter()
-                .flatten()
-                .map(|f| f.disagreement_deg)
-                .fold(0.0, f64::max);
+            let worst = right.largest_deg();
             println!(
                 "{} at {sizes} sizes: right worst {worst:.2}° (threshold {:.2}°); light 6 turned 10°: {:.2}° (threshold {:.2}°), fitted position {back:.2}° from the truth",
                 kind.name(),

@@ -1110,11 +1110,8 @@ fn horn_warns_when_its_result_contradicts_the_occluding_boundary() {
                         .unwrap()
                         .mean_deg;
                     let outline = result.report.outline.expect("an outline inside the image");
-                    let warned = result
-                        .report
-                        .warnings
-                        .iter()
-                        .any(|w| w.contains("contradicts the occluding boundary"));
+                    let says = |what: &str| result.report.warnings.iter().any(|w| w.contains(what));
+                    let warned = says("contradicts the occluding boundary");
                     println!(
                         "{} {size}², {slant}°, {}: {e:.1}°, outline mean {:.1}°, {:.0}% misaligned{}",
                         kind.name(),
@@ -1130,11 +1127,7 @@ fn horn_warns_when_its_result_contradicts_the_occluding_boundary() {
                     // The vase's cut ends are no occluding contour: the image says so before the
                     // solve (`horn_says_where_its_boundary_assumption_fails`), and those pixels
                     // are left out of the agreement; that warning covers a wrong result too.
-                    let cut = result
-                        .report
-                        .warnings
-                        .iter()
-                        .any(|w| w.contains("the mask's outline is not an occluding contour"));
+                    let cut = says("the mask's outline is not an occluding contour");
                     // The silhouettes of the other shapes (small, rough) are never taken for
                     // cut ends.
                     assert!(

@@ -158,6 +158,15 @@ pub(crate) struct LightAgreementSums {
 }
 
 impl LightAgreement {
+    /// The largest disagreement over the fitted lights, degrees (0 with none fitted).
+    pub fn largest_deg(&self) -> f64 {
+        self.lights
+            .iter()
+            .flatten()
+            .map(|f| f.disagreement_deg)
+            .fold(0.0, f64::max)
+    }
+
     /// Its sums, to be added to another part's.
     pub(crate) fn sums(&self) -> LightAgreementSums {
         LightAgreementSums {
@@ -842,12 +851,7 @@ mod tests {
             for (name, material) in [("matte", Material::lambertian()), ("glossy", glossy)] {
                 for count in [12, 24] {
                     let (right, _) = checked(kind, material, count, |t| t.to_vec());
-                    let worst = right
-                        .lights
-                        .iter()
-                        .flatten()
-                        .map(|f| f.disagreement_deg)
-                        .fold(0.0, f64::max);
+                    let worst = right.largest_deg();
                     let (wrong, truth) = checked(kind, material, count, |t| {
                         let mut v = t.to_vec();
                         v[5] = turned(&v[5], 10.0);
