@@ -411,23 +411,22 @@ impl fmt::Display for Warning {
                     .iter()
                     .take(LISTED_IMAGES)
                     .map(|(k, deg, d)| {
-                        if *positions {
-                            format!(
-                                "{} ({deg:.1}° off: position ({:.4}, {:.4}, {:.4}))",
-                                k + 1,
-                                d[0],
-                                d[1],
-                                d[2]
-                            )
+                        // A position in the lights' units gets a digit more than a unit vector.
+                        let (label, digits) = if *positions {
+                            ("position ", 4)
                         } else {
-                            format!(
-                                "{} ({deg:.1}° off: ({:.3}, {:.3}, {:.3}))",
-                                k + 1,
-                                d[0],
-                                d[1],
-                                d[2]
-                            )
-                        }
+                            ("", 3)
+                        };
+                        format!(
+                            "{} ({deg:.1}° off: {label}({:.*}, {:.*}, {:.*}))",
+                            k + 1,
+                            digits,
+                            d[0],
+                            digits,
+                            d[1],
+                            digits,
+                            d[2]
+                        )
                     })
                     .collect();
                 let (what, seen) = if *positions {
