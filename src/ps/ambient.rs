@@ -183,15 +183,11 @@ impl ShadowLight {
         Some(())
     }
 
-    /// Adds another band's counts and updates the level and bias.
+    /// Adds another band's counts and updates the level and bias: [`Self::try_add`], whose
+    /// overflow the bands of one capture in memory cannot reach; were it reached, the total
+    /// would stay as it was.
     pub(crate) fn add(&mut self, other: &ShadowLight) {
-        self.pixels += other.pixels;
-        for (a, b) in self.histogram.iter_mut().zip(&other.histogram) {
-            *a += b;
-        }
-        self.lever.0 += other.lever.0;
-        self.lever.1 += other.lever.1;
-        self.finish();
+        let _ = self.try_add(other);
     }
 
     /// The level (the histogram's median, at its bin's centre), its standard error and the

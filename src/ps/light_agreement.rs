@@ -247,19 +247,11 @@ impl LightAgreement {
         &self.given
     }
 
-    /// Adds another band's sums and updates the fits.
+    /// Adds another band's sums and updates the fits: [`Self::try_add`], whose overflow the
+    /// bands of one capture cannot reach (its pixel count bounds every sum far below i128's
+    /// range); were it reached, the total would stay as it was.
     pub(crate) fn add(&mut self, other: &LightAgreement) {
-        if self.sums.is_empty() {
-            self.sums = vec![([0; 9], 0); other.sums.len()];
-            self.given.clone_from(&other.given);
-        }
-        for (a, b) in self.sums.iter_mut().zip(&other.sums) {
-            for (x, y) in a.0.iter_mut().zip(&b.0) {
-                *x += y;
-            }
-            a.1 += b.1;
-        }
-        self.finish();
+        let _ = self.try_add(other);
     }
 
     /// The fits from the sums, then the median, the threshold and the lights named.
