@@ -21,10 +21,14 @@ integrates them with the library's solver); pixels a tile could not solve keep t
 (``photostereo.STATUS``) and NaN normals.
 
 What is judged over the whole capture is judged over all the tiles: the light left in the
-attached shadows and each light against the others (a wrong row of the lights). Each tile
-returns its counts and sums, which add up to the whole's (the lights' check reads every
-fourth column of a tile: the whole's columns where the tile side is a multiple of 4, as the
-default is); ``maps["checks"]`` adds them, and
+attached shadows and each light against the others (a wrong row of the lights), and the
+counts the warnings give (saturated and non-finite samples, pixels left without a normal).
+Each tile returns its counts and sums, which add up to the whole's (the lights' check reads
+every fourth column of a tile: the whole's columns where the tile side is a multiple of 4, as
+the default is; saturated samples are counted in the bounding box of each tile's part of the
+mask, the whole solve's in that of the whole mask), and the warnings about the capture as a
+whole (lights behind the surface, corrected intensities), said once; ``maps["checks"]`` adds
+them, and
 :func:`compute` computes the maps and the checks in one pass over the tiles and warns as
 :func:`photostereo.solve` does:
 
@@ -190,6 +194,7 @@ def _add_checks(texts: np.ndarray, ambient_subtracted: bool) -> np.ndarray:
     out[0, 0] = {
         "shadow_light": json.loads(r["shadow_light"]),
         "light_agreement": json.loads(r["light_agreement"]),
+        "counts": json.loads(r["counts"]),
         "warnings": list(r["warnings"]),
     }
     return out
@@ -229,7 +234,8 @@ def solve(
         (bool), ``solved`` (bool); ``models`` (the models used, a list of dicts); and
         ``checks``, a 1 x 1 object array whose element is the capture-wide checks added over
         the tiles: a dict with ``shadow_light`` and ``light_agreement`` (as
-        ``model_summary``'s of :func:`photostereo.solve`) and ``warnings`` (their sentences).
+        ``model_summary``'s of :func:`photostereo.solve`), ``counts`` (the pixel outcomes) and
+        ``warnings`` (every warning of the tiles added up: see :func:`compute`).
         Compute it in the same call as the maps (:func:`compute`, or ``dask.compute`` of the
         arrays), or the tiles are solved twice.
     """
@@ -325,7 +331,10 @@ def compute(maps: Dict[str, Any], **kwargs: Any) -> Dict[str, Any]:
 
     Returns:
         The maps as numpy arrays, ``models``, ``model_summary`` (``shadow_light`` and
-        ``light_agreement``, as :func:`photostereo.solve`'s) and ``warnings``.
+        ``light_agreement``, as :func:`photostereo.solve`'s), ``counts`` (the pixel outcomes
+        over all the tiles, as :func:`photostereo.solve`'s) and ``warnings`` (what the
+        single-process solve without hole filling warns of, but the integrability check:
+        see the module's documentation).
     """
     keys = [k for k, v in maps.items() if isinstance(v, da.Array) and k != "checks"]
     *values, checks = dask.compute(*[maps[k] for k in keys], maps["checks"], **kwargs)
@@ -336,6 +345,7 @@ def compute(maps: Dict[str, Any], **kwargs: Any) -> Dict[str, Any]:
         "shadow_light": checks["shadow_light"],
         "light_agreement": checks["light_agreement"],
     }
+    out["counts"] = checks["counts"]
     out["warnings"] = checks["warnings"]
     for w in checks["warnings"]:
         _warnings.warn(w, _ps.PhotostereoWarning, stacklevel=2)

@@ -467,7 +467,9 @@ fn json<T: serde::Serialize>(v: &T) -> PyRes<String> {
 }
 
 /// The capture-wide checks of the parts of one solve (each a solve's `checks` text), added:
-/// the shadow light and the lights' agreement as JSON text, and the warnings they give.
+/// the shadow light, the lights' agreement and the pixel outcome counts as JSON text, and every
+/// warning the parts give the whole solve (the counts' and the capture's as well as the
+/// checks').
 #[pyfunction]
 #[pyo3(signature = (parts, ambient_subtracted=false))]
 fn add_checks<'py>(
@@ -486,12 +488,8 @@ fn add_checks<'py>(
     let out = PyDict::new(py);
     out.set_item("shadow_light", json(&total.shadow_light)?)?;
     out.set_item("light_agreement", json(&total.light_agreement)?)?;
-    let warnings: Vec<String> = total
-        .warnings(ambient_subtracted)
-        .iter()
-        .map(|w| w.to_string())
-        .collect();
-    out.set_item("warnings", warnings)?;
+    out.set_item("counts", json(&total.counts.samples.pixels)?)?;
+    out.set_item("warnings", total.sentences(ambient_subtracted))?;
     Ok(out)
 }
 
@@ -542,6 +540,8 @@ fn solve<'py>(
         Ok::<_, LibError>((recon, models))
     });
     let (recon, models) = lib(recon)?;
+    // Before the maps are moved out: the counts are read from the whole run.
+    let checks = CaptureChecks::of_run(&recon).to_json();
     let maps = recon.maps;
     let out = PyDict::new(py);
     out.set_item("normals", normals_to_array(&maps.normals).into_pyarray(py))?;
@@ -577,7 +577,7 @@ fn solve<'py>(
     out.set_item("counts", json(&recon.counts)?)?;
     out.set_item("integrability", json(&recon.integrability)?)?;
     out.set_item("model_summary", json(&recon.model)?)?;
-    out.set_item("checks", CaptureChecks::of(&recon.model).to_json())?;
+    out.set_item("checks", checks)?;
     let warnings: Vec<String> = recon.warnings.iter().map(|w| w.to_string()).collect();
     out.set_item("warnings", warnings)?;
     let list = PyList::empty(py);

@@ -10,6 +10,15 @@
 //! and added ([`CaptureChecks::add`]); the total then says what the whole capture's solve would
 //! ([`CaptureChecks::warnings`]).
 //!
+//! The other warnings of a run go with them ([`PartCounts`]): the counts of saturated and
+//! non-finite samples and of the pixels left without a normal add up over the parts too, and
+//! the warnings about the capture as a whole (the images' encoding, lights behind the surface,
+//! corrected intensities), which every part gives alike, are carried as their sentences and said
+//! once ([`CaptureChecks::sentences`]). Not carried: the integrability check (its median |curl|
+//! needs the assembled map's neighbours across the parts), and saturated samples outside every
+//! part's mask (each part reads the bounding box of its own mask, the whole run that of the whole
+//! mask).
+//!
 //! The sums are integers (counts, and fixed-point totals of each row's floating-point sums), so
 //! the order in which the parts are added does not change the result. Row bands add up to the
 //! whole bit for bit; tiles split rows, and then each part of a row is rounded to the fixed
@@ -23,8 +32,8 @@
 use crate::error::{Error, Result};
 use crate::ps::ambient::{ShadowLight, ShadowLightCounts};
 use crate::ps::light_agreement::{LightAgreement, LightAgreementSums};
-use crate::run::pipeline::ModelSummary;
-use crate::run::warnings::{Warning, of_checks};
+use crate::run::pipeline::{ModelSummary, Reconstruction};
+use crate::run::warnings::{SampleCounts, Warning, of_checks, of_counts};
 use serde::{Deserialize, Serialize};
 
 /// The capture-wide checks of a solve or of a part of one, one measurement per solved channel.
@@ -34,6 +43,102 @@ pub struct CaptureChecks {
     pub shadow_light: Vec<ShadowLight>,
     /// Each light checked against the others, per channel.
     pub light_agreement: Vec<LightAgreement>,
+    /// What the part adds to the run's other warnings.
+    pub counts: PartCounts,
+}
+
+/// What a part of a run adds to the run's warnings besides its checks: the counts that add up
+/// over the parts, and the warnings about the capture as a whole, which every part gives alike,
+/// as sentences (in the report's order: before the counts', after them, and after the checks').
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct PartCounts {
+    /// Sample and pixel counts.
+    pub samples: SampleCounts,
+    /// Pixels with an albedo above 1 (counted where the albedo is normalised, 0 elsewhere).
+    pub albedo_above_one: usize,
+    /// Warnings about the images and the lights: their encoding, lights behind the surface,
+    /// positioned lights.
+    pub inputs: Vec<String>,
+    /// Warnings about the capture-wide model: the light intensities.
+    pub model: Vec<String>,
+    /// Warnings of the later stages (interreflections, near lights, integration).
+    pub later: Vec<String>,
+}
+
+impl PartCounts {
+    /// The counts of a finished run (of the whole capture or of a part), and its warnings about
+    /// the capture as a whole.
+    pub fn of(run: &Reconstruction) -> Self {
+        let mut c = PartCounts {
+            samples: SampleCounts {
+                pixels: run.counts,
+                ..SampleCounts::default()
+            },
+            ..PartCounts::default()
+        };
+        for w in &run.warnings {
+            match w {
+                Warning::Saturated { samples, used } => {
+                    c.samples.saturated += samples;
+                    c.samples.saturated_used |= used;
+                }
+                Warning::NonFinite { samples } => c.samples.non_finite += samples,
+                Warning::Unsolved { no_mask, .. } => c.samples.no_mask |= no_mask,
+                Warning::AlbedoAboveOne { pixels } => c.albedo_above_one += pixels,
+                // From the pixel counts, the checks' sums, or (the integrability check) not
+                // carried.
+                Warning::Filled { .. }
+                | Warning::ShadowLight { .. }
+                | Warning::LightsDisagree { .. }
+                | Warning::PoorIntegrability { .. } => {}
+                Warning::SrgbDecoded { .. }
+                | Warning::LightsBehind { .. }
+                | Warning::NearLights { .. }
+                | Warning::Lossy { .. } => c.inputs.push(w.to_string()),
+                Warning::IntensitiesCorrected { .. } | Warning::IntensitiesNotApplied { .. } => {
+                    c.model.push(w.to_string())
+                }
+                Warning::NearNotConverged { .. }
+                | Warning::InterreflectionScaleAtLimit
+                | Warning::IntegrationNotConverged { .. }
+                | Warning::WithoutNormal { .. }
+                | Warning::DepthOffsetsGuessed { .. } => c.later.push(w.to_string()),
+            }
+        }
+        c
+    }
+
+    /// Adds another part's counts, and its sentences that this one does not hold yet; `None`
+    /// (and `self` unchanged) when a count overflows.
+    fn try_add(&mut self, other: &PartCounts) -> Option<()> {
+        let mut samples = self.samples;
+        samples.try_add(&other.samples)?;
+        let albedo_above_one = self.albedo_above_one.checked_add(other.albedo_above_one)?;
+        self.samples = samples;
+        self.albedo_above_one = albedo_above_one;
+        for (mine, theirs) in [
+            (&mut self.inputs, &other.inputs),
+            (&mut self.model, &other.model),
+            (&mut self.later, &other.later),
+        ] {
+            for text in theirs {
+                if !mine.contains(text) {
+                    mine.push(text.clone());
+                }
+            }
+        }
+        Some(())
+    }
+
+    /// Whether the pixel counts add up (each pixel of the mask has one outcome).
+    fn consistent(&self) -> bool {
+        let p = &self.samples.pixels;
+        [p.too_few_samples, p.ill_conditioned, p.dark, p.filled]
+            .iter()
+            .try_fold(p.solved, |sum, &n| sum.checked_add(n))
+            == Some(p.masked)
+            && self.albedo_above_one <= p.masked
+    }
 }
 
 /// The text form: the counts and sums themselves.
@@ -41,12 +146,14 @@ pub struct CaptureChecks {
 struct Parts {
     shadow_light: Vec<ShadowLightCounts>,
     light_agreement: Vec<LightAgreementSums>,
+    counts: PartCounts,
 }
 
 impl CaptureChecks {
-    /// The checks of a finished solve (of the whole capture or of a part). The lights' check
-    /// of a near-light solve is of the whole image only (it holds positions fitted in
-    /// several passes, not sums) and is left out.
+    /// The checks of a finished solve (of the whole capture or of a part), without its counts
+    /// ([`CaptureChecks::of_run`] has them). The lights' check of a near-light solve is of the
+    /// whole image only (it holds positions fitted in several passes, not sums) and is left
+    /// out.
     pub fn of(model: &ModelSummary) -> Self {
         CaptureChecks {
             shadow_light: model.shadow_light.clone(),
@@ -56,6 +163,16 @@ impl CaptureChecks {
                 .filter(|a| !a.is_near())
                 .cloned()
                 .collect(),
+            counts: PartCounts::default(),
+        }
+    }
+
+    /// The checks of a finished run (of the whole capture or of a part) and its counts
+    /// ([`PartCounts::of`]).
+    pub fn of_run(run: &Reconstruction) -> Self {
+        CaptureChecks {
+            counts: PartCounts::of(run),
+            ..CaptureChecks::of(&run.model)
         }
     }
 
@@ -64,6 +181,7 @@ impl CaptureChecks {
         let parts = Parts {
             shadow_light: self.shadow_light.iter().map(|s| s.counts()).collect(),
             light_agreement: self.light_agreement.iter().map(|a| a.sums()).collect(),
+            counts: self.counts.clone(),
         };
         // Plain data (integers, floats, vectors): serialising it cannot fail.
         serde_json::to_string(&parts).unwrap_or_default()
@@ -90,21 +208,36 @@ impl CaptureChecks {
             .map(LightAgreement::from_sums)
             .collect::<Option<Vec<_>>>()
             .ok_or_else(|| bad("light sums that do not match the lights".into()))?;
+        if !parts.counts.consistent() {
+            return Err(bad("pixel counts that do not add up to the mask's".into()));
+        }
         Ok(CaptureChecks {
             shadow_light,
             light_agreement,
+            counts: parts.counts,
         })
     }
 
-    /// Adds the checks of another part of the same capture (solved with the same lights and
-    /// colour channels). A part with no checks at all (no solved pixel, nothing measured) adds
-    /// nothing.
+    /// Adds the checks and counts of another part of the same capture (solved with the same
+    /// lights and colour channels). A part with no checks at all (no solved pixel, nothing
+    /// measured) adds its counts only.
     pub fn add(&mut self, other: &CaptureChecks) -> Result<()> {
+        let overflow = || {
+            Error::param(
+                "checks",
+                "the parts' counts overflow: more parts than one capture can have",
+            )
+        };
+        let mut counts = self.counts.clone();
+        counts.try_add(&other.counts).ok_or_else(overflow)?;
         if other.shadow_light.is_empty() && other.light_agreement.is_empty() {
+            self.counts = counts;
             return Ok(());
         }
         if self.shadow_light.is_empty() && self.light_agreement.is_empty() {
-            self.clone_from(other);
+            self.shadow_light.clone_from(&other.shadow_light);
+            self.light_agreement.clone_from(&other.light_agreement);
+            self.counts = counts;
             return Ok(());
         }
         if self.shadow_light.len() != other.shadow_light.len()
@@ -151,12 +284,6 @@ impl CaptureChecks {
             }
         }
         // Into a copy, so that a failed addition leaves the total as it was.
-        let overflow = || {
-            Error::param(
-                "checks",
-                "the parts' counts overflow: more parts than one capture can have",
-            )
-        };
         let mut sum = self.clone();
         for (a, b) in sum.shadow_light.iter_mut().zip(&other.shadow_light) {
             a.try_add(b).ok_or_else(overflow)?;
@@ -164,6 +291,7 @@ impl CaptureChecks {
         for (a, b) in sum.light_agreement.iter_mut().zip(&other.light_agreement) {
             a.try_add(b).ok_or_else(overflow)?;
         }
+        sum.counts = counts;
         *self = sum;
         Ok(())
     }
@@ -177,6 +305,31 @@ impl CaptureChecks {
             ambient_subtracted,
         )
     }
+
+    /// Every warning the parts give the whole run, as its report says them and in its order:
+    /// those about the images and lights, the sample and pixel counts', the intensities',
+    /// the checks' ([`CaptureChecks::warnings`]), albedo above 1, and the later stages'.
+    pub fn sentences(&self, ambient_subtracted: bool) -> Vec<String> {
+        let c = &self.counts;
+        let mut out = c.inputs.clone();
+        out.extend(of_counts(&c.samples).iter().map(|w| w.to_string()));
+        out.extend(c.model.iter().cloned());
+        out.extend(
+            self.warnings(ambient_subtracted)
+                .iter()
+                .map(|w| w.to_string()),
+        );
+        if c.albedo_above_one > 0 {
+            out.push(
+                Warning::AlbedoAboveOne {
+                    pixels: c.albedo_above_one,
+                }
+                .to_string(),
+            );
+        }
+        out.extend(c.later.iter().cloned());
+        out
+    }
 }
 
 #[cfg(test)]
@@ -188,6 +341,106 @@ mod tests {
     use crate::synth::render::RenderOptions;
     use crate::synth::scene::{Albedo, SceneKind};
     use nalgebra::Vector3;
+
+    /// A capture whose first six images are 15% dimmer than their lights say, with a row of
+    /// saturated samples in another and pixels lit by two lights only, solved whole and in 16² tiles (parts of the arrays, under
+    /// the whole's models, as `photostereo.dask` solves them): the tiles' checks and counts,
+    /// written as text, read back and added, give the whole run's warnings sentence for
+    /// sentence (all but the integrability check's, which is not carried), and its pixel
+    /// counts; a tile whose text says more pixels have an outcome than its mask holds is
+    /// refused.
+    #[test]
+    fn tiles_added_give_the_whole_runs_warnings() {
+        use crate::capture::Capture;
+        use crate::capture::stack::LoadOptions;
+        use crate::progress::Silent;
+        use crate::run::pipeline::{Config, estimate_models, reconstruct_normals_with_models};
+        use ndarray::{Array3, Axis, s};
+        let n = 48;
+        let scene = SceneKind::Sphere.build(n, Albedo::Constant(0.6), Material::lambertian());
+        let lights = Lights::fibonacci(16, 35.0).unwrap();
+        let options = RenderOptions {
+            noise_sigma: 0.003,
+            seed: 9,
+            ..RenderOptions::default()
+        };
+        let r = crate::synth::render::render(&scene, &lights, &options).unwrap();
+        let level = 0.7;
+        let mut images = Array3::from_shape_fn((16, n, n), |(k, y, x)| {
+            let v = *r.images[k][0].at(x, y) * if k < 6 { 0.85 } else { 1.0 };
+            v.min(level)
+        });
+        for k in 2..16 {
+            for (y, x) in [(20, 20), (21, 20), (30, 12)] {
+                images[[k, y, x]] = 0.0;
+            }
+        }
+        for x in 10..40 {
+            images[[9, 24, x]] = level;
+        }
+        let mask = ndarray::Array2::from_shape_fn((n, n), |(y, x)| *r.truth.mask.at(x, y));
+        let load = LoadOptions {
+            saturation: Some(level),
+            ..LoadOptions::default()
+        };
+        let mut config = Config {
+            integration: None,
+            ..Config::default()
+        };
+        config.solve.fill = false;
+        let whole =
+            Capture::from_arrays(images.view(), lights.clone(), Some(mask.view()), &load).unwrap();
+        let models = estimate_models(&whole, &config).unwrap();
+        let run = reconstruct_normals_with_models(&whole, &config, Some(&models), &Silent).unwrap();
+        let said: Vec<String> = run
+            .warnings
+            .iter()
+            .filter(|w| !matches!(w, Warning::PoorIntegrability { .. }))
+            .map(|w| w.to_string())
+            .collect();
+        for kind in [" saturated samples", "pixels have no normal", "intensit"] {
+            assert!(said.iter().any(|w| w.contains(kind)), "{kind}: {said:?}");
+        }
+        let mut total = CaptureChecks::default();
+        let mut parts = 0;
+        for y0 in (0..n).step_by(16) {
+            for x0 in (0..n).step_by(16) {
+                let m = mask.slice(s![y0..y0 + 16, x0..x0 + 16]);
+                if !m.iter().any(|&b| b) {
+                    continue;
+                }
+                let tile = images.slice(s![.., y0..y0 + 16, x0..x0 + 16]);
+                let part = Capture::from_arrays_part(
+                    tile.insert_axis(Axis(3)),
+                    lights.clone(),
+                    Some(m),
+                    &load,
+                )
+                .unwrap();
+                let run = reconstruct_normals_with_models(&part, &config, Some(&models), &Silent)
+                    .unwrap();
+                let text = CaptureChecks::of_run(&run).to_json();
+                total
+                    .add(&CaptureChecks::from_json(&text).unwrap())
+                    .unwrap();
+                parts += 1;
+            }
+        }
+        assert_eq!(parts, 9);
+        assert_eq!(total.counts.samples.pixels, run.counts);
+        assert_eq!(total.sentences(false), said);
+        // Said once however many parts say it.
+        let again = total.clone();
+        total.add(&again).unwrap();
+        assert_eq!(total.counts.inputs, again.counts.inputs);
+        assert_eq!(total.counts.model, again.counts.model);
+        let mut v: serde_json::Value = serde_json::from_str(&again.to_json()).unwrap();
+        v["counts"]["samples"]["pixels"]["solved"] = (run.counts.masked + 1).into();
+        let e = CaptureChecks::from_json(&v.to_string())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("do not add up"), "{e}");
+    }
 
     /// Room light in the images and one row of the lights turned by 10°: the checks of three
     /// bands of rows, written as text, read back and added in another order, are the whole
@@ -215,6 +468,7 @@ mod tests {
             light_agreement: vec![crate::ps::light_agreement::measure(
                 &stack, 0, &used, m, &sol,
             )],
+            counts: PartCounts::default(),
         };
         let whole = checks_of(mask);
         let warned = whole.warnings(false);

@@ -21,7 +21,7 @@ pub mod pipeline;
 pub mod stream;
 pub mod warnings;
 
-pub use checks::CaptureChecks;
+pub use checks::{CaptureChecks, PartCounts};
 pub use pipeline::{Config, Reconstruction, Report, reconstruct, reconstruct_and_write};
 pub use stream::{StreamOptions, StreamPlan};
-pub use warnings::Warning;
+pub use warnings::{SampleCounts, Warning};

@@ -11,8 +11,9 @@ use crate::ps::ambient::ShadowLight;
 use crate::ps::light_agreement::LightAgreement;
 use crate::ps::normals::IntegrabilitySummary;
 use crate::ps::solve::Method;
+use crate::ps::solve::StatusCounts;
 use crate::run::pipeline::{ChannelModel, Config, GAIN_WARNING, InputFacts, POOR_CURL, Tallies};
-use serde::{Serialize, Serializer};
+use serde::{Deserialize, Serialize, Serializer};
 use std::fmt;
 
 /// Something the user should know about a run whose result was still computed.
@@ -93,8 +94,15 @@ pub enum Warning {
         worst: f32,
     },
     /// Intensities estimated from the images differ from the stated ones but were not applied
-    /// (they did not converge or did not fit the data better).
-    IntensitiesNotApplied,
+    /// (they did not converge, or the robust fits explain the samples they keep as well under
+    /// the stated ones).
+    IntensitiesNotApplied {
+        /// The images (numbered from 0) whose estimated gain is further than [`GAIN_WARNING`]
+        /// from 1.
+        images: Vec<usize>,
+        /// The estimated gain furthest from 1.
+        worst: f32,
+    },
     /// The samples in attached shadow hold light — ambient light, a black level,
     /// interreflections — enough to turn the normals by [`SHADOW_LIGHT_WARN_DEG`] or more on
     /// average ([`crate::ps::ambient`]).
@@ -259,6 +267,22 @@ pub const GUESSED_SHARE: f64 = 0.01;
 /// Image numbers listed in a warning at most.
 const LISTED_IMAGES: usize = 12;
 
+/// The first [`LISTED_IMAGES`] of `images` (numbered from 0) numbered from 1, then an
+/// ellipsis if there are more.
+fn listed(images: &[usize]) -> String {
+    let list: Vec<String> = images
+        .iter()
+        .take(LISTED_IMAGES)
+        .map(|k| (k + 1).to_string())
+        .collect();
+    let more = if images.len() > LISTED_IMAGES {
+        ", …"
+    } else {
+        ""
+    };
+    format!("{}{more}", list.join(", "))
+}
+
 impl fmt::Display for Warning {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
@@ -345,25 +369,18 @@ impl fmt::Display for Warning {
                 "{filled} of {masked} pixels had too few usable samples or ill-conditioned lights to be solved alone: their normals were filled in from their neighbours and are less reliable (marked in residual.exr, channel filled)"
             ),
             Warning::IntensitiesCorrected { images, worst } => {
-                let list: Vec<String> = images
-                    .iter()
-                    .take(LISTED_IMAGES)
-                    .map(|k| (k + 1).to_string())
-                    .collect();
                 write!(
                     f,
-                    "the images' brightness disagrees with the light intensities for {} image(s) (numbered from 1: {}{}); corrected from the data by factors up to {worst:.2} — check the intensity file",
+                    "the images' brightness disagrees with the light intensities for {} image(s) (numbered from 1: {}); corrected from the data by factors up to {worst:.2} — check the intensity file",
                     images.len(),
-                    list.join(", "),
-                    if images.len() > LISTED_IMAGES {
-                        ", …"
-                    } else {
-                        ""
-                    },
+                    listed(images),
                 )
             }
-            Warning::IntensitiesNotApplied => f.write_str(
-                "the light intensities estimated from the images differ from the stated ones but did not converge or fit the data better, so the stated intensities were kept (estimate in report.json → model.estimated_gains); strong highlights or interreflections can cause this",
+            Warning::IntensitiesNotApplied { images, worst } => write!(
+                f,
+                "the light intensities estimated from the images differ from the stated ones for {} image(s) (numbered from 1: {}) by factors up to {worst:.2}, but the stated intensities were kept: the estimate did not converge, or the robust fits explain the samples they keep as well under the stated ones (they set aside the samples of an image that is off as a whole, and those of strong highlights or interreflections); check the intensity file (estimate in report.json → model.estimated_gains)",
+                images.len(),
+                listed(images),
             ),
             Warning::ShadowLight {
                 level,
@@ -443,7 +460,11 @@ impl fmt::Display for Warning {
                         None => String::new(),
                     },
                     list.join(", "),
-                    if lights.len() > LISTED_IMAGES { ", …" } else { "" }
+                    if lights.len() > LISTED_IMAGES {
+                        ", …"
+                    } else {
+                        ""
+                    }
                 )
             }
             Warning::PoorIntegrability { median_abs_curl } => write!(
@@ -501,72 +522,21 @@ pub(crate) fn warnings(
     if lossy > 0 {
         warnings.push(Warning::Lossy { images: lossy });
     }
-    let saturated: usize = facts.info.iter().map(|i| i.saturated).sum();
-    if saturated > 0 {
-        warnings.push(Warning::Saturated {
-            samples: saturated,
-            used: config.solve.method == Method::LeastSquares,
-        });
-    }
-    let non_finite: usize = facts.info.iter().map(|i| i.non_finite).sum();
-    if non_finite > 0 {
-        warnings.push(Warning::NonFinite {
-            samples: non_finite,
-        });
-    }
-    if counts.filled > 0 {
-        warnings.push(Warning::Filled {
-            filled: counts.filled,
-            masked: counts.masked,
-        });
-    }
-    let unsolved = counts.unsolved();
-    if unsolved > 0 {
-        warnings.push(Warning::Unsolved {
-            unsolved,
-            masked: counts.masked,
-            too_few_samples: counts.too_few_samples,
-            ill_conditioned: counts.ill_conditioned,
-            dark: counts.dark,
-            no_mask: facts.unmasked_files,
-        });
-    }
+    warnings.extend(of_counts(&SampleCounts {
+        pixels: *counts,
+        saturated: facts.info.iter().map(|i| i.saturated).sum(),
+        saturated_used: config.solve.method == Method::LeastSquares,
+        non_finite: facts.info.iter().map(|i| i.non_finite).sum(),
+        no_mask: facts.unmasked_files,
+    }));
     if recalibrated {
-        // Per image, the gain furthest from 1 over the channels.
-        let mut off: Vec<(usize, f32)> = Vec::new();
-        for s in models {
-            for k in s.gains.outliers(GAIN_WARNING) {
-                let g = s.gains.gains[k];
-                match off.iter_mut().find(|(i, _)| *i == k) {
-                    Some(e) if (g - 1.0).abs() > (e.1 - 1.0).abs() => e.1 = g,
-                    Some(_) => {}
-                    None => off.push((k, g)),
-                }
-            }
+        // The gains applied (all 1 where an estimate was not), then the estimates not applied.
+        if let Some((images, worst)) = gains_off(models.iter().map(|s| &s.gains.gains)) {
+            warnings.push(Warning::IntensitiesCorrected { images, worst });
         }
-        off.sort_by_key(|e| e.0);
-        if !off.is_empty() {
-            let worst = off.iter().map(|e| e.1).fold(1.0f32, |a, g| {
-                if (g - 1.0).abs() > (a - 1.0).abs() {
-                    g
-                } else {
-                    a
-                }
-            });
-            warnings.push(Warning::IntensitiesCorrected {
-                images: off.iter().map(|e| e.0).collect(),
-                worst,
-            });
-        }
-    }
-    if recalibrated && models.iter().any(|s| !s.gains.applied) {
-        let far = models
-            .iter()
-            .filter(|s| !s.gains.applied)
-            .flat_map(|s| s.gains.estimated.iter())
-            .any(|g| (g - 1.0).abs() > GAIN_WARNING);
-        if far {
-            warnings.push(Warning::IntensitiesNotApplied);
+        let kept = models.iter().filter(|s| !s.gains.applied);
+        if let Some((images, worst)) = gains_off(kept.map(|s| &s.gains.estimated)) {
+            warnings.push(Warning::IntensitiesNotApplied { images, worst });
         }
     }
     warnings.extend(of_checks(
@@ -582,6 +552,112 @@ pub(crate) fn warnings(
     if config.albedo_normalised && tallies.albedo_above_one > 0 {
         warnings.push(Warning::AlbedoAboveOne {
             pixels: tallies.albedo_above_one,
+        });
+    }
+    warnings
+}
+
+/// The images whose gain, in any of the channels' `gains`, is further than [`GAIN_WARNING`]
+/// from 1 (numbered from 0, in order), and the gain furthest from 1; `None` when there is none.
+fn gains_off<'a>(gains: impl Iterator<Item = &'a Vec<f32>>) -> Option<(Vec<usize>, f32)> {
+    // Per image, the gain furthest from 1 over the channels.
+    let mut off: Vec<(usize, f32)> = Vec::new();
+    for channel in gains {
+        for (k, &g) in channel.iter().enumerate() {
+            if (g - 1.0).abs() <= GAIN_WARNING {
+                continue;
+            }
+            match off.iter_mut().find(|(i, _)| *i == k) {
+                Some(e) if (g - 1.0).abs() > (e.1 - 1.0).abs() => e.1 = g,
+                Some(_) => {}
+                None => off.push((k, g)),
+            }
+        }
+    }
+    off.sort_by_key(|e| e.0);
+    let worst = off.iter().map(|e| e.1).fold(1.0f32, |a, g| {
+        if (g - 1.0).abs() > (a - 1.0).abs() {
+            g
+        } else {
+            a
+        }
+    });
+    (!off.is_empty()).then(|| (off.into_iter().map(|e| e.0).collect(), worst))
+}
+
+/// The pixel outcomes and sample counts of a run (or of a part of one) that its warnings
+/// report.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SampleCounts {
+    /// Pixel outcomes.
+    pub pixels: StatusCounts,
+    /// Saturated samples over all images (in the part of each image that was read: the rows or
+    /// the bounding box of the mask).
+    pub saturated: usize,
+    /// Whether the estimator used the saturated samples (plain least squares).
+    pub saturated_used: bool,
+    /// NaN or infinite samples over all images.
+    pub non_finite: usize,
+    /// No mask was given, so the background counts as object.
+    pub no_mask: bool,
+}
+
+impl SampleCounts {
+    /// Adds the counts of another part of the same run; `None` (and `self` unchanged) when a
+    /// count overflows.
+    pub fn try_add(&mut self, other: &SampleCounts) -> Option<()> {
+        let (a, b) = (&self.pixels, &other.pixels);
+        let pixels = StatusCounts {
+            masked: a.masked.checked_add(b.masked)?,
+            solved: a.solved.checked_add(b.solved)?,
+            too_few_samples: a.too_few_samples.checked_add(b.too_few_samples)?,
+            ill_conditioned: a.ill_conditioned.checked_add(b.ill_conditioned)?,
+            dark: a.dark.checked_add(b.dark)?,
+            filled: a.filled.checked_add(b.filled)?,
+        };
+        *self = SampleCounts {
+            pixels,
+            saturated: self.saturated.checked_add(other.saturated)?,
+            saturated_used: self.saturated_used || other.saturated_used,
+            non_finite: self.non_finite.checked_add(other.non_finite)?,
+            no_mask: self.no_mask || other.no_mask,
+        };
+        Some(())
+    }
+}
+
+/// The warnings of a run's sample and pixel counts, in the report's order: saturated and
+/// non-finite samples, filled pixels, pixels without a normal. Those of a whole run and of the
+/// parts of one added up ([`crate::run::checks::CaptureChecks`]).
+pub(crate) fn of_counts(c: &SampleCounts) -> Vec<Warning> {
+    let p = &c.pixels;
+    let mut warnings = Vec::new();
+    if c.saturated > 0 {
+        warnings.push(Warning::Saturated {
+            samples: c.saturated,
+            used: c.saturated_used,
+        });
+    }
+    if c.non_finite > 0 {
+        warnings.push(Warning::NonFinite {
+            samples: c.non_finite,
+        });
+    }
+    if p.filled > 0 {
+        warnings.push(Warning::Filled {
+            filled: p.filled,
+            masked: p.masked,
+        });
+    }
+    let unsolved = p.unsolved();
+    if unsolved > 0 {
+        warnings.push(Warning::Unsolved {
+            unsolved,
+            masked: p.masked,
+            too_few_samples: p.too_few_samples,
+            ill_conditioned: p.ill_conditioned,
+            dark: p.dark,
+            no_mask: c.no_mask,
         });
     }
     warnings
@@ -735,7 +811,18 @@ mod tests {
                 },
                 vec!["3 image(s)", "1, 5, 14)", "1.37"],
             ),
-            (Warning::IntensitiesNotApplied, vec!["estimated_gains"]),
+            (
+                Warning::IntensitiesNotApplied {
+                    images: vec![2, 5, 6, 7, 8, 9, 10, 11, 12],
+                    worst: 0.8695,
+                },
+                vec![
+                    "9 image(s)",
+                    "3, 6, 7, 8, 9, 10, 11, 12, 13)",
+                    "0.87",
+                    "estimated_gains",
+                ],
+            ),
             (
                 Warning::LightsDisagree {
                     lights: vec![

@@ -184,7 +184,7 @@ impl Solution {
 }
 
 /// Counts of pixel outcomes in a [`Solution`].
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, serde::Deserialize)]
 pub struct StatusCounts {
     /// Pixels in the mask.
     pub masked: usize,
