@@ -219,8 +219,9 @@ class Solution:
     #: Wall time of the solve and the normals, seconds.
     solve_seconds: float = 0.0
     #: The capture-wide checks (shadow light, each light against the others) as counts and
-    #: sums that add up over the parts of a capture (JSON text; :mod:`photostereo.dask` adds
-    #: its tiles' and judges them as one).
+    #: sums that add up over the parts of a capture, with the pixel and sample counts and the
+    #: capture's own warnings (JSON text; :mod:`photostereo.dask` adds its tiles' and judges
+    #: and warns of them as one).
     checks: str = ""
 
     def __getitem__(self, key: str) -> Any:

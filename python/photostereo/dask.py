@@ -121,7 +121,7 @@ def estimate_model(
 
 
 class _Tile:
-    """A solved tile: its planes and its checks' text (None where nothing was solved). The
+    """A solved tile: its planes and its checks' text (None where the tile's mask is empty). The
     block of the internal tiles array; its size is what Dask's memory accounting sees."""
 
     __slots__ = ("planes", "checks")
@@ -148,7 +148,7 @@ def _solve_tile(
 ) -> _Tile:
     """One tile: N x h x w[ x C] images (and an h x w mask, an h x w[ x C] ambient frame) ->
     its h x w x K float32 planes (normals (3), albedo (1 or 3), then _SCALARS) and its checks
-    as text (None where nothing was solved)."""
+    as text (None where the tile's mask is empty)."""
     h, w = block.shape[1], block.shape[2]
     base = 3 + albedo_channels
     # Outside the mask, as the library's maps: NaN normals, albedo, residual and condition;
@@ -160,8 +160,8 @@ def _solve_tile(
     if mask_block is not None and not mask_block.any():
         return _Tile(out, None)
     with _warnings.catch_warnings():
-        # Tile-level warnings (counts of one tile) say nothing about the capture; the checks
-        # that do are added over the tiles (_add_checks).
+        # A tile's warnings speak of its own counts; what they add up to, and the capture's own
+        # warnings said once, come from its checks, added over the tiles (_add_checks).
         _warnings.simplefilter("ignore", _ps.PhotostereoWarning)
         r = _ps.solve(
             block, lights, mask_block, fill=False, models=models, ambient=ambient_block,

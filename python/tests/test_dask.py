@@ -204,19 +204,24 @@ def test_tiles_judge_the_capture_wide_checks_as_one(client):
 
 def test_tiles_warn_of_the_counts_and_the_capture_as_one(client):
     # A capture whose first six images are 15% dimmer than their lights say, with a row of
-    # saturated samples in another and pixels lit by two lights only: every tile gives its
+    # saturated samples in another, pixels lit by two lights only and a light behind the
+    # surface: every tile gives its
     # counts and the capture's own warnings, and compute() says what the single-process solve
     # says of them (the integrability check, which needs the assembled map, apart), each once.
     lights = np.vstack([ps.light_ring(8, 30.0), ps.light_ring(8, 55.0, 20.0)])
     s = ps.render("sphere", 96, lights, albedo=0.6, noise=0.003, seed=7, cast_shadows=False)
-    images = s["images"].copy()
+    # A 17th light behind the surface, lighting the rim that turns towards it.
+    behind = np.array([0.3, 0.2, -0.5]) / np.linalg.norm([0.3, 0.2, -0.5])
+    rim = 0.6 * np.clip(np.nan_to_num(s["normals"]) @ behind, 0, None).astype(np.float32)
+    images = np.concatenate([s["images"], rim[None]])
+    lights = np.vstack([lights, behind])
     images[:6] *= 0.85
     level = 0.7
     images[9, 48, 20:76] = level
     for y, x in ((40, 40), (41, 40), (60, 30)):
         images[2:, y, x] = 0.0
     m = s["mask"]
-    maps = psd.solve(da.from_array(images, chunks=(16, 40, 40)), lights, mask=m, chunks=32,
+    maps = psd.solve(da.from_array(images, chunks=(17, 40, 40)), lights, mask=m, chunks=32,
                      saturation=level)
     with pytest.warns(ps.PhotostereoWarning) as caught:
         out = psd.compute(maps)
@@ -225,7 +230,7 @@ def test_tiles_warn_of_the_counts_and_the_capture_as_one(client):
         single = ps.solve(images, lights, mask=m, fill=False, models=maps["models"],
                           saturation=level)
     theirs = [w for w in single.warnings if not w.startswith("poor integrability")]
-    for kind in ("56 saturated samples", "3 of ", "intensit"):
+    for kind in ("behind", "56 saturated samples", "3 of ", "intensit"):
         assert sum(kind in w for w in theirs) == 1, (kind, theirs)
     assert out["warnings"] == said == theirs
     assert out["counts"] == single.counts

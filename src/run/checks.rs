@@ -50,6 +50,11 @@ pub struct CaptureChecks {
 /// What a part of a run adds to the run's warnings besides its checks: the counts that add up
 /// over the parts, and the warnings about the capture as a whole, which every part gives alike,
 /// as sentences (in the report's order: before the counts', after them, and after the checks').
+///
+/// Parts of a near-light run are not added up alike: their lights' check (of positions, fitted
+/// over the whole image) is not carried, and a part that stops at its iteration cap says so
+/// with its own numbers, one sentence a part. Photometric stereo in parts is distant-light
+/// only (`photostereo.dask` takes directions).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct PartCounts {
     /// Sample and pixel counts.
@@ -343,7 +348,8 @@ mod tests {
     use nalgebra::Vector3;
 
     /// A capture whose first six images are 15% dimmer than their lights say, with a row of
-    /// saturated samples in another and pixels lit by two lights only, solved whole and in 16² tiles (parts of the arrays, under
+    /// saturated samples in another, pixels lit by two lights only and a light behind the
+    /// surface, solved whole and in 16² tiles (parts of the arrays, under
     /// the whole's models, as `photostereo.dask` solves them): the tiles' checks and counts,
     /// written as text, read back and added, give the whole run's warnings sentence for
     /// sentence (all but the integrability check's, which is not carried), and its pixel
@@ -358,19 +364,33 @@ mod tests {
         use ndarray::{Array3, Axis, s};
         let n = 48;
         let scene = SceneKind::Sphere.build(n, Albedo::Constant(0.6), Material::lambertian());
-        let lights = Lights::fibonacci(16, 35.0).unwrap();
+        let rendered = Lights::fibonacci(16, 35.0).unwrap();
         let options = RenderOptions {
             noise_sigma: 0.003,
             seed: 9,
             ..RenderOptions::default()
         };
-        let r = crate::synth::render::render(&scene, &lights, &options).unwrap();
+        let r = crate::synth::render::render(&scene, &rendered, &options).unwrap();
+        // A 17th light behind the surface, lighting the rim that turns towards it: a warning
+        // about the capture, which every tile gives.
+        let behind = Vector3::new(0.3, 0.2, -0.5).normalize();
+        let mut all: Vec<Light> = rendered.directions().into_iter().map(Light::new).collect();
+        all.push(Light::new(behind));
+        let lights = Lights::new(all).unwrap();
         let level = 0.7;
-        let mut images = Array3::from_shape_fn((16, n, n), |(k, y, x)| {
+        let mut images = Array3::from_shape_fn((17, n, n), |(k, y, x)| {
+            if k == 16 {
+                let normal = r.truth.normals.at(x, y).cast::<f64>();
+                return if *r.truth.mask.at(x, y) {
+                    (0.6 * normal.dot(&behind).max(0.0)) as f32
+                } else {
+                    0.0
+                };
+            }
             let v = *r.images[k][0].at(x, y) * if k < 6 { 0.85 } else { 1.0 };
             v.min(level)
         });
-        for k in 2..16 {
+        for k in 2..17 {
             for (y, x) in [(20, 20), (21, 20), (30, 12)] {
                 images[[k, y, x]] = 0.0;
             }
@@ -398,7 +418,12 @@ mod tests {
             .filter(|w| !matches!(w, Warning::PoorIntegrability { .. }))
             .map(|w| w.to_string())
             .collect();
-        for kind in [" saturated samples", "pixels have no normal", "intensit"] {
+        for kind in [
+            "behind",
+            " saturated samples",
+            "pixels have no normal",
+            "intensit",
+        ] {
             assert!(said.iter().any(|w| w.contains(kind)), "{kind}: {said:?}");
         }
         let mut total = CaptureChecks::default();
@@ -429,7 +454,10 @@ mod tests {
         assert_eq!(parts, 9);
         assert_eq!(total.counts.samples.pixels, run.counts);
         assert_eq!(total.sentences(false), said);
-        // Said once however many parts say it.
+        // Said once however many parts say it: each of the capture's own warnings came from
+        // all nine tiles.
+        assert_eq!(total.counts.inputs.len(), 1, "{:?}", total.counts.inputs);
+        assert_eq!(total.counts.model.len(), 1, "{:?}", total.counts.model);
         let again = total.clone();
         total.add(&again).unwrap();
         assert_eq!(total.counts.inputs, again.counts.inputs);

@@ -530,12 +530,21 @@ pub(crate) fn warnings(
         no_mask: facts.unmasked_files,
     }));
     if recalibrated {
-        // The gains applied (all 1 where an estimate was not), then the estimates not applied.
-        if let Some((images, worst)) = gains_off(models.iter().map(|s| &s.gains.gains)) {
+        // The gains applied (all 1 where an estimate was not), then the estimates not applied:
+        // all of an estimate that was not, and of one that was, the images the robust fits
+        // set aside whole (measured, never applied: where the estimate differs from the gain).
+        if let Some((images, worst)) = gains_off(models.iter().map(|s| s.gains.gains.clone())) {
             warnings.push(Warning::IntensitiesCorrected { images, worst });
         }
-        let kept = models.iter().filter(|s| !s.gains.applied);
-        if let Some((images, worst)) = gains_off(kept.map(|s| &s.gains.estimated)) {
+        let kept = models.iter().map(|s| {
+            let g = &s.gains;
+            g.estimated
+                .iter()
+                .zip(&g.gains)
+                .map(|(&e, &a)| if e != a { e } else { 1.0 })
+                .collect::<Vec<f32>>()
+        });
+        if let Some((images, worst)) = gains_off(kept) {
             warnings.push(Warning::IntensitiesNotApplied { images, worst });
         }
     }
@@ -559,7 +568,7 @@ pub(crate) fn warnings(
 
 /// The images whose gain, in any of the channels' `gains`, is further than [`GAIN_WARNING`]
 /// from 1 (numbered from 0, in order), and the gain furthest from 1; `None` when there is none.
-fn gains_off<'a>(gains: impl Iterator<Item = &'a Vec<f32>>) -> Option<(Vec<usize>, f32)> {
+fn gains_off(gains: impl Iterator<Item = Vec<f32>>) -> Option<(Vec<usize>, f32)> {
     // Per image, the gain furthest from 1 over the channels.
     let mut off: Vec<(usize, f32)> = Vec::new();
     for channel in gains {

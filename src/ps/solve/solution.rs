@@ -231,6 +231,10 @@ impl StatusCounts {
 
     /// Pixels of the mask without an estimate of g.
     pub fn unsolved(&self) -> usize {
-        self.too_few_samples + self.ill_conditioned + self.dark
+        // Saturating: counts added up from parts (`crate::run::CaptureChecks`) may be built by
+        // hand.
+        self.too_few_samples
+            .saturating_add(self.ill_conditioned)
+            .saturating_add(self.dark)
     }
 }
