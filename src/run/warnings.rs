@@ -93,14 +93,15 @@ pub enum Warning {
         /// The gain furthest from 1.
         worst: f32,
     },
-    /// Intensities estimated from the images differ from the stated ones but were not applied
-    /// (they did not converge, or the robust fits explain the samples they keep as well under
-    /// the stated ones).
+    /// Intensities estimated from the images differ from the stated ones but were not applied:
+    /// the estimate did not converge, or the robust fits explain the samples they keep as well
+    /// under the stated ones, or (the rest of the estimate applied or not) the fits set the
+    /// image aside whole and it was measured afterwards ([`crate::ps::intensities`]).
     IntensitiesNotApplied {
-        /// The images (numbered from 0) whose estimated gain is further than [`GAIN_WARNING`]
-        /// from 1.
+        /// The images (numbered from 0) whose estimated gain differs from the gain applied
+        /// (1 where nothing was) by a factor further than [`GAIN_WARNING`] from 1.
         images: Vec<usize>,
-        /// The estimated gain furthest from 1.
+        /// That factor furthest from 1.
         worst: f32,
     },
     /// The samples in attached shadow hold light — ambient light, a black level,
@@ -378,7 +379,7 @@ impl fmt::Display for Warning {
             }
             Warning::IntensitiesNotApplied { images, worst } => write!(
                 f,
-                "the light intensities estimated from the images differ from the stated ones for {} image(s) (numbered from 1: {}) by factors up to {worst:.2}, but the stated intensities were kept: the estimate did not converge, or the robust fits explain the samples they keep as well under the stated ones (they set aside the samples of an image that is off as a whole, and those of strong highlights or interreflections); check the intensity file (estimate in report.json → model.estimated_gains)",
+                "the light intensities estimated from the images differ from the stated ones for {} image(s) (numbered from 1: {}) by factors up to {worst:.2}, but that estimate was not applied: it did not converge, or the robust fits explain the samples they keep as well without it, or they set the image aside whole (as they do an image that is off as a whole; strong highlights or interreflections can also cause this); check the intensity file (estimate in report.json → model.estimated_gains)",
                 images.len(),
                 listed(images),
             ),
@@ -536,15 +537,7 @@ pub(crate) fn warnings(
         if let Some((images, worst)) = gains_off(models.iter().map(|s| s.gains.gains.clone())) {
             warnings.push(Warning::IntensitiesCorrected { images, worst });
         }
-        let kept = models.iter().map(|s| {
-            let g = &s.gains;
-            g.estimated
-                .iter()
-                .zip(&g.gains)
-                .map(|(&e, &a)| if e != a { e } else { 1.0 })
-                .collect::<Vec<f32>>()
-        });
-        if let Some((images, worst)) = gains_off(kept) {
+        if let Some((images, worst)) = gains_off(models.iter().map(|s| not_applied(&s.gains))) {
             warnings.push(Warning::IntensitiesNotApplied { images, worst });
         }
     }
@@ -592,6 +585,17 @@ fn gains_off(gains: impl Iterator<Item = Vec<f32>>) -> Option<(Vec<usize>, f32)>
         }
     });
     (!off.is_empty()).then(|| (off.into_iter().map(|e| e.0).collect(), worst))
+}
+
+/// Per image, the factor between the estimated gain and the gain applied (1 where nothing
+/// was): where the estimate was not applied, the estimate itself; where it was, 1 but for the
+/// images the robust fits set aside whole, measured afterwards and never applied.
+fn not_applied(g: &crate::ps::intensities::GainEstimate) -> Vec<f32> {
+    g.estimated
+        .iter()
+        .zip(&g.gains)
+        .map(|(&e, &a)| if a > 0.0 { e / a } else { 1.0 })
+        .collect()
 }
 
 /// The pixel outcomes and sample counts of a run (or of a part of one) that its warnings
@@ -774,6 +778,31 @@ mod tests {
         );
         let last = crate::grid::Grid::from_vec(4, 1, vec![false, false, true, false]).unwrap();
         assert_eq!(Warning::of_normals(&normals, &last), None);
+    }
+
+    /// The estimate's factors the not-applied warning reads: all of an estimate that was not
+    /// applied; of one that was, only the images the fits set aside whole (their estimate
+    /// differs from the gain applied), whatever the median normalisation did to the rest.
+    #[test]
+    fn not_applied_reads_the_set_aside_images_of_an_applied_estimate() {
+        let mut g = crate::ps::intensities::GainEstimate::unit(4);
+        g.estimated = vec![0.8, 1.0, 1.3, 1.05];
+        assert_eq!(not_applied(&g), g.estimated);
+        assert_eq!(
+            gains_off([not_applied(&g)].into_iter()),
+            Some((vec![0, 2], 1.3))
+        );
+        g.applied = true;
+        g.gains = vec![0.8, 1.0, 1.02, 1.05];
+        let f = not_applied(&g);
+        assert_eq!(
+            gains_off([f.clone()].into_iter()).map(|o| o.0),
+            Some(vec![2])
+        );
+        assert!(
+            (f[2] - 1.3 / 1.02).abs() < 1e-6 && f[0] == 1.0 && f[3] == 1.0,
+            "{f:?}"
+        );
     }
 
     /// One of each variant, with numbers found nowhere else in the sentences, and the texts
