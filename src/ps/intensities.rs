@@ -67,9 +67,10 @@ pub struct GainEstimate {
     /// Factor each image's samples are multiplied by: the estimate when it was
     /// [`GainEstimate::applied`], otherwise all 1.
     pub gains: Vec<f32>,
-    /// The estimated factors (median 1, or about 1 where an image set aside whole is measured), applied or not; for an image that the robust fits
-    /// set aside whole, its measurement over all its well-lit samples, never applied (where it
-    /// differs from [`GainEstimate::gains`] when the rest is).
+    /// The estimated factors (median 1, or about 1 where an image set aside whole is
+    /// measured), applied or not; for an image that the robust fits set aside whole, its
+    /// measurement over all its well-lit samples, never applied (where it differs from
+    /// [`GainEstimate::gains`] when the rest is).
     pub estimated: Vec<f32>,
     /// Whether the estimate replaced the stated intensities: it converged and the median
     /// relative residual of the robust fits on the subsample is lower under it than under
