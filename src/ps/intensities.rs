@@ -269,34 +269,15 @@ fn update_gains(
     rule: &RatioRule,
     gains: &mut [f32],
 ) -> f64 {
-    let dirs = rule.dirs;
     let k = gains.len();
-    let normals: Vec<Option<(Vector3<f64>, f64)>> = fits
-        .iter()
-        .map(|fit| {
-            fit.map(|g| {
-                let rho = g.norm();
-                (g / rho, rho)
-            })
-        })
-        .collect();
+    let normals = normals_of(fits);
     // Each image's median ratio, the images in parallel (the ratios are gathered in pixel
     // order, so the medians do not depend on the threads).
     let mut factors: Vec<f64> = (0..k)
         .into_par_iter()
         .map_init(Vec::new, |ratios: &mut Vec<f64>, img| {
-            ratios.clear();
-            let gain = f64::from(gains[img]);
-            for (i, nr) in normals.iter().enumerate() {
-                let Some((normal, rho)) = nr else { continue };
-                if weights[i * k + img] <= 0.0 {
-                    continue;
-                }
-                let c = normal.dot(&dirs[img]);
-                if rule.counts(normal, img, c) {
-                    ratios.push(f64::from(values[i * k + img]) * gain / (rho * c));
-                }
-            }
+            let used = |at: usize| weights[at] > 0.0;
+            ratios_of(&normals, rule, values, (img, gains[img]), used, ratios);
             if ratios.len() < MIN_RATIOS {
                 f64::NAN
             } else {
@@ -321,6 +302,45 @@ fn update_gains(
     largest
 }
 
+/// Each subsample pixel's unit normal and albedo, from its fit's g (`None` where unsolved).
+fn normals_of(fits: &[Option<Vector3<f64>>]) -> Vec<Option<(Vector3<f64>, f64)>> {
+    fits.iter()
+        .map(|fit| {
+            fit.map(|g| {
+                let rho = g.norm();
+                (g / rho, rho)
+            })
+        })
+        .collect()
+}
+
+/// Image `img`'s ratios I_k · gain / (ρ N·l_k), into `ratios` (cleared first), in pixel order:
+/// over the samples (index `pixel × images + img` into `values`) that are `usable` and that
+/// the `rule` counts.
+fn ratios_of(
+    normals: &[Option<(Vector3<f64>, f64)>],
+    rule: &RatioRule,
+    values: &[f32],
+    (img, gain): (usize, f32),
+    usable: impl Fn(usize) -> bool,
+    ratios: &mut Vec<f64>,
+) {
+    let k = rule.dirs.len();
+    let gain = f64::from(gain);
+    ratios.clear();
+    for (i, nr) in normals.iter().enumerate() {
+        let Some((normal, rho)) = nr else { continue };
+        let at = i * k + img;
+        if !usable(at) {
+            continue;
+        }
+        let c = normal.dot(&rule.dirs[img]);
+        if rule.counts(normal, img, c) {
+            ratios.push(f64::from(values[at]) * gain / (rho * c));
+        }
+    }
+}
+
 /// How far the ratios of an image set aside whole may spread, relative to the median spread of
 /// the images measured from their used samples: a wrong intensity scales every sample of an
 /// image alike, so its ratios spread as the others' do (noise, model error); ratios that
@@ -342,30 +362,27 @@ fn set_aside_gains(
     rule: &RatioRule,
     gains: &[f32],
 ) -> Vec<(usize, f32)> {
-    let dirs = rule.dirs;
     let k = gains.len();
-    let normals: Vec<Option<(Vector3<f64>, f64)>> = fits
-        .iter()
-        .map(|fit| fit.map(|g| (g / g.norm(), g.norm())))
-        .collect();
+    let normals = normals_of(fits);
     // Per image: the median and relative spread of its ratios, over the used samples or (for
     // `all`) over every well-lit unsaturated finite one.
     let measure = |img: usize, all: bool| -> Option<(f64, f64)> {
-        let gain = f64::from(gains[img]);
         let mut ratios = Vec::new();
-        for (i, nr) in normals.iter().enumerate() {
-            let Some((normal, rho)) = nr else { continue };
-            let at = i * k + img;
-            let usable = if all {
+        let usable = |at: usize| {
+            if all {
                 !saturated[at] && values[at].is_finite()
             } else {
                 weights[at] > 0.0
-            };
-            let c = normal.dot(&dirs[img]);
-            if usable && rule.counts(normal, img, c) {
-                ratios.push(f64::from(values[at]) * gain / (rho * c));
             }
-        }
+        };
+        ratios_of(
+            &normals,
+            rule,
+            values,
+            (img, gains[img]),
+            usable,
+            &mut ratios,
+        );
         if ratios.len() < MIN_RATIOS {
             return None;
         }
