@@ -272,28 +272,55 @@ impl Stencil {
         rhs[j] += rhs_term;
     }
 
+    /// Row `i` of A x.
+    #[inline(always)]
+    fn row(&self, u: &Unknowns, x: &[f64], i: usize) -> f64 {
+        let mut s = self.diag[i] * x[i];
+        let r = u.right[i];
+        if r != NONE {
+            s += self.right[i] * x[r as usize];
+        }
+        let d = u.down[i];
+        if d != NONE {
+            s += self.down[i] * x[d as usize];
+        }
+        let l = u.left[i];
+        if l != NONE {
+            s += self.right[l as usize] * x[l as usize];
+        }
+        let t = u.up[i];
+        if t != NONE {
+            s += self.down[t as usize] * x[t as usize];
+        }
+        s
+    }
+
     /// y = A x.
     pub fn apply(&self, u: &Unknowns, x: &[f64], y: &mut [f64]) {
-        y.par_iter_mut().enumerate().for_each(|(i, yi)| {
-            let mut s = self.diag[i] * x[i];
-            let r = u.right[i];
-            if r != NONE {
-                s += self.right[i] * x[r as usize];
+        y.par_iter_mut()
+            .enumerate()
+            .for_each(|(i, yi)| *yi = self.row(u, x, i));
+    }
+
+    /// y = A x, and xᵀy as [`dot`] sums it (the same chunks, each added in order), in one pass
+    /// over the vectors instead of two.
+    pub fn apply_dot(&self, u: &Unknowns, x: &[f64], y: &mut [f64]) -> f64 {
+        let chunk = |k: usize, y: &mut [f64]| -> f64 {
+            let first = k * DOT_CHUNK;
+            for (j, yi) in y.iter_mut().enumerate() {
+                *yi = self.row(u, x, first + j);
             }
-            let d = u.down[i];
-            if d != NONE {
-                s += self.down[i] * x[d as usize];
-            }
-            let l = u.left[i];
-            if l != NONE {
-                s += self.right[l as usize] * x[l as usize];
-            }
-            let t = u.up[i];
-            if t != NONE {
-                s += self.down[t as usize] * x[t as usize];
-            }
-            *yi = s;
-        });
+            x[first..].iter().zip(y.iter()).map(|(&x, &y)| x * y).sum()
+        };
+        if y.len() <= DOT_CHUNK {
+            return chunk(0, y);
+        }
+        let partial: Vec<f64> = y
+            .par_chunks_mut(DOT_CHUNK)
+            .enumerate()
+            .map(|(k, y)| chunk(k, y))
+            .collect();
+        partial.iter().sum()
     }
 }
 
@@ -846,6 +873,70 @@ where
     partial.iter().sum()
 }
 
+/// A step of conjugate gradients on the iterate and the residual: `x += α p` and `r −= α ap`
+/// (ap = A p), the residual's previous values first copied into `r_prev` when it is given;
+/// returns |r|² as [`dot`] sums it. One pass over the vectors instead of four.
+fn cg_step(
+    x: &mut [f64],
+    r: &mut [f64],
+    r_prev: Option<&mut [f64]>,
+    (p, ap): (&[f64], &[f64]),
+    alpha: f64,
+) -> f64 {
+    let chunk = |x: &mut [f64], r: &mut [f64], prev: Option<&mut [f64]>, p: &[f64], ap: &[f64]| {
+        if let Some(prev) = prev {
+            prev.copy_from_slice(r);
+        }
+        for (x, p) in x.iter_mut().zip(p) {
+            *x += alpha * p;
+        }
+        for (r, ap) in r.iter_mut().zip(ap) {
+            *r -= alpha * ap;
+        }
+        r.iter().map(|&v| v * v).sum::<f64>()
+    };
+    if x.len() <= DOT_CHUNK {
+        return chunk(x, r, r_prev, p, ap);
+    }
+    let pieces = x
+        .par_chunks_mut(DOT_CHUNK)
+        .zip(r.par_chunks_mut(DOT_CHUNK))
+        .zip(p.par_chunks(DOT_CHUNK).zip(ap.par_chunks(DOT_CHUNK)));
+    let partial: Vec<f64> = match r_prev {
+        Some(prev) => pieces
+            .zip(prev.par_chunks_mut(DOT_CHUNK))
+            .map(|(((x, r), (p, ap)), prev)| chunk(x, r, Some(prev), p, ap))
+            .collect(),
+        None => pieces
+            .map(|((x, r), (p, ap))| chunk(x, r, None, p, ap))
+            .collect(),
+    };
+    partial.iter().sum()
+}
+
+/// rᵀz and zᵀr_prev, each as [`dot`] sums it, in one pass.
+fn dots_with(r: &[f64], z: &[f64], r_prev: &[f64]) -> [f64; 2] {
+    let chunk = |r: &[f64], z: &[f64], prev: &[f64]| {
+        [
+            r.iter().zip(z).map(|(&r, &z)| r * z).sum::<f64>(),
+            z.iter().zip(prev).map(|(&z, &q)| z * q).sum::<f64>(),
+        ]
+    };
+    if r.len() <= DOT_CHUNK {
+        return chunk(r, z, r_prev);
+    }
+    let partial: Vec<[f64; 2]> = r
+        .par_chunks(DOT_CHUNK)
+        .zip(z.par_chunks(DOT_CHUNK))
+        .zip(r_prev.par_chunks(DOT_CHUNK))
+        .map(|((r, z), prev)| chunk(r, z, prev))
+        .collect();
+    [
+        partial.iter().map(|s| s[0]).sum(),
+        partial.iter().map(|s| s[1]).sum(),
+    ]
+}
+
 /// Why a linear solve stopped.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
@@ -1023,6 +1114,14 @@ fn zeroed(v: &mut Vec<f64>, n: usize) {
     v.resize(n, 0.0);
 }
 
+/// `v` of length `n`, its values left as they are when it already has that length: for a
+/// vector that is written in full before it is read.
+fn sized(v: &mut Vec<f64>, n: usize) {
+    if v.len() != n {
+        zeroed(v, n);
+    }
+}
+
 /// [`pcg`] with its vectors in `work`: the same iterates, value for value.
 pub(crate) fn pcg_in(
     u: &Unknowns,
@@ -1054,7 +1153,8 @@ pub(crate) fn pcg_in(
         x.iter_mut().for_each(|v| *v = 0.0);
         return (0, Convergence::Residual);
     }
-    zeroed(ax, n);
+    // ax, z, ap and r_prev are written in full before they are read.
+    sized(ax, n);
     a.apply(u, x, ax);
     r.clear();
     r.extend(b.iter().zip(ax.iter()).map(|(b, a)| b - a));
@@ -1121,47 +1221,43 @@ pub(crate) fn pcg_in(
         Preconditioner::Multigrid(_) | Preconditioner::Grid(_) | Preconditioner::Blocks(_)
     );
     if flexible {
-        zeroed(r_prev, n);
+        sized(r_prev, n);
     } else {
         r_prev.clear();
     }
-    zeroed(z, n);
+    sized(z, n);
     precondition(r, z);
     p.clear();
     p.extend_from_slice(z);
     let mut rz = dot(r, z);
-    zeroed(ap, n);
+    sized(ap, n);
+    // Each iteration's vector operations are fused into three passes (A p with pᵀAp; the step
+    // with |r|²; rᵀz with zᵀr_prev) besides the new direction's, each sum taken as `dot` takes
+    // it: the same iterates, value for value, as the operations one by one.
     for it in 1..=max_iter {
-        a.apply(u, p, ap);
-        let pap = dot(p, ap);
+        let pap = a.apply_dot(u, p, ap);
         if pap <= 0.0 || !pap.is_finite() {
             return (it - 1, Convergence::Breakdown);
         }
         let alpha = rz / pap;
-        if flexible {
-            r_prev.copy_from_slice(r);
-        }
-        x.par_iter_mut()
-            .zip(p.par_iter())
-            .for_each(|(x, p)| *x += alpha * p);
-        r.par_iter_mut()
-            .zip(ap.par_iter())
-            .for_each(|(r, ap)| *r -= alpha * ap);
-        if norm(r) <= tol * bn {
+        let prev = flexible.then_some(r_prev.as_mut_slice());
+        let rr = cg_step(x, r, prev, (p, ap), alpha);
+        if rr.sqrt() <= tol * bn {
             return (it, Convergence::Residual);
         }
         if misfit.as_mut().is_some_and(|m| m.step(alpha * rz)) {
             return (it, Convergence::DataNoise);
         }
         precondition(r, z);
-        let rz_new = dot(r, z);
         // Flexible (Polak–Ribière) β, for preconditioners that are not a fixed linear map (the
         // K-cycle of multigrid): zᵀ(r − r_prev)/ρ_prev. With a fixed preconditioner it equals
         // the usual zᵀr/ρ_prev, since then zᵀr_prev = 0.
-        let beta = if flexible {
-            (rz_new - dot(z, r_prev)) / rz
+        let (rz_new, beta) = if flexible {
+            let [rz_new, z_prev] = dots_with(r, z, r_prev);
+            (rz_new, (rz_new - z_prev) / rz)
         } else {
-            rz_new / rz
+            let rz_new = dot(r, z);
+            (rz_new, rz_new / rz)
         };
         rz = rz_new;
         p.par_iter_mut()

@@ -51,7 +51,9 @@
 //! Fails where: the finest level's cost is set by the bounding box, not by the mask (as the grid
 //! hierarchy's); the aggregation levels below are sequential.
 
-use super::grid::{GridLaplacian, rows_per_task, scatter_weights, window_cells};
+use super::grid::{
+    CELLS_PER_TASK, GridLaplacian, WindowCells, rows_per_task, scatter_weights, window_cells,
+};
 use super::{CoarseRows, Csr, Multigrid, STRONG, Work, aggregate_members};
 use crate::grid::Window;
 use crate::integrate::sparse::{NONE, Stencil, Unknowns};
@@ -69,7 +71,7 @@ pub(crate) struct BlockPreconditioner {
     /// each and its first aggregate, then (rows, aggregates).
     spans: Vec<(usize, usize)>,
     /// The window cell of each unknown.
-    cell: Vec<u32>,
+    cell: WindowCells,
     /// The aggregation hierarchy on the aggregates.
     coarse: Multigrid,
 }
@@ -93,11 +95,9 @@ impl BlockPreconditioner {
         let mut down = vec![0f32; w * h];
         scatter_weights(u, a, &cell, &mut right, &mut down);
         let finest = GridLaplacian::new(w, h, right, down);
-        let (of_unknown, m) = block_aggregates(u, a, &cell, w);
+        let (of_unknown, m) = block_aggregates(u, a, &cell.cell, w);
         let mut aggregate = vec![NONE; w * h];
-        for (&c, &g) in cell.iter().zip(&of_unknown) {
-            aggregate[c as usize] = g;
-        }
+        cell.scatter(&mut aggregate, |k, g| *g = of_unknown[k]);
         // Blocks of rows for the restriction: an even number of rows each, so that no 2×2 block
         // (and no aggregate) straddles two; each block's first aggregate is the number of
         // aggregates that start in the rows before it.
@@ -146,10 +146,10 @@ impl BlockPreconditioner {
 
     /// z = M⁻¹ r: one cycle from zero.
     pub fn apply(&self, r: &[f64], z: &mut [f64], s: &mut BlockScratch) {
-        for (&c, &v) in self.cell.iter().zip(r) {
-            s.r[c as usize] = v;
-        }
-        s.z.iter_mut().for_each(|v| *v = 0.0);
+        self.cell.scatter(&mut s.r, |k, v| *v = r[k]);
+        s.z.par_iter_mut()
+            .with_min_len(CELLS_PER_TASK)
+            .for_each(|v| *v = 0.0);
         self.finest.sweep(&s.r, &mut s.z, true);
         self.finest.multiply(&s.z, &mut s.az);
         self.restrict(&s.r, &s.az, &mut s.top.rc);
@@ -169,9 +169,7 @@ impl BlockPreconditioner {
                 }
             });
         self.finest.sweep(&s.r, &mut s.z, false);
-        for (&c, z) in self.cell.iter().zip(z.iter_mut()) {
-            *z = f64::from(s.z[c as usize]);
-        }
+        self.cell.gather(&s.z, z);
     }
 
     /// rc = Pᵀ(b − A x) on the aggregates, with A x given, in parallel blocks of rows.

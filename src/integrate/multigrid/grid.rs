@@ -97,7 +97,7 @@ impl Rhs for f64 {
 
 /// Cells a parallel task takes at least: smaller levels (most of the coarse ones, which the
 /// K-cycle visits most often) run on one thread, where scheduling would cost more than the work.
-const CELLS_PER_TASK: usize = 1 << 15;
+pub(super) const CELLS_PER_TASK: usize = 1 << 15;
 
 /// Rows of a `w`-wide grid a parallel task takes at least.
 pub(super) fn rows_per_task(w: usize) -> usize {
@@ -928,7 +928,7 @@ pub const PRECONDITIONER_BYTES_PER_CELL: u64 = 40;
 pub(crate) struct GridPreconditioner {
     mg: GridMultigrid,
     /// The window cell of each unknown.
-    cell: Vec<u32>,
+    cell: WindowCells,
 }
 
 /// The scratch of [`GridPreconditioner::apply`], kept between applications.
@@ -938,16 +938,62 @@ pub(crate) struct GridScratch {
     work: Vec<Work<f32>>,
 }
 
-/// The cell of each unknown of `u` in `window`, which holds them all.
-pub(super) fn window_cells(u: &Unknowns, window: Window) -> Vec<u32> {
-    u.pixel
+/// Where a window's unknowns lie: the cell of each (unknowns are numbered in row-major order,
+/// and so are their cells), and for each row of the window the first unknown at or below it,
+/// so that the unknowns of a block of rows are one range and the cells of different blocks can
+/// be written in parallel.
+pub(crate) struct WindowCells {
+    /// The window cell of each unknown.
+    pub(super) cell: Vec<u32>,
+    /// The window's width.
+    w: usize,
+    /// For each row y of the window (and y = its height), the number of unknowns in the rows
+    /// above it.
+    starts: Vec<usize>,
+}
+
+impl WindowCells {
+    /// Calls `f(k, &mut grid[cell of k])` for every unknown k, in parallel blocks of rows of
+    /// `grid` (the window's size); the other cells are left alone.
+    pub(super) fn scatter<T: Send>(&self, grid: &mut [T], f: impl Fn(usize, &mut T) + Sync) {
+        let w = self.w;
+        let rows = rows_per_task(w);
+        let h = self.starts.len() - 1;
+        grid.par_chunks_mut(rows * w)
+            .enumerate()
+            .for_each(|(b, block)| {
+                let (y0, y1) = (b * rows, ((b + 1) * rows).min(h));
+                for k in self.starts[y0]..self.starts[y1] {
+                    f(k, &mut block[self.cell[k] as usize - y0 * w]);
+                }
+            });
+    }
+
+    /// out[k] = `grid`[cell of k] for every unknown k, in parallel.
+    pub(super) fn gather(&self, grid: &[f32], out: &mut [f64]) {
+        out.par_iter_mut()
+            .zip(self.cell.par_iter())
+            .with_min_len(CELLS_PER_TASK)
+            .for_each(|(z, &c)| *z = f64::from(grid[c as usize]));
+    }
+}
+
+/// The cells of `u`'s unknowns in `window`, which holds them all.
+pub(super) fn window_cells(u: &Unknowns, window: Window) -> WindowCells {
+    let cell: Vec<u32> = u
+        .pixel
         .iter()
         .map(|&p| {
             let c = window.local(u.w, p as usize);
             debug_assert!(c.is_some(), "unknown at pixel {p} outside {window}");
             c.unwrap_or(0) as u32
         })
-        .collect()
+        .collect();
+    let w = window.width();
+    let starts = (0..=window.height())
+        .map(|y| cell.partition_point(|&c| (c as usize) < y * w))
+        .collect();
+    WindowCells { cell, w, starts }
 }
 
 /// Writes the edge weights of `a` (off-diagonals −weight) into the window's grids `right` and
@@ -956,18 +1002,20 @@ pub(super) fn window_cells(u: &Unknowns, window: Window) -> Vec<u32> {
 pub(super) fn scatter_weights(
     u: &Unknowns,
     a: &Stencil,
-    cell: &[u32],
+    cells: &WindowCells,
     right: &mut [f32],
     down: &mut [f32],
 ) {
-    for (k, &c) in cell.iter().enumerate() {
+    cells.scatter(right, |k, v| {
         if u.right[k] != NONE {
-            right[c as usize] = (-a.right[k]).max(0.0) as f32;
+            *v = (-a.right[k]).max(0.0) as f32;
         }
+    });
+    cells.scatter(down, |k, v| {
         if u.down[k] != NONE {
-            down[c as usize] = (-a.down[k]).max(0.0) as f32;
+            *v = (-a.down[k]).max(0.0) as f32;
         }
-    }
+    });
 }
 
 impl GridPreconditioner {
@@ -1007,7 +1055,7 @@ impl GridPreconditioner {
         u: &Unknowns,
         a: &Stencil,
         (w, h): (usize, usize),
-        cell: Vec<u32>,
+        cell: WindowCells,
         (mut right, mut down, diag): (Vec<f32>, Vec<f32>, Vec<f32>),
     ) -> Self {
         scatter_weights(u, a, &cell, &mut right, &mut down);
@@ -1048,13 +1096,9 @@ impl GridPreconditioner {
 
     /// z = M⁻¹ r.
     pub fn apply(&self, r: &[f64], z: &mut [f64], s: &mut GridScratch) {
-        for (&c, &v) in self.cell.iter().zip(r) {
-            s.r[c as usize] = v;
-        }
+        self.cell.scatter(&mut s.r, |k, v| *v = r[k]);
         self.mg.apply(&s.r, &mut s.z, &mut s.work);
-        for (&c, z) in self.cell.iter().zip(z.iter_mut()) {
-            *z = f64::from(s.z[c as usize]);
-        }
+        self.cell.gather(&s.z, z);
     }
 }
 
