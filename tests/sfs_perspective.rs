@@ -542,6 +542,56 @@ fn noise() {
     }
 }
 
+/// The outline tested against the image (`sfs::occluding`, at the depth the result gives each
+/// outline pixel): the silhouettes of the sphere and the bust contradict an occluding contour
+/// nowhere, with and without 1% noise, with the light at the camera or 20°–30° off it from
+/// above and below; the vase, whose cut ends are no contour, along more than 5% of its outline
+/// under every one of those lights, and each of its solves off the axis warns (lit from below,
+/// the vase was solved 6.5–15° off without a word before the test: docs/shape-from-shading.md),
+/// while with the light at the camera, where the solution needs nothing from the outline, the
+/// report says it among its assumptions.
+#[test]
+fn the_outline_is_tested_against_the_image() {
+    for (slant, azimuth) in [(0.0, 0.0), (30.0, 90.0), (30.0, 270.0), (20.0, 200.0)] {
+        for noise in [0.0, 0.01] {
+            for kind in [SceneKind::Sphere, SceneKind::Bust, SceneKind::Vase] {
+                let c = capture_at(kind, 96, (slant, azimuth), Material::lambertian(), noise);
+                let out = solve_with(&c, Some(RefineOptions::default()));
+                let t = out
+                    .report
+                    .occluding
+                    .expect("the outline lies inside the image");
+                let warned = out
+                    .report
+                    .warnings
+                    .iter()
+                    .any(|w| w.contains("not an occluding contour along"));
+                println!(
+                    "{} light {slant}° at {azimuth}°, noise {noise}: {} of {} outline pixels \
+                     contradict ({:.1}%), warned {warned}",
+                    kind.name(),
+                    t.contradicted,
+                    t.pixels,
+                    100.0 * t.fraction
+                );
+                if kind == SceneKind::Vase {
+                    // With the light at the camera the solution needs nothing from the outline
+                    // (the vase within 4°): said among the assumptions, not as a warning.
+                    let noted = out
+                        .report
+                        .assumptions
+                        .iter()
+                        .any(|a| a.contains("not an occluding contour along"));
+                    assert!(t.fraction > 0.05, "{}", t.fraction);
+                    assert_eq!((warned, noted), (slant > 0.0, slant == 0.0));
+                } else {
+                    assert!(t.contradicted <= 1 && !warned, "{}", kind.name());
+                }
+            }
+        }
+    }
+}
+
 /// Starting the sweeps from their result (a warm start) converges at once, to the same depth.
 #[test]
 fn warm_start() {

@@ -303,6 +303,10 @@ def test_a_sphere_through_a_pinhole_honours_its_outline():
     # the command does (`outline` in report.json); a right result honours it and is not warned.
     assert outline["pixels"] > 0 and outline["misaligned_fraction"] <= 0.25
     assert not any("occluding boundary" in w for w in out["warnings"])
+    # The outline is tested against the image too (`occluding`): a silhouette is no brighter
+    # than a surface turning away from the view can be, at the depth the result gives it.
+    occluding = out["report"]["occluding"]
+    assert occluding["pixels"] > 0 and occluding["contradicted"] == 0
 
 
 @pytest.mark.parametrize(

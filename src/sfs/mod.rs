@@ -264,9 +264,10 @@ pub struct SfsReport {
     pub outline: Option<OutlineAgreement>,
     /// What the outline repair did, when it was tried ([`outline_repair`]; Horn only).
     pub outline_repair: Option<outline_repair::OutlineRepair>,
-    /// The outline tested against the image before solving: where it is brighter than an
-    /// occluding contour can be ([`occluding`]; Horn under [`Boundary::Occluding`], when the
-    /// outline is inside the image and the image's noise could be measured).
+    /// The outline tested against the image: where it is brighter than an occluding contour
+    /// can be ([`occluding`]; Horn under [`Boundary::Occluding`], before solving, when the
+    /// image's noise could be measured; the perspective method, at the depth its result gives
+    /// each outline pixel), when the outline is inside the image.
     pub occluding: Option<occluding::OccludingTest>,
 }
 
