@@ -619,15 +619,8 @@ impl SampleCounts {
     /// Adds the counts of another part of the same run; `None` (and `self` unchanged) when a
     /// count overflows.
     pub fn try_add(&mut self, other: &SampleCounts) -> Option<()> {
-        let (a, b) = (&self.pixels, &other.pixels);
-        let pixels = StatusCounts {
-            masked: a.masked.checked_add(b.masked)?,
-            solved: a.solved.checked_add(b.solved)?,
-            too_few_samples: a.too_few_samples.checked_add(b.too_few_samples)?,
-            ill_conditioned: a.ill_conditioned.checked_add(b.ill_conditioned)?,
-            dark: a.dark.checked_add(b.dark)?,
-            filled: a.filled.checked_add(b.filled)?,
-        };
+        let mut pixels = self.pixels;
+        pixels.try_add(&other.pixels)?;
         *self = SampleCounts {
             pixels,
             saturated: self.saturated.checked_add(other.saturated)?,

@@ -219,14 +219,29 @@ impl StatusCounts {
         c
     }
 
-    /// Adds the counts of another part of the image (a band of rows).
+    /// Adds the counts of another part of the image (a band of rows), each saturating at
+    /// `usize::MAX` (which counts of one image's pixels cannot reach; counts read from
+    /// elsewhere are added with [`Self::try_add`], which says when they overflow).
     pub fn add(&mut self, other: &StatusCounts) {
-        self.masked += other.masked;
-        self.solved += other.solved;
-        self.too_few_samples += other.too_few_samples;
-        self.ill_conditioned += other.ill_conditioned;
-        self.dark += other.dark;
-        self.filled += other.filled;
+        self.masked = self.masked.saturating_add(other.masked);
+        self.solved = self.solved.saturating_add(other.solved);
+        self.too_few_samples = self.too_few_samples.saturating_add(other.too_few_samples);
+        self.ill_conditioned = self.ill_conditioned.saturating_add(other.ill_conditioned);
+        self.dark = self.dark.saturating_add(other.dark);
+        self.filled = self.filled.saturating_add(other.filled);
+    }
+
+    /// [`Self::add`], or `None` (and `self` unchanged) when a count overflows.
+    pub fn try_add(&mut self, other: &StatusCounts) -> Option<()> {
+        *self = StatusCounts {
+            masked: self.masked.checked_add(other.masked)?,
+            solved: self.solved.checked_add(other.solved)?,
+            too_few_samples: self.too_few_samples.checked_add(other.too_few_samples)?,
+            ill_conditioned: self.ill_conditioned.checked_add(other.ill_conditioned)?,
+            dark: self.dark.checked_add(other.dark)?,
+            filled: self.filled.checked_add(other.filled)?,
+        };
+        Some(())
     }
 
     /// Pixels of the mask without an estimate of g.
