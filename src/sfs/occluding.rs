@@ -43,9 +43,10 @@
 //! depth the result gives the pixel, in the image's units, with three times the image's noise
 //! (at least the shadow level) as the margin. On the rendered sphere and bust (128², 31 lights:
 //! at the camera and 10°–35° off it at six azimuths, no noise; 96², four lights, noise 0 and 1%,
-//! the albedo given and 0.8, 0.9, 1.1 and 1.25 times it) at most one outline pixel contradicts;
-//! the vase 7–10% of its outline under every light (docs/shape-from-shading.md, "The
-//! perspective method's outline, tested").
+//! the albedo given and 0.8, 0.9, 1.1 and 1.25 times it) no outline pixel contradicts at 128²
+//! and at most one at 96²; the vase 6.8–10% of its outline under every light
+//! (docs/shape-from-shading.md, "The perspective method's outline, tested"). Where the image's
+//! noise cannot be measured the margin is the shadow level alone.
 //!
 //! Fails where: a contour of curvature radius under about 11 px (a rod thinner than 22 px) may
 //! contradict it; a cut end that happens to be no brighter than a contour (lit from below, or

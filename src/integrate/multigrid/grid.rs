@@ -956,6 +956,7 @@ impl WindowCells {
     /// Calls `f(k, &mut grid[cell of k])` for every unknown k, in parallel blocks of rows of
     /// `grid` (the window's size); the other cells are left alone.
     pub(super) fn scatter<T: Send>(&self, grid: &mut [T], f: impl Fn(usize, &mut T) + Sync) {
+        debug_assert_eq!(grid.len(), self.w * (self.starts.len() - 1));
         let w = self.w;
         let rows = rows_per_task(w);
         let h = self.starts.len() - 1;

@@ -1531,7 +1531,8 @@ fn fill_harmonic(u: &Unknowns, v: &mut [f64], known: &[bool]) -> usize {
 /// ln-depth `lnz`, its outward direction in the image the unit (mx, my) (x right, y up): the
 /// largest predicted brightness over the normals n(t) = √(1 − t²) n₀ + t·(towards the camera),
 /// t ∈ (0, [`occluding::MAX_RIM_NZ`]], n₀ the normal at right angles to the pixel's ray whose
-/// projection points along (mx, my) (the contour's normal under perspective).
+/// projection points along (mx, my) (the contour's normal under perspective). Infinite (no
+/// bound) where the point or its distance to the light is not finite.
 fn brightest_edge_on(
     model: &Model,
     intensity: f64,
@@ -1543,8 +1544,8 @@ fn brightest_edge_on(
 ) -> f64 {
     let (c, r) = ((pix % w) as f64, (pix / w) as f64);
     let (xi, eta) = ((c - camera.cx) / camera.fx, (r - camera.cy) / camera.fy);
+    let ray = Vector3::new(xi, eta, 1.0).normalize();
     let x = Vector3::new(xi, eta, 1.0) * lnz.exp();
-    let ray = x.normalize();
     // Internal frame: x right, y down. The outward direction and the outline's tangent, as
     // displacements in the plane z = 1.
     let out = Vector3::new(mx / camera.fx, -my / camera.fy, 0.0);
@@ -1564,7 +1565,9 @@ fn brightest_edge_on(
             let n = n0 * (1.0 - t * t).sqrt() - ray * t;
             intensity * model.brightness.eval(n.dot(&to_light) / d) / (d * d)
         })
-        .fold(0.0, f64::max)
+        .try_fold(0.0, |most: f64, b| b.is_finite().then(|| most.max(b)))
+        // A depth whose point or distance is not finite bounds nothing: no contradiction.
+        .unwrap_or(f64::INFINITY)
 }
 
 /// Values of n_z sampled by [`brightest_edge_on`].
