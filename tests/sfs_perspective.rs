@@ -99,19 +99,20 @@ fn capture_at(
     }
 }
 
+/// `c` solved with `options`.
+fn solve_capture(c: &Capture, options: &PerspectiveOptions) -> SfsResult {
+    solve(&c.image, &c.truth.mask, &c.camera, &c.light, options).unwrap()
+}
+
 /// `c` solved with the default options but `refine`.
 fn solve_with(c: &Capture, refine: Option<RefineOptions>) -> SfsResult {
-    solve(
-        &c.image,
-        &c.truth.mask,
-        &c.camera,
-        &c.light,
+    solve_capture(
+        c,
         &PerspectiveOptions {
             refine,
             ..PerspectiveOptions::default()
         },
     )
-    .unwrap()
 }
 
 struct Scores {
@@ -484,17 +485,13 @@ fn non_lambertian_reflectance_at_the_camera() {
         for kind in SHAPES {
             let c = capture(kind, size, 0.0, material, 0.0);
             let run = |m: Material| {
-                let out = solve(
-                    &c.image,
-                    &c.truth.mask,
-                    &c.camera,
-                    &c.light,
+                let out = solve_capture(
+                    &c,
                     &PerspectiveOptions {
                         material: m,
                         ..PerspectiveOptions::default()
                     },
-                )
-                .unwrap();
+                );
                 score(&out, &c.truth)
             };
             let right = run(material);
@@ -523,14 +520,7 @@ fn non_lambertian_reflectance_at_the_camera() {
 fn noise() {
     for kind in [SceneKind::Vase, SceneKind::Bust] {
         let c = capture(kind, 128, 0.0, Material::lambertian(), 0.01);
-        let out = solve(
-            &c.image,
-            &c.truth.mask,
-            &c.camera,
-            &c.light,
-            &PerspectiveOptions::default(),
-        )
-        .unwrap();
+        let out = solve_capture(&c, &PerspectiveOptions::default());
         let s = score(&out, &c.truth);
         println!(
             "{} with 1% noise: {:.2}°, depth {:.2}%",
@@ -559,17 +549,13 @@ fn the_outline_is_tested_against_the_image() {
         for (noise, albedo) in [(0.0, 1.0), (0.01, 1.0), (0.0, 0.8), (0.0, 1.25)] {
             for kind in [SceneKind::Sphere, SceneKind::Bust, SceneKind::Vase] {
                 let c = capture_at(kind, 96, (slant, azimuth), Material::lambertian(), noise);
-                let out = solve(
-                    &c.image,
-                    &c.truth.mask,
-                    &c.camera,
-                    &c.light,
+                let out = solve_capture(
+                    &c,
                     &PerspectiveOptions {
                         albedo,
                         ..PerspectiveOptions::default()
                     },
-                )
-                .unwrap();
+                );
                 let t = out
                     .report
                     .occluding
