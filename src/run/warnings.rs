@@ -534,7 +534,7 @@ pub(crate) fn warnings(
         // The gains applied (all 1 where an estimate was not), then the estimates not applied:
         // all of an estimate that was not, and of one that was, the images the robust fits
         // set aside whole (measured, never applied: where the estimate differs from the gain).
-        if let Some((images, worst)) = gains_off(models.iter().map(|s| s.gains.gains.clone())) {
+        if let Some((images, worst)) = gains_off(models.iter().map(|s| &s.gains.gains)) {
             warnings.push(Warning::IntensitiesCorrected { images, worst });
         }
         if let Some((images, worst)) = gains_off(models.iter().map(|s| not_applied(&s.gains))) {
@@ -561,11 +561,11 @@ pub(crate) fn warnings(
 
 /// The images whose gain, in any of the channels' `gains`, is further than [`GAIN_WARNING`]
 /// from 1 (numbered from 0, in order), and the gain furthest from 1; `None` when there is none.
-fn gains_off(gains: impl Iterator<Item = Vec<f32>>) -> Option<(Vec<usize>, f32)> {
+fn gains_off<G: AsRef<[f32]>>(gains: impl Iterator<Item = G>) -> Option<(Vec<usize>, f32)> {
     // Per image, the gain furthest from 1 over the channels.
     let mut off: Vec<(usize, f32)> = Vec::new();
     for channel in gains {
-        for (k, &g) in channel.iter().enumerate() {
+        for (k, &g) in channel.as_ref().iter().enumerate() {
             if (g - 1.0).abs() <= GAIN_WARNING {
                 continue;
             }

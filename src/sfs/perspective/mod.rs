@@ -1254,17 +1254,10 @@ fn solve_swept(
         shadow_at
     };
     let tested = occluding::test_outline(&all, margin, |k, mx, my| {
+        let px = pixel_of(all.pixel[k] as usize);
         lnz[k].is_finite()
-            && pixel_of(all.pixel[k] as usize).i
-                > brightest_edge_on(
-                    &model,
-                    light.intensity,
-                    camera,
-                    all.pixel[k] as usize,
-                    w,
-                    lnz[k],
-                    (mx, my),
-                ) + margin
+            && px.i
+                > brightest_edge_on(&model, light.intensity, camera, &px, lnz[k], (mx, my)) + margin
     });
     // With the light at the camera the equation needs nothing from the outline (the vase,
     // whose cut ends contradict 8% of its outline, is solved within 4° there); off it, where
@@ -1527,8 +1520,8 @@ fn fill_harmonic(u: &Unknowns, v: &mut [f64], known: &[bool]) -> usize {
     reached.iter().filter(|&&r| !r).count()
 }
 
-/// The brightest an occluding contour can make outline pixel `pix` (of an image `w` wide) at
-/// ln-depth `lnz`, its outward direction in the image the unit (mx, my) (x right, y up): the
+/// The brightest an occluding contour can make outline pixel `px` at ln-depth `lnz`, its
+/// outward direction in the image the unit (mx, my) (x right, y up): the
 /// largest predicted brightness over the normals n(t) = √(1 − t²) n₀ + t·(towards the camera),
 /// t ∈ (0, [`occluding::MAX_RIM_NZ`]], n₀ the normal at right angles to the pixel's ray whose
 /// projection points along (mx, my) (the contour's normal under perspective). Infinite (no
@@ -1537,15 +1530,12 @@ fn brightest_edge_on(
     model: &Model,
     intensity: f64,
     camera: &Intrinsics,
-    pix: usize,
-    w: usize,
+    px: &Pixel,
     lnz: f64,
     (mx, my): (f64, f64),
 ) -> f64 {
-    let (c, r) = ((pix % w) as f64, (pix / w) as f64);
-    let (xi, eta) = ((c - camera.cx) / camera.fx, (r - camera.cy) / camera.fy);
-    let ray = Vector3::new(xi, eta, 1.0).normalize();
-    let x = Vector3::new(xi, eta, 1.0) * lnz.exp();
+    let ray = Vector3::new(px.xi, px.eta, 1.0).normalize();
+    let x = Vector3::new(px.xi, px.eta, 1.0) * lnz.exp();
     // Internal frame: x right, y down. The outward direction and the outline's tangent, as
     // displacements in the plane z = 1.
     let out = Vector3::new(mx / camera.fx, -my / camera.fy, 0.0);
