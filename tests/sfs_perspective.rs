@@ -115,6 +115,11 @@ fn solve_with(c: &Capture, refine: Option<RefineOptions>) -> SfsResult {
     )
 }
 
+/// Whether one of `out`'s warnings holds `words`.
+fn warns(out: &SfsResult, words: &str) -> bool {
+    out.report.warnings.iter().any(|w| w.contains(words))
+}
+
 struct Scores {
     normals_deg: f64,
     normals_solved_deg: f64,
@@ -415,10 +420,7 @@ fn a_refinement_cut_short_says_so() {
     assert!(!r.converged && r.iterations == 1, "{r:?}");
     assert!(r.energy_end < r.energy_start, "{r:?}");
     assert!(
-        out.report
-            .warnings
-            .iter()
-            .any(|w| w.contains("refinement stopped at its limit of 1 step")),
+        warns(&out, "refinement stopped at its limit of 1 step"),
         "{:?}",
         out.report.warnings
     );
@@ -560,11 +562,7 @@ fn the_outline_is_tested_against_the_image() {
                     .report
                     .occluding
                     .expect("the outline lies inside the image");
-                let warned = out
-                    .report
-                    .warnings
-                    .iter()
-                    .any(|w| w.contains("not an occluding contour along"));
+                let warned = warns(&out, "not an occluding contour along");
                 println!(
                     "{} light {slant}° at {azimuth}°, noise {noise}, albedo ×{albedo}: {} of {} \
                      outline pixels contradict ({:.1}%), warned {warned}",
@@ -648,10 +646,7 @@ fn a_silhouette_seen_with_unequal_focal_lengths_passes_the_outline_test() {
     );
     assert!(t.pixels > 100 && t.contradicted == 0, "{t:?}");
     assert!(
-        !out.report
-            .warnings
-            .iter()
-            .any(|w| w.contains("not an occluding contour along")),
+        !warns(&out, "not an occluding contour along"),
         "{:?}",
         out.report.warnings
     );
@@ -778,9 +773,11 @@ fn a_refinement_discarded_after_a_half_resolution_move_returns_the_moved_start()
     );
     assert_eq!(r.energy_end, r.energy_start, "{r:?}");
     assert!(
-        out.report.warnings.iter().any(|w| w.contains(
-            "the depth is that start, the swept solution as its refinement at half resolution moved it"
-        )),
+        warns(
+            &out,
+            "the depth is that start, the swept solution as its refinement at half resolution \
+             moved it"
+        ),
         "{:?}",
         out.report.warnings
     );
@@ -825,11 +822,7 @@ fn a_solution_that_contradicts_its_occluding_contour_says_so() {
         let out = solve_with(&c, Some(RefineOptions::default()));
         let s = score(&out, &c.truth);
         let o = out.report.outline.expect("the outline is inside the image");
-        let says = out
-            .report
-            .warnings
-            .iter()
-            .any(|w| w.contains("contradicts the occluding boundary it assumed"));
+        let says = warns(&out, "contradicts the occluding boundary it assumed");
         println!(
             "{} 64², {light:?}: {:.2}°, {:.2}%; outline {:.0}% of {} misaligned (mean {:.1}°), \
              warned {says}",
